@@ -1,0 +1,176 @@
+//! Pinhole cameras in the Blender / OpenGL convention and the rays they cast.
+//!
+//! A pose is camera-to-world: the camera looks down its own -Z axis, +Y is up, +X right.
+//! Pixel (i, j) (column, row) has camera-space direction
+//! `((i + 0.5 - cx) / fx, -(j + 0.5 - cy) / fy, -1)`, rotated into the world by the pose.
+//! Directions are *not* normalised, so the marching parameter `t` is depth along -Z.
+
+use crate::math::{cross, normalize_or_zero, scale, sub, V3};
+
+/// Camera-to-world transform: rotation columns are the camera's X, Y, Z axes in the world.
+pub type Pose = [[f32; 4]; 3];
+
+/// One camera: image size, intrinsics and pose.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Camera {
+    pub width: usize,
+    pub height: usize,
+    pub fx: f32,
+    pub fy: f32,
+    pub cx: f32,
+    pub cy: f32,
+    pub c2w: Pose,
+}
+
+/// A ray `o + t d`, with `d` unnormalised (see the module docs).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Ray {
+    pub origin: V3,
+    pub dir: V3,
+}
+
+impl Camera {
+    /// A camera with square pixels and the principal point in the image centre, from the
+    /// horizontal field of view (Blender's `camera_angle_x`): `f = 0.5 W / tan(0.5 fov)`.
+    pub fn from_fov_x(width: usize, height: usize, fov_x: f32, c2w: Pose) -> Camera {
+        let f = 0.5 * width as f32 / (0.5 * fov_x).tan();
+        Camera {
+            width,
+            height,
+            fx: f,
+            fy: f,
+            cx: 0.5 * width as f32,
+            cy: 0.5 * height as f32,
+            c2w,
+        }
+    }
+
+    /// The same view at `1/factor` of the resolution (intrinsics scaled to match).
+    pub fn downscaled(&self, factor: usize) -> Camera {
+        let s = 1.0 / factor as f32;
+        Camera {
+            width: self.width / factor,
+            height: self.height / factor,
+            fx: self.fx * s,
+            fy: self.fy * s,
+            cx: self.cx * s,
+            cy: self.cy * s,
+            c2w: self.c2w,
+        }
+    }
+
+    pub fn origin(&self) -> V3 {
+        [self.c2w[0][3], self.c2w[1][3], self.c2w[2][3]]
+    }
+
+    /// The ray through the centre of pixel (column `i`, row `j`).
+    #[inline]
+    pub fn ray(&self, i: usize, j: usize) -> Ray {
+        self.ray_at(i as f32 + 0.5, j as f32 + 0.5)
+    }
+
+    /// The ray through the continuous image point (x, y), in pixels from the top-left corner.
+    #[inline]
+    pub fn ray_at(&self, x: f32, y: f32) -> Ray {
+        let d_cam = [(x - self.cx) / self.fx, -(y - self.cy) / self.fy, -1.0];
+        let m = &self.c2w;
+        let dir = [
+            m[0][0] * d_cam[0] + m[0][1] * d_cam[1] + m[0][2] * d_cam[2],
+            m[1][0] * d_cam[0] + m[1][1] * d_cam[1] + m[1][2] * d_cam[2],
+            m[2][0] * d_cam[0] + m[2][1] * d_cam[1] + m[2][2] * d_cam[2],
+        ];
+        Ray {
+            origin: self.origin(),
+            dir,
+        }
+    }
+}
+
+/// A pose at `eye` looking at `target`, with `up` (world) pointing roughly up in the image.
+pub fn look_at(eye: V3, target: V3, up: V3) -> Pose {
+    let z = normalize_or_zero(sub(eye, target)); // camera looks down -Z
+    let x = normalize_or_zero(cross(up, z));
+    let y = cross(z, x);
+    [
+        [x[0], y[0], z[0], eye[0]],
+        [x[1], y[1], z[1], eye[1]],
+        [x[2], y[2], z[2], eye[2]],
+    ]
+}
+
+/// A point on a sphere around the origin: azimuth around +Z, elevation above the XY plane
+/// (both in radians), Blender's Z-up world.
+pub fn spherical(radius: f32, azimuth: f32, elevation: f32) -> V3 {
+    scale(
+        [
+            elevation.cos() * azimuth.cos(),
+            elevation.cos() * azimuth.sin(),
+            elevation.sin(),
+        ],
+        radius,
+    )
+}
+
+/// `frames` poses on a circle around the origin at a fixed elevation, looking at the origin:
+/// the paper's 360-degree videos.
+pub fn orbit(frames: usize, radius: f32, elevation: f32) -> Vec<Pose> {
+    (0..frames)
+        .map(|k| {
+            let az = std::f32::consts::TAU * k as f32 / frames as f32;
+            look_at(
+                spherical(radius, az, elevation),
+                [0.0; 3],
+                [0.0, 0.0, 1.0],
+            )
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::math::{dot, length};
+
+    #[test]
+    fn centre_ray_points_at_target() {
+        let eye = [3.0, 1.0, 2.0];
+        let cam = Camera::from_fov_x(100, 80, 0.7, look_at(eye, [0.0; 3], [0.0, 0.0, 1.0]));
+        let r = cam.ray_at(50.0, 40.0);
+        let to_target = normalize_or_zero(scale(eye, -1.0));
+        assert!((dot(normalize_or_zero(r.dir), to_target) - 1.0).abs() < 1e-6);
+        // Unnormalised: the centre ray has unit length (z component -1 in camera space).
+        assert!((length(r.dir) - 1.0).abs() < 1e-6);
+        assert_eq!(r.origin, eye);
+    }
+
+    #[test]
+    fn image_up_is_world_up_and_right_is_right() {
+        let cam = Camera::from_fov_x(100, 100, 0.7, look_at([0.0, -4.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]));
+        let top = cam.ray_at(50.0, 0.0).dir;
+        let right = cam.ray_at(100.0, 50.0).dir;
+        assert!(top[2] > 0.0, "row 0 looks up: {top:?}");
+        assert!(right[0] > 0.0, "last column looks right (+X from -Y): {right:?}");
+    }
+
+    #[test]
+    fn focal_from_fov() {
+        let cam = Camera::from_fov_x(800, 800, 0.6911112, look_at([0.0, 0.0, 4.0], [0.0; 3], [0.0, 1.0, 0.0]));
+        assert!((cam.fx - 1111.111).abs() < 0.01, "{}", cam.fx);
+        let half = cam.downscaled(2);
+        assert_eq!(half.width, 400);
+        assert!((half.fx - 555.5555).abs() < 0.01);
+        // The same world point maps to the same ray at both resolutions.
+        let a = normalize_or_zero(cam.ray_at(200.0, 300.0).dir);
+        let b = normalize_or_zero(half.ray_at(100.0, 150.0).dir);
+        assert!((dot(a, b) - 1.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn orbit_stays_on_circle() {
+        for p in orbit(12, 4.0, 0.5) {
+            let o = [p[0][3], p[1][3], p[2][3]];
+            assert!((length(o) - 4.0).abs() < 1e-5);
+            assert!((o[2] - 4.0 * 0.5f32.sin()).abs() < 1e-5);
+        }
+    }
+}

@@ -1,0 +1,222 @@
+//! The Blender ("NeRF synthetic") format: `transforms_{train,val,test}.json` beside RGBA PNGs.
+//!
+//! ```json
+//! { "camera_angle_x": 0.69,
+//!   "frames": [ { "file_path": "./train/r_0", "transform_matrix": [[...4 rows of 4...]] } ] }
+//! ```
+//! `file_path` is relative to the JSON file; `.png` is appended when it has no extension.
+//! Matrices are camera-to-world with OpenGL axes. Rays are marched from near 2 to far 6.
+
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::{Dataset, RgbaImage, Split, View};
+use crate::camera::{Camera, Pose};
+use crate::error::{NerfError, Result};
+
+/// The JSON document of one split.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Transforms {
+    pub camera_angle_x: f32,
+    pub frames: Vec<Frame>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct Frame {
+    pub file_path: String,
+    pub transform_matrix: Vec<Vec<f32>>,
+    /// Ground-truth depth written by `nerf synth` (16-bit PNG, millimetres), if any.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_file_path: Option<String>,
+}
+
+/// Near and far bounds of the Blender scenes.
+pub const NEAR: f32 = 2.0;
+pub const FAR: f32 = 6.0;
+
+/// Path of the JSON file of `split` in `dir`.
+pub fn transforms_path(dir: &Path, split: Split) -> PathBuf {
+    dir.join(format!("transforms_{}.json", split.name()))
+}
+
+/// Loads one split, area-downscaling images by `downscale` (1 = full size).
+pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
+    let json_path = transforms_path(dir, split);
+    let transforms: Transforms = crate::io::read_json(&json_path)?;
+    if transforms.frames.is_empty() {
+        return Err(NerfError::format(&json_path, "lists no frames"));
+    }
+    if !(transforms.camera_angle_x > 0.0 && transforms.camera_angle_x < std::f32::consts::PI) {
+        return Err(NerfError::format(
+            &json_path,
+            format!("camera_angle_x {} is not an angle in (0, pi)", transforms.camera_angle_x),
+        ));
+    }
+    let base = json_path.parent().unwrap_or(Path::new("."));
+    let downscale = downscale.max(1);
+    let views = transforms
+        .frames
+        .par_iter()
+        .enumerate()
+        .map(|(k, frame)| {
+            let pose = parse_pose(&frame.transform_matrix).map_err(|m| {
+                NerfError::format(&json_path, format!("frame {k} ({}): {m}", frame.file_path))
+            })?;
+            let image_path = image_path(base, &frame.file_path);
+            let image = RgbaImage::load(&image_path)?.downscale(downscale);
+            let camera = Camera::from_fov_x(image.width, image.height, transforms.camera_angle_x, pose);
+            Ok(View {
+                camera,
+                image,
+                name: frame.file_path.clone(),
+            })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let (w0, h0) = (views[0].image.width, views[0].image.height);
+    if let Some(bad) = views.iter().find(|v| (v.image.width, v.image.height) != (w0, h0)) {
+        return Err(NerfError::format(
+            image_path(base, &bad.name),
+            format!(
+                "image is {}x{} but {} is {w0}x{h0}; all images of a split must have one size",
+                bad.image.width, bad.image.height, views[0].name
+            ),
+        ));
+    }
+    if w0 == 0 || h0 == 0 {
+        return Err(NerfError::Config(format!(
+            "--downscale {downscale} leaves no pixels of the {} images",
+            split.name()
+        )));
+    }
+    Ok(Dataset {
+        views,
+        near: NEAR,
+        far: FAR,
+    })
+}
+
+/// `file_path` resolved against the JSON's folder, with `.png` added when it has no extension.
+pub fn image_path(base: &Path, file_path: &str) -> PathBuf {
+    let p = base.join(file_path);
+    if p.extension().is_none() {
+        p.with_extension("png")
+    } else {
+        p
+    }
+}
+
+/// Checks a 4x4 (or 3x4) camera-to-world matrix and keeps its top three rows.
+pub fn parse_pose(m: &[Vec<f32>]) -> std::result::Result<Pose, String> {
+    if !(m.len() == 4 || m.len() == 3) || m.iter().any(|row| row.len() != 4) {
+        let shape: Vec<usize> = m.iter().map(|r| r.len()).collect();
+        return Err(format!("transform_matrix must be 4x4, got rows of lengths {shape:?}"));
+    }
+    if m.iter().flatten().any(|v| !v.is_finite()) {
+        return Err("transform_matrix has a non-finite entry".into());
+    }
+    let mut pose = [[0.0; 4]; 3];
+    for (r, row) in pose.iter_mut().enumerate() {
+        row.copy_from_slice(&m[r]);
+    }
+    Ok(pose)
+}
+
+/// Writes the JSON of one split atomically.
+pub fn save_transforms(dir: &Path, split: Split, transforms: &Transforms) -> Result<()> {
+    crate::io::write_json(&transforms_path(dir, split), transforms)
+}
+
+/// The pose as the 4x4 nested list the format stores.
+pub fn pose_to_matrix(pose: &Pose) -> Vec<Vec<f32>> {
+    let mut m: Vec<Vec<f32>> = pose.iter().map(|r| r.to_vec()).collect();
+    m.push(vec![0.0, 0.0, 0.0, 1.0]);
+    m
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::image::save_rgba_png;
+
+    fn write_scene(dir: &Path, matrix: Vec<Vec<f32>>, sizes: &[(usize, usize)]) {
+        std::fs::create_dir_all(dir.join("train")).expect("mkdir");
+        let mut frames = Vec::new();
+        for (k, &(w, h)) in sizes.iter().enumerate() {
+            let name = format!("./train/r_{k}");
+            save_rgba_png(&dir.join(format!("train/r_{k}.png")), w, h, &vec![0.5; w * h * 4]).expect("png");
+            frames.push(Frame {
+                file_path: name,
+                transform_matrix: matrix.clone(),
+                depth_file_path: None,
+            });
+        }
+        let t = Transforms {
+            camera_angle_x: 0.69,
+            frames,
+        };
+        save_transforms(dir, Split::Train, &t).expect("json");
+    }
+
+    fn identity() -> Vec<Vec<f32>> {
+        (0..4).map(|r| (0..4).map(|c| if r == c { 1.0 } else { 0.0 }).collect()).collect()
+    }
+
+    #[test]
+    fn loads_and_downscales() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_scene(dir.path(), identity(), &[(8, 6), (8, 6)]);
+        let ds = load(dir.path(), Split::Train, 2).expect("load");
+        assert_eq!(ds.views.len(), 2);
+        assert_eq!(ds.image_size(), (4, 3));
+        let f = 0.5 * 4.0 / (0.5f32 * 0.69).tan();
+        assert!((ds.views[0].camera.fx - f).abs() < 1e-4);
+    }
+
+    #[test]
+    fn errors_name_the_problem() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let mut bad = identity();
+        bad[1].pop();
+        write_scene(dir.path(), bad, &[(4, 4)]);
+        let err = load(dir.path(), Split::Train, 1).expect_err("3-wide row");
+        assert!(err.to_string().contains("must be 4x4"), "{err}");
+
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_scene(dir.path(), identity(), &[(4, 4), (5, 4)]);
+        let err = load(dir.path(), Split::Train, 1).expect_err("sizes differ");
+        assert!(err.to_string().contains("r_1.png") && err.to_string().contains("5x4"), "{err}");
+
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_scene(dir.path(), identity(), &[(4, 4)]);
+        std::fs::remove_file(dir.path().join("train/r_0.png")).expect("rm");
+        let err = load(dir.path(), Split::Train, 1).expect_err("missing image");
+        assert!(err.to_string().contains("r_0.png"), "{err}");
+
+        std::fs::write(transforms_path(dir.path(), Split::Train), "{ \"frames\": [").expect("write");
+        let err = load(dir.path(), Split::Train, 1).expect_err("bad json");
+        assert!(err.to_string().contains("transforms_train.json") && err.to_string().contains("JSON"), "{err}");
+
+        let err = load(dir.path(), Split::Val, 1).expect_err("missing split");
+        assert!(err.to_string().contains("transforms_val.json"), "{err}");
+    }
+
+    #[test]
+    fn real_lego_if_present() {
+        let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data/lego_400");
+        if !dir.exists() {
+            eprintln!("skipping: {} is absent", dir.display());
+            return;
+        }
+        let ds = load(&dir, Split::Val, 4).expect("lego val");
+        assert_eq!(ds.views.len(), 100);
+        assert_eq!(ds.image_size(), (100, 100));
+        let v = &ds.views[0];
+        // Cameras sit about 4 units from the origin and look at it.
+        let o = v.camera.origin();
+        let r = (o[0] * o[0] + o[1] * o[1] + o[2] * o[2]).sqrt();
+        assert!((r - 4.03).abs() < 0.1, "radius {r}");
+        assert!(v.image.has_transparency());
+    }
+}

@@ -1,0 +1,20 @@
+//! `nerf`: neural radiance fields (Mildenhall et al., ECCV 2020) on a plain CPU.
+//!
+//! Data flows one way: [`data`] (posed images) -> [`camera`] rays -> [`render::sampling`]
+//! -> [`field`] (the MLP) -> [`render::volume`] (compositing) -> loss, and gradients flow
+//! back the same way into [`nn::Adam`]. [`train`] runs that loop with checkpoints;
+//! [`eval`] measures PSNR / SSIM; [`data::synth`] renders the built-in scenes.
+
+pub mod camera;
+pub mod data;
+pub mod encoding;
+pub mod error;
+pub mod field;
+pub mod io;
+pub mod math;
+pub mod model;
+pub mod nn;
+pub mod render;
+pub mod rng;
+
+pub use error::{NerfError, Result};

@@ -1,0 +1,9 @@
+//! Dense networks by hand: a flat parameter vector with named slices, matrix products via
+//! the `gemm` crate, Adam, and Glorot initialisation.
+
+pub mod adam;
+pub mod linalg;
+pub mod params;
+
+pub use adam::Adam;
+pub use params::{ParamLayout, Tensor};
