@@ -6,15 +6,20 @@
 //! [`eval`] measures PSNR / SSIM; [`data::synth`] renders the built-in scenes.
 
 pub mod camera;
+pub mod checkpoint;
 pub mod data;
 pub mod encoding;
 pub mod error;
+pub mod eval;
 pub mod field;
 pub mod io;
 pub mod math;
 pub mod model;
 pub mod nn;
+pub mod presets;
 pub mod render;
+pub mod renderer;
 pub mod rng;
+pub mod train;
 
 pub use error::{NerfError, Result};

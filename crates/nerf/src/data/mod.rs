@@ -5,7 +5,7 @@
 
 pub mod blender;
 pub mod image;
-//pub mod synth;
+pub mod synth;
 
 use serde::{Deserialize, Serialize};
 

@@ -1,0 +1,144 @@
+//! Checkpoints: weights, Adam moments, step and random state in one `safetensors` file.
+//!
+//! Tensors are stored under the model's names (`coarse.pts_0.weight`, ...), Adam's moments
+//! under `adam.m.<name>` and `adam.v.<name>`. The header metadata holds the step, the Adam
+//! step count, the seed and the training time so far. The random state of a run is fully
+//! determined by `(seed, step)` (see `rng`), so nothing else is needed to resume exactly.
+//! Files are written to a temporary name and renamed, so a crash never leaves a torn file.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+
+use crate::error::{NerfError, Result};
+use crate::nn::ParamLayout;
+
+const FORMAT: &str = "nerf-checkpoint-1";
+
+/// Everything needed to continue a run.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Checkpoint {
+    pub step: u64,
+    pub seed: u64,
+    pub elapsed_seconds: f64,
+    pub params: Vec<f32>,
+    pub adam_m: Vec<f32>,
+    pub adam_v: Vec<f32>,
+    pub adam_t: u64,
+}
+
+fn bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Writes `ckpt` (laid out by `layout`) to `path` atomically.
+pub fn save(path: &Path, layout: &ParamLayout, ckpt: &Checkpoint) -> Result<()> {
+    let groups = [("", &ckpt.params), ("adam.m.", &ckpt.adam_m), ("adam.v.", &ckpt.adam_v)];
+    let mut owned = Vec::new();
+    for (prefix, values) in groups {
+        for t in &layout.tensors {
+            owned.push((format!("{prefix}{}", t.name), t.shape.clone(), bytes(&values[t.range()])));
+        }
+    }
+    let views = owned
+        .iter()
+        .map(|(name, shape, data)| {
+            TensorView::new(Dtype::F32, shape.clone(), data).map(|v| (name.clone(), v))
+        })
+        .collect::<std::result::Result<Vec<_>, _>>()
+        .map_err(|e| problem(path, e))?;
+    let meta = HashMap::from([
+        ("format".to_string(), FORMAT.to_string()),
+        ("step".to_string(), ckpt.step.to_string()),
+        ("seed".to_string(), ckpt.seed.to_string()),
+        ("adam_t".to_string(), ckpt.adam_t.to_string()),
+        ("elapsed_seconds".to_string(), ckpt.elapsed_seconds.to_string()),
+    ]);
+    let data = safetensors::serialize(views, Some(meta)).map_err(|e| problem(path, e))?;
+    crate::io::write_atomic(path, &data)
+}
+
+/// Reads a checkpoint and checks that it has every tensor of `layout` with the same shape.
+pub fn load(path: &Path, layout: &ParamLayout) -> Result<Checkpoint> {
+    let data = std::fs::read(path).map_err(|e| NerfError::io(path, e))?;
+    let st = SafeTensors::deserialize(&data).map_err(|e| problem(path, e))?;
+    let (_, header) = SafeTensors::read_metadata(&data).map_err(|e| problem(path, e))?;
+    let meta = header.metadata().clone().unwrap_or_default();
+    if meta.get("format").map(String::as_str) != Some(FORMAT) {
+        return Err(problem(path, "not a nerf checkpoint (metadata `format` missing or different)"));
+    }
+    let num = |key: &str| -> Result<f64> {
+        meta.get(key)
+            .and_then(|v| v.parse::<f64>().ok())
+            .ok_or_else(|| problem(path, format!("metadata `{key}` missing or not a number")))
+    };
+    let read_group = |prefix: &str| -> Result<Vec<f32>> {
+        let mut out = vec![0.0f32; layout.total];
+        for t in &layout.tensors {
+            let name = format!("{prefix}{}", t.name);
+            let view = st.tensor(&name).map_err(|_| problem(path, format!("tensor `{name}` is missing; was it saved by another model configuration?")))?;
+            if view.dtype() != Dtype::F32 || view.shape() != t.shape.as_slice() {
+                return Err(problem(path, format!("tensor `{name}` is {:?} {:?}, expected F32 {:?}", view.dtype(), view.shape(), t.shape)));
+            }
+            for (o, b) in out[t.range()].iter_mut().zip(view.data().chunks_exact(4)) {
+                *o = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            }
+        }
+        Ok(out)
+    };
+    Ok(Checkpoint {
+        step: num("step")? as u64,
+        seed: meta.get("seed").and_then(|v| v.parse().ok()).ok_or_else(|| problem(path, "metadata `seed` missing"))?,
+        elapsed_seconds: num("elapsed_seconds")?,
+        adam_t: num("adam_t")? as u64,
+        params: read_group("")?,
+        adam_m: read_group("adam.m.")?,
+        adam_v: read_group("adam.v.")?,
+    })
+}
+
+fn problem(path: &Path, e: impl std::fmt::Display) -> NerfError {
+    NerfError::Checkpoint {
+        path: path.to_path_buf(),
+        message: e.to_string(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layout() -> ParamLayout {
+        let mut l = ParamLayout::default();
+        l.push("a.weight", &[2, 3]);
+        l.push("a.bias", &[3]);
+        l
+    }
+
+    #[test]
+    fn round_trip_and_errors() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("ckpt.safetensors");
+        let ckpt = Checkpoint {
+            step: 42,
+            seed: u64::MAX - 3,
+            elapsed_seconds: 1.5,
+            params: (0..9).map(|i| i as f32 * 0.5).collect(),
+            adam_m: vec![0.25; 9],
+            adam_v: vec![0.125; 9],
+            adam_t: 42,
+        };
+        save(&path, &layout(), &ckpt).expect("save");
+        assert!(!crate::io::tmp_path(&path).exists());
+        assert_eq!(load(&path, &layout()).expect("load"), ckpt);
+
+        let mut other = ParamLayout::default();
+        other.push("a.weight", &[3, 3]);
+        let err = load(&path, &other).expect_err("shape mismatch");
+        assert!(err.to_string().contains("a.weight") && err.to_string().contains("ckpt.safetensors"), "{err}");
+
+        std::fs::write(&path, b"garbage").expect("write");
+        assert!(load(&path, &layout()).is_err());
+    }
+}

@@ -1,0 +1,78 @@
+//! Rendering whole images from a trained model.
+//!
+//! Work mapping: the image's rays are cut into chunks; rayon hands chunks to threads, each
+//! with its own workspace, and every chunk writes only its own slice of the output.
+
+use rayon::prelude::*;
+
+use crate::camera::Camera;
+use crate::model::Model;
+use crate::render::pipeline::{render_chunk, ChunkWorkspace, Rays};
+use crate::render::volume::RayOutput;
+
+/// Per-pixel results of one view.
+#[derive(Clone, Debug)]
+pub struct RenderedView {
+    pub width: usize,
+    pub height: usize,
+    /// Packed RGB in [0, 1], composited over the background.
+    pub rgb: Vec<f32>,
+    /// Expected depth `sum w_i t_i` (0 where nothing was hit).
+    pub depth: Vec<f32>,
+    pub opacity: Vec<f32>,
+}
+
+/// Renders `camera`'s view; `on_rows` is called with the number of rays finished so far.
+pub fn render_view(model: &Model, params: &[f32], camera: &Camera, near: f32, far: f32, bg: [f32; 3], chunk_rays: usize, on_progress: &(dyn Fn(usize) + Sync)) -> RenderedView {
+    let (w, h) = (camera.width, camera.height);
+    let mut out = vec![RayOutput::default(); w * h];
+    let chunk = chunk_rays.max(1);
+    let done = std::sync::atomic::AtomicUsize::new(0);
+    out.par_chunks_mut(chunk).enumerate().for_each_init(
+        || (ChunkWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
+        |(ws, origins, dirs, bgs), (c, out)| {
+            origins.clear();
+            dirs.clear();
+            bgs.clear();
+            for p in c * chunk..c * chunk + out.len() {
+                let ray = camera.ray(p % w, p / w);
+                origins.extend_from_slice(&ray.origin);
+                dirs.extend_from_slice(&ray.dir);
+                bgs.extend_from_slice(&bg);
+            }
+            let rays = Rays {
+                origins,
+                dirs,
+                backgrounds: bgs,
+                near,
+                far,
+            };
+            render_chunk(model, params, &rays, ws, out);
+            let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
+            on_progress(n);
+        },
+    );
+    RenderedView {
+        width: w,
+        height: h,
+        rgb: out.iter().flat_map(|o| o.rgb).collect(),
+        depth: out.iter().map(|o| o.depth).collect(),
+        opacity: out.iter().map(|o| o.opacity).collect(),
+    }
+}
+
+impl RenderedView {
+    /// Depth as a grey image: near is white, far is dark, empty pixels black (scaled by
+    /// opacity so soft edges stay soft).
+    pub fn depth_image(&self, near: f32, far: f32) -> Vec<f32> {
+        self.depth
+            .iter()
+            .zip(&self.opacity)
+            .flat_map(|(&d, &a)| {
+                let z = if a > 1e-4 { d / a } else { far };
+                let v = (1.0 - (z - near) / (far - near)).clamp(0.0, 1.0) * a.clamp(0.0, 1.0);
+                [v, v, v]
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,241 @@
+//! A training run on disk: `config.json`, `checkpoint.safetensors`, `metrics.jsonl` and
+//! validation images in `val/`. Runs stop at a step count or a wall-clock budget, whichever
+//! comes first, always leaving a checkpoint; `resume` continues from it exactly.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use serde::{Deserialize, Serialize};
+
+use super::{StepStats, TrainConfig, Trainer};
+use crate::checkpoint::{self, Checkpoint};
+use crate::data::{blender, image::save_rgb_png, Split, View};
+use crate::error::{NerfError, Result};
+use crate::model::Model;
+
+pub const CONFIG_FILE: &str = "config.json";
+pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+pub const METRICS_FILE: &str = "metrics.jsonl";
+
+/// How to run (beyond the config that defines the run).
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub out: PathBuf,
+    pub config: TrainConfig,
+    /// Stop after this much wall-clock time in this session.
+    pub minutes: Option<f64>,
+    /// Continue the run in `out` from its checkpoint (its saved config wins).
+    pub resume: bool,
+}
+
+/// Why a run stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum StopReason {
+    /// All configured steps are done.
+    Steps,
+    /// The `--minutes` budget ran out.
+    TimeBudget,
+}
+
+/// What a run reports as it goes.
+#[derive(Debug)]
+pub enum Event<'a> {
+    Started { config: &'a TrainConfig, views: usize, width: usize, height: usize, params: usize, resumed_from: Option<u64> },
+    Step(&'a StepStats),
+    Validation { step: u64, psnr: f32, image: &'a Path },
+    Checkpoint { step: u64 },
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RunSummary {
+    pub steps: u64,
+    pub reason: StopReason,
+    pub seconds: f64,
+    pub last_psnr: f32,
+}
+
+/// A trained model loaded from a run folder, for evaluation and rendering.
+pub struct LoadedRun {
+    pub config: TrainConfig,
+    pub model: Model,
+    pub params: Vec<f32>,
+    pub step: u64,
+}
+
+impl LoadedRun {
+    pub fn open(dir: &Path) -> Result<LoadedRun> {
+        let config: TrainConfig = crate::io::read_json(&dir.join(CONFIG_FILE))?;
+        let model = Model::new(config.model.clone());
+        let ckpt = checkpoint::load(&dir.join(CHECKPOINT_FILE), &model.layout)?;
+        Ok(LoadedRun {
+            config,
+            model,
+            params: ckpt.params,
+            step: ckpt.step,
+        })
+    }
+}
+
+#[derive(Serialize)]
+struct MetricLine {
+    step: u64,
+    loss: f32,
+    psnr: f32,
+    lr: f32,
+    elapsed_s: f64,
+}
+
+#[derive(Serialize)]
+struct ValLine<'a> {
+    step: u64,
+    val_psnr: f32,
+    image: &'a str,
+}
+
+/// Trains the run described by `opts`, calling `on_event` as it goes.
+pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSummary> {
+    let out = &opts.out;
+    let config_path = out.join(CONFIG_FILE);
+    let ckpt_path = out.join(CHECKPOINT_FILE);
+    let config = if opts.resume {
+        if !ckpt_path.exists() {
+            return Err(NerfError::Config(format!("cannot resume: {} does not exist", ckpt_path.display())));
+        }
+        crate::io::read_json::<TrainConfig>(&config_path)?
+    } else {
+        if ckpt_path.exists() {
+            return Err(NerfError::Config(format!(
+                "{} already holds a run; pass --resume to continue it or choose another --out",
+                out.display()
+            )));
+        }
+        opts.config.validate()?;
+        crate::io::create_dir(out)?;
+        crate::io::write_json(&config_path, &opts.config)?;
+        opts.config.clone()
+    };
+
+    let mut data = blender::load(&config.data, Split::Train, config.downscale)?;
+    if let Some(n) = config.train_views {
+        data.keep_evenly(n);
+    }
+    let val_view = validation_view(&config)?;
+    let (width, height) = data.image_size();
+    let views = data.views.len();
+    let mut trainer = Trainer::new(config.clone(), data)?;
+    let mut elapsed_before = 0.0;
+    let mut resumed_from = None;
+    if opts.resume {
+        let ckpt = checkpoint::load(&ckpt_path, &trainer.model.layout)?;
+        trainer.params = ckpt.params;
+        trainer.adam.m = ckpt.adam_m;
+        trainer.adam.v = ckpt.adam_v;
+        trainer.adam.t = ckpt.adam_t;
+        trainer.step = ckpt.step;
+        elapsed_before = ckpt.elapsed_seconds;
+        resumed_from = Some(ckpt.step);
+        truncate_metrics(&out.join(METRICS_FILE), ckpt.step)?;
+    }
+    on_event(Event::Started { config: &config, views, width, height, params: trainer.params.len(), resumed_from });
+
+    let metrics_path = out.join(METRICS_FILE);
+    let mut metrics = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(&metrics_path)
+        .map_err(|e| NerfError::write(&metrics_path, e))?;
+    let start = Instant::now();
+    let budget = opts.minutes.map(|m| m * 60.0);
+    let mut last_psnr = f32::NAN;
+    let save = |trainer: &Trainer, elapsed: f64| -> Result<()> {
+        checkpoint::save(
+            &ckpt_path,
+            &trainer.model.layout,
+            &Checkpoint {
+                step: trainer.step,
+                seed: trainer.config.seed,
+                elapsed_seconds: elapsed,
+                params: trainer.params.clone(),
+                adam_m: trainer.adam.m.clone(),
+                adam_v: trainer.adam.v.clone(),
+                adam_t: trainer.adam.t,
+            },
+        )
+    };
+    let reason = loop {
+        if trainer.step >= config.steps {
+            break StopReason::Steps;
+        }
+        if budget.is_some_and(|b| start.elapsed().as_secs_f64() >= b) {
+            break StopReason::TimeBudget;
+        }
+        let stats = trainer.step()?;
+        last_psnr = stats.psnr;
+        let elapsed = elapsed_before + start.elapsed().as_secs_f64();
+        let line = MetricLine { step: stats.step, loss: stats.loss, psnr: stats.psnr, lr: stats.lr, elapsed_s: elapsed };
+        append_line(&mut metrics, &metrics_path, &line)?;
+        on_event(Event::Step(&stats));
+        if config.val_every > 0 && stats.step % config.val_every == 0 {
+            if let Some(view) = &val_view {
+                let image = out.join("val").join(format!("step_{:07}.png", stats.step));
+                let psnr = validate(&trainer, view, &image)?;
+                let name = image.strip_prefix(out).unwrap_or(&image).to_string_lossy().into_owned();
+                append_line(&mut metrics, &metrics_path, &ValLine { step: stats.step, val_psnr: psnr, image: &name })?;
+                on_event(Event::Validation { step: stats.step, psnr, image: &image });
+            }
+        }
+        if config.checkpoint_every > 0 && stats.step % config.checkpoint_every == 0 {
+            save(&trainer, elapsed)?;
+            on_event(Event::Checkpoint { step: stats.step });
+        }
+    };
+    let seconds = elapsed_before + start.elapsed().as_secs_f64();
+    save(&trainer, seconds)?;
+    on_event(Event::Checkpoint { step: trainer.step });
+    Ok(RunSummary { steps: trainer.step, reason, seconds, last_psnr })
+}
+
+/// The first validation view (first training view if the scene has no val split), at the
+/// validation resolution.
+fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
+    if config.val_every == 0 {
+        return Ok(None);
+    }
+    let split = if blender::transforms_path(&config.data, Split::Val).exists() { Split::Val } else { Split::Train };
+    let mut data = blender::load(&config.data, split, config.downscale * config.val_downscale)?;
+    data.views.truncate(1);
+    Ok(data.views.pop())
+}
+
+fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
+    let bg = trainer.config.background.eval_colour();
+    let r = crate::renderer::render_view(&trainer.model, &trainer.params, &view.camera, trainer.data.near, trainer.data.far, bg, trainer.config.chunk_rays, &|_| {});
+    if let Some(dir) = path.parent() {
+        crate::io::create_dir(dir)?;
+    }
+    save_rgb_png(path, r.width, r.height, &r.rgb)?;
+    Ok(crate::eval::psnr(&r.rgb, &view.image.composite(bg)))
+}
+
+fn append_line<T: Serialize>(file: &mut std::fs::File, path: &Path, value: &T) -> Result<()> {
+    let mut line = serde_json::to_string(value).map_err(|e| NerfError::write(path, std::io::Error::other(e)))?;
+    line.push('\n');
+    file.write_all(line.as_bytes()).map_err(|e| NerfError::write(path, e))
+}
+
+/// Drops metric lines written after the checkpoint a run resumes from.
+fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
+    let Ok(text) = std::fs::read_to_string(path) else { return Ok(()) };
+    let kept: String = text
+        .lines()
+        .filter(|l| {
+            serde_json::from_str::<serde_json::Value>(l)
+                .ok()
+                .and_then(|v| v.get("step").and_then(|s| s.as_u64()))
+                .is_some_and(|s| s <= step)
+        })
+        .flat_map(|l| [l, "\n"])
+        .collect();
+    crate::io::write_atomic(path, kept.as_bytes())
+}
