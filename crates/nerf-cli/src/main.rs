@@ -1,1 +1,66 @@
-fn main(){}
+//! `nerf`: train and render neural radiance fields from the command line.
+
+mod commands;
+mod progress;
+
+use std::path::PathBuf;
+
+use clap::{builder::PossibleValue, Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "nerf", version, about = "Neural radiance fields (Mildenhall et al. 2020) on a CPU")]
+struct Cli {
+    /// Worker threads (default: all cores).
+    #[arg(long, global = true)]
+    threads: Option<usize>,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Render a built-in scene (procedural furniture) as a Blender-format dataset.
+    Synth(commands::SynthArgs),
+    /// Train a radiance field on a Blender-format scene.
+    Train(commands::TrainArgs),
+    /// Render a split of the scene and report PSNR / SSIM per view and on average.
+    Eval(commands::EvalArgs),
+    /// Render the test views or an orbit around the object to PNGs.
+    Render(commands::RenderArgs),
+    /// Built-in scene -> train -> evaluate -> orbit, no data needed.
+    Demo(commands::DemoArgs),
+    /// Throughput of the training step and of rendering on this machine.
+    Bench(commands::BenchArgs),
+}
+
+/// `--preset` values with their one-line descriptions (for `--help`).
+pub fn preset_values() -> Vec<PossibleValue> {
+    nerf::presets::PRESETS.iter().map(|p| PossibleValue::new(p.name).help(p.help)).collect()
+}
+
+/// `PathBuf` of the default run folder for a scene.
+pub fn default_run(data: &std::path::Path, preset: &str) -> PathBuf {
+    let scene = data.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into());
+    PathBuf::from("runs").join(format!("{scene}-{preset}"))
+}
+
+fn main() {
+    let cli = Cli::parse();
+    if let Some(n) = cli.threads {
+        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global() {
+            eprintln!("warning: could not set {n} threads: {e}");
+        }
+    }
+    let result = match cli.command {
+        Command::Synth(a) => commands::synth(a),
+        Command::Train(a) => commands::train(a),
+        Command::Eval(a) => commands::eval(a),
+        Command::Render(a) => commands::render(a),
+        Command::Demo(a) => commands::demo(a),
+        Command::Bench(a) => commands::bench(a),
+    };
+    if let Err(e) = result {
+        eprintln!("error: {e:#}");
+        std::process::exit(1);
+    }
+}

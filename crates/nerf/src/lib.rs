@@ -5,6 +5,7 @@
 //! back the same way into [`nn::Adam`]. [`train`] runs that loop with checkpoints;
 //! [`eval`] measures PSNR / SSIM; [`data::synth`] renders the built-in scenes.
 
+pub mod bench;
 pub mod camera;
 pub mod checkpoint;
 pub mod data;

@@ -220,3 +220,8 @@ mod tests {
         assert!(v.image.has_transparency());
     }
 }
+
+/// Reads just the JSON of a split (no images).
+pub fn load_transforms(dir: &Path, split: Split) -> Result<Transforms> {
+    crate::io::read_json(&transforms_path(dir, split))
+}

@@ -159,6 +159,27 @@ pub fn generate(opts: &SynthOptions, out: &Path, on_image: &mut dyn FnMut(usize,
     Ok(total)
 }
 
+/// One split of a built-in scene rendered in memory (no files), for benchmarks and tests.
+pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Dataset {
+    let scene = Scene::new(opts.scene.parts());
+    let views = poses(split, count, opts.seed)
+        .into_iter()
+        .enumerate()
+        .map(|(k, pose)| {
+            let camera = Camera::from_fov_x(opts.size, opts.size, FOV_X, pose);
+            let mut data = render(&scene, &camera, opts.supersample).rgba;
+            for px in data.chunks_exact_mut(4) {
+                for c in 0..3 {
+                    px[c] *= px[3];
+                }
+            }
+            let image = super::RgbaImage { width: opts.size, height: opts.size, data };
+            super::View { camera, image, name: format!("{}/r_{k}", split.name()) }
+        })
+        .collect();
+    super::Dataset { views, near: super::blender::NEAR, far: super::blender::FAR }
+}
+
 /// The unit direction from the origin to a camera, for tests of the view layout.
 pub fn view_direction(pose: &Pose) -> [f32; 3] {
     normalize_or_zero([pose[0][3], pose[1][3], pose[2][3]])

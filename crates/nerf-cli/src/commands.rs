@@ -1,0 +1,481 @@
+//! One function per subcommand: parse-free glue between the arguments and the library.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use nerf::data::synth::{self, SceneKind, SynthOptions};
+use nerf::data::{blender, image::save_rgb_png, Background, Split};
+use nerf::train::run::{self, Event, LoadedRun, RunOptions, StopReason};
+use nerf::train::TrainConfig;
+
+use crate::progress::bar;
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum SceneArg {
+    Chair,
+    Table,
+    Lamp,
+}
+
+impl SceneArg {
+    fn kind(self) -> SceneKind {
+        match self {
+            SceneArg::Chair => SceneKind::Chair,
+            SceneArg::Table => SceneKind::Table,
+            SceneArg::Lamp => SceneKind::Lamp,
+        }
+    }
+}
+
+#[derive(Args)]
+pub struct SynthArgs {
+    /// Which piece of furniture.
+    #[arg(long, value_enum, default_value = "chair")]
+    scene: SceneArg,
+    /// Output folder (Blender format: transforms_*.json + train/ val/ test/).
+    #[arg(long)]
+    out: PathBuf,
+    /// Square image size in pixels.
+    #[arg(long, default_value_t = 100)]
+    size: usize,
+    #[arg(long, default_value_t = 100)]
+    train_views: usize,
+    #[arg(long, default_value_t = 10)]
+    val_views: usize,
+    #[arg(long, default_value_t = 40)]
+    test_views: usize,
+    /// Anti-aliasing: rays per pixel along each axis.
+    #[arg(long, default_value_t = 2)]
+    supersample: usize,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+}
+
+pub fn synth(a: SynthArgs) -> Result<()> {
+    let opts = SynthOptions {
+        scene: a.scene.kind(),
+        size: a.size,
+        train_views: a.train_views,
+        val_views: a.val_views,
+        test_views: a.test_views,
+        supersample: a.supersample,
+        seed: a.seed,
+    };
+    synth_into(&opts, &a.out)
+}
+
+fn synth_into(opts: &SynthOptions, out: &Path) -> Result<()> {
+    let total = (opts.train_views + opts.val_views + opts.test_views) as u64;
+    let pb = bar(total, &format!("synth {}", opts.scene.name()));
+    let t0 = Instant::now();
+    let n = synth::generate(opts, out, &mut |done, _| pb.set_position(done as u64))?;
+    pb.finish_and_clear();
+    println!("wrote {n} views of the {} ({}x{}) to {} in {:.1} s", opts.scene.name(), opts.size, opts.size, out.display(), t0.elapsed().as_secs_f64());
+    Ok(())
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum BackgroundArg {
+    White,
+    Black,
+    Random,
+}
+
+#[derive(Args)]
+pub struct TrainArgs {
+    /// Scene folder in Blender format (transforms_train.json, ...).
+    #[arg(long)]
+    data: PathBuf,
+    /// Run folder (config.json, checkpoint, metrics.jsonl, val/). Default: runs/<scene>-<preset>.
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Model configuration: the paper's, one of its ablations, or a reduced demo model.
+    #[arg(long, default_value = "paper", value_parser = crate::preset_values())]
+    preset: String,
+    /// Steps to train (the learning rate decays 5e-4 -> 5e-5 over them). Default 200000.
+    #[arg(long)]
+    steps: Option<u64>,
+    /// Wall-clock budget in minutes: stop (with a checkpoint) when it runs out.
+    #[arg(long)]
+    minutes: Option<f64>,
+    /// Rays per step (paper: 4096).
+    #[arg(long, default_value_t = 1024)]
+    batch: usize,
+    /// Initial learning rate.
+    #[arg(long, default_value_t = 5e-4)]
+    lr: f32,
+    /// Background behind transparent pixels; random = a new colour per ray while training.
+    #[arg(long, value_enum, default_value = "white")]
+    background: BackgroundArg,
+    /// Area-average downscale factor of the images.
+    #[arg(long, default_value_t = 1)]
+    downscale: usize,
+    /// Steps of central-crop warm-up (rays from the central half of each image).
+    #[arg(long, default_value_t = 500)]
+    precrop_steps: u64,
+    /// Use the paper's printed positional encoding (sin(2^k pi p), no identity term).
+    #[arg(long)]
+    paper_pe: bool,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Render a validation image every N steps (0: never).
+    #[arg(long, default_value_t = 1000)]
+    val_every: u64,
+    /// Save a checkpoint every N steps.
+    #[arg(long, default_value_t = 500)]
+    checkpoint_every: u64,
+    /// Rays per work unit per thread (memory: about 10 KB x 192 samples per ray).
+    #[arg(long, default_value_t = 64)]
+    chunk: usize,
+    /// Continue the run in --out from its last checkpoint.
+    #[arg(long)]
+    resume: bool,
+}
+
+impl TrainArgs {
+    fn config(&self) -> Result<TrainConfig> {
+        let mut c = TrainConfig::from_preset(self.data.clone(), &self.preset)?;
+        c.steps = self.steps.unwrap_or(c.steps);
+        c.batch_rays = self.batch;
+        c.lr_init = self.lr;
+        c.lr_final = self.lr * 0.1;
+        c.background = match self.background {
+            BackgroundArg::White => Background::White,
+            BackgroundArg::Black => Background::Black,
+            BackgroundArg::Random => Background::Random,
+        };
+        c.downscale = self.downscale;
+        c.precrop_steps = self.precrop_steps;
+        c.model.net.position_encoding.paper_form = self.paper_pe;
+        if let Some(d) = &mut c.model.net.direction_encoding {
+            d.paper_form = self.paper_pe;
+        }
+        c.seed = self.seed;
+        c.val_every = self.val_every;
+        c.checkpoint_every = self.checkpoint_every;
+        c.chunk_rays = self.chunk;
+        Ok(c)
+    }
+}
+
+pub fn train(a: TrainArgs) -> Result<()> {
+    let out = a.out.clone().unwrap_or_else(|| crate::default_run(&a.data, &a.preset));
+    if a.resume {
+        if let Some(steps) = a.steps {
+            // A new target for a resumed run: record it so the schedule and later resumes agree.
+            let path = out.join(run::CONFIG_FILE);
+            let mut c: TrainConfig = nerf::io::read_json(&path)?;
+            c.steps = steps;
+            nerf::io::write_json(&path, &c)?;
+        }
+    }
+    let opts = RunOptions { out: out.clone(), config: a.config()?, minutes: a.minutes, resume: a.resume };
+    let summary = train_with_progress(&opts)?;
+    let why = match summary.reason {
+        StopReason::Steps => "all steps done".to_string(),
+        StopReason::TimeBudget => format!("the {} minute budget ran out", a.minutes.unwrap_or(0.0)),
+    };
+    println!(
+        "stopped after step {} ({why}); {:.1} s of training; last batch PSNR {:.2} dB; checkpoint in {}",
+        summary.steps,
+        summary.seconds,
+        summary.last_psnr,
+        out.join(run::CHECKPOINT_FILE).display()
+    );
+    Ok(())
+}
+
+fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
+    let mut pb = None;
+    let mut last = (Instant::now(), 0u64);
+    let mut rays_per_s = 0.0;
+    let mut batch = 0usize;
+    let summary = run::train(opts, &mut |event| match event {
+        Event::Started { config, views, width, height, params, resumed_from } => {
+            batch = config.batch_rays;
+            let m = &config.model;
+            println!(
+                "training {} on {} ({views} views, {width}x{height}): {}x{} MLP, PE L={}/{}, {} coarse + {} fine samples, {params} parameters, {} rays/step",
+                config.preset,
+                config.data.display(),
+                m.net.depth,
+                m.net.width,
+                m.net.position_encoding.frequencies,
+                m.net.direction_encoding.map_or("off".to_string(), |d| d.frequencies.to_string()),
+                m.n_coarse,
+                m.n_fine,
+                config.batch_rays
+            );
+            if let Some(step) = resumed_from {
+                println!("resuming from the checkpoint at step {step}");
+            }
+            let p = bar(config.steps, "train");
+            p.set_position(resumed_from.unwrap_or(0));
+            p.reset_eta();
+            last = (Instant::now(), resumed_from.unwrap_or(0));
+            pb = Some(p);
+        }
+        Event::Step(s) => {
+            if let Some(p) = &pb {
+                let dt = last.0.elapsed().as_secs_f64();
+                if dt > 1.0 || s.step == last.1 + 1 {
+                    rays_per_s = (s.step - last.1) as f64 * batch as f64 / dt.max(1e-9);
+                    last = (Instant::now(), s.step);
+                }
+                p.set_position(s.step);
+                p.set_message(format!("loss {:.4} psnr {:.2} {:.0} rays/s", s.loss, s.psnr, rays_per_s));
+            }
+        }
+        Event::Validation { step, psnr, image } => {
+            if let Some(p) = &pb {
+                p.println(format!("step {step}: validation PSNR {psnr:.2} dB ({})", image.display()));
+            }
+        }
+        Event::Checkpoint { .. } => {}
+    });
+    if let Some(p) = &pb {
+        p.finish_and_clear();
+    }
+    Ok(summary?)
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum SplitArg {
+    Train,
+    Val,
+    Test,
+}
+
+impl SplitArg {
+    fn split(self) -> Split {
+        match self {
+            SplitArg::Train => Split::Train,
+            SplitArg::Val => Split::Val,
+            SplitArg::Test => Split::Test,
+        }
+    }
+}
+
+#[derive(Args)]
+pub struct EvalArgs {
+    /// Run folder written by `nerf train`.
+    #[arg(long)]
+    run: PathBuf,
+    #[arg(long, value_enum, default_value = "test")]
+    split: SplitArg,
+    /// Evaluate every K-th view only (quick checks).
+    #[arg(long, default_value_t = 1)]
+    every: usize,
+    /// Output folder for images and metrics.json. Default: <run>/eval_<split>.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+pub fn eval(a: EvalArgs) -> Result<()> {
+    let run = LoadedRun::open(&a.run)?;
+    let split = a.split.split();
+    let out = a.out.unwrap_or_else(|| a.run.join(format!("eval_{}", split.name())));
+    eval_run(&run, split, a.every, &out)
+}
+
+fn eval_run(run: &LoadedRun, split: Split, every: usize, out: &Path) -> Result<()> {
+    let total = blender::load_transforms(&run.config.data, split)?.frames.len().div_ceil(every.max(1));
+    let pb = bar(total as u64, &format!("eval {}", split.name()));
+    let report = nerf::eval::evaluate(run, split, every, out, &mut |done, _| pb.set_position(done as u64))?;
+    pb.finish_and_clear();
+    for v in &report.views {
+        println!("  view {:3}  PSNR {:6.2} dB  SSIM {:.4}", v.index, v.psnr, v.ssim);
+    }
+    println!(
+        "{} views of {} at step {} ({}x{}): mean PSNR {:.2} dB, mean SSIM {:.4}; images and metrics.json in {}",
+        report.views.len(),
+        split.name(),
+        report.step,
+        report.width,
+        report.height,
+        report.mean_psnr,
+        report.mean_ssim,
+        out.display()
+    );
+    Ok(())
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+pub enum PathArg {
+    /// The test split's cameras.
+    Test,
+    /// A circle around the object, like the paper's videos.
+    Orbit,
+}
+
+#[derive(Args)]
+pub struct RenderArgs {
+    /// Run folder written by `nerf train`.
+    #[arg(long)]
+    run: PathBuf,
+    #[arg(long, value_enum, default_value = "orbit")]
+    path: PathArg,
+    /// Frames of the orbit.
+    #[arg(long, default_value_t = 40)]
+    frames: usize,
+    /// Orbit elevation in degrees.
+    #[arg(long, default_value_t = 30.0)]
+    elevation: f32,
+    /// Orbit radius (scene units).
+    #[arg(long, default_value_t = 4.0)]
+    radius: f32,
+    /// Square output size for the orbit (default: the training resolution).
+    #[arg(long)]
+    size: Option<usize>,
+    /// Output folder. Default: <run>/render_<path>.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+pub fn render(a: RenderArgs) -> Result<()> {
+    let run = LoadedRun::open(&a.run)?;
+    let name = match a.path {
+        PathArg::Test => "test",
+        PathArg::Orbit => "orbit",
+    };
+    let out = a.out.clone().unwrap_or_else(|| a.run.join(format!("render_{name}")));
+    render_run(&run, &a, &out)
+}
+
+fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
+    let cfg = &run.config;
+    let train_json = blender::load_transforms(&cfg.data, Split::Train)?;
+    let cameras: Vec<nerf::camera::Camera> = match a.path {
+        PathArg::Test => {
+            let t = blender::load_transforms(&cfg.data, Split::Test)?;
+            let size = image_size(&cfg.data, &t, cfg.downscale)?;
+            t.frames
+                .iter()
+                .enumerate()
+                .map(|(k, f)| {
+                    let pose = blender::parse_pose(&f.transform_matrix).map_err(|m| anyhow::anyhow!("test frame {k}: {m}"))?;
+                    Ok(nerf::camera::Camera::from_fov_x(size.0, size.1, t.camera_angle_x, pose))
+                })
+                .collect::<Result<_>>()?
+        }
+        PathArg::Orbit => {
+            let size = match a.size {
+                Some(s) => (s, s),
+                None => image_size(&cfg.data, &train_json, cfg.downscale)?,
+            };
+            nerf::camera::orbit(a.frames.max(1), a.radius, a.elevation.to_radians())
+                .into_iter()
+                .map(|pose| nerf::camera::Camera::from_fov_x(size.0, size.1, train_json.camera_angle_x, pose))
+                .collect()
+        }
+    };
+    nerf::io::create_dir(out)?;
+    let bg = cfg.background.eval_colour();
+    let pb = bar(cameras.len() as u64, "render");
+    let t0 = Instant::now();
+    for (k, cam) in cameras.iter().enumerate() {
+        let r = nerf::renderer::render_view(&run.model, &run.params, cam, blender::NEAR, blender::FAR, bg, cfg.chunk_rays, &|_| {});
+        save_rgb_png(&out.join(format!("frame_{k:04}.png")), r.width, r.height, &r.rgb)?;
+        save_rgb_png(&out.join(format!("frame_{k:04}_depth.png")), r.width, r.height, &r.depth_image(blender::NEAR, blender::FAR))?;
+        pb.set_position(k as u64 + 1);
+    }
+    pb.finish_and_clear();
+    let secs = t0.elapsed().as_secs_f64();
+    println!("rendered {} frames in {:.1} s ({:.2} frames/s) to {}", cameras.len(), secs, cameras.len() as f64 / secs, out.display());
+    Ok(())
+}
+
+/// Size of the scene's images after downscaling, read from the first training image header.
+fn image_size(data: &Path, t: &blender::Transforms, downscale: usize) -> Result<(usize, usize)> {
+    let first = t.frames.first().context("the scene lists no frames")?;
+    let path = blender::image_path(data, &first.file_path);
+    let (w, h) = image_dimensions(&path)?;
+    let d = downscale.max(1);
+    Ok((w / d, h / d))
+}
+
+fn image_dimensions(path: &Path) -> Result<(usize, usize)> {
+    let img = nerf::data::RgbaImage::load(path)?;
+    Ok((img.width, img.height))
+}
+
+#[derive(Args)]
+pub struct DemoArgs {
+    /// Folder for the scene and the run.
+    #[arg(long, default_value = "demo")]
+    out: PathBuf,
+    /// Training steps of the reduced model.
+    #[arg(long, default_value_t = 2000)]
+    steps: u64,
+    /// Image size of the built-in scene.
+    #[arg(long, default_value_t = 64)]
+    size: usize,
+}
+
+pub fn demo(a: DemoArgs) -> Result<()> {
+    let t0 = Instant::now();
+    let data = a.out.join("chair");
+    if !blender::transforms_path(&data, Split::Test).exists() {
+        let opts = SynthOptions { scene: SceneKind::Chair, size: a.size, train_views: 60, val_views: 4, test_views: 20, supersample: 2, seed: 0 };
+        synth_into(&opts, &data)?;
+    } else {
+        println!("using the existing scene in {}", data.display());
+    }
+    let run_dir = a.out.join("run");
+    if run_dir.join(run::CHECKPOINT_FILE).exists() {
+        bail!("{} already holds a trained run: delete it, or use `nerf eval --run {}`", run_dir.display(), run_dir.display());
+    }
+    println!("training the reduced `demo` model (4x64 MLP, 32+32 samples per ray, 512 rays/step), not the paper's 8x256: the paper's takes hours on a CPU");
+    let mut config = TrainConfig::from_preset(data.clone(), "demo")?;
+    config.steps = a.steps;
+    config.batch_rays = 512;
+    config.lr_init = 2e-3;
+    config.lr_final = 2e-4;
+    config.precrop_steps = 100;
+    config.val_every = 500;
+    config.val_downscale = 1;
+    config.checkpoint_every = 500;
+    let opts = RunOptions { out: run_dir.clone(), config, minutes: None, resume: false };
+    let summary = train_with_progress(&opts)?;
+    println!("trained {} steps in {:.1} s", summary.steps, summary.seconds);
+    let run = LoadedRun::open(&run_dir)?;
+    let eval_dir = run_dir.join("eval_test");
+    eval_run(&run, Split::Test, 1, &eval_dir)?;
+    let orbit = RenderArgs { run: run_dir.clone(), path: PathArg::Orbit, frames: 36, elevation: 30.0, radius: 4.0, size: None, out: None };
+    let orbit_dir = run_dir.join("render_orbit");
+    render_run(&run, &orbit, &orbit_dir)?;
+    println!("\ndemo finished in {:.1} s", t0.elapsed().as_secs_f64());
+    println!("  scene:       {}", data.display());
+    println!("  run:         {} (config.json, checkpoint.safetensors, metrics.jsonl, val/)", run_dir.display());
+    println!("  test images: {} (metrics.json)", eval_dir.display());
+    println!("  orbit:       {}", orbit_dir.display());
+    Ok(())
+}
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Rays per training step.
+    #[arg(long, default_value_t = 1024)]
+    rays: usize,
+    /// Timed training steps (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    steps: usize,
+    /// Size of the rendered view (square).
+    #[arg(long, default_value_t = 400)]
+    render_size: usize,
+    /// Rows of that view actually rendered; the full-view time is extrapolated from them.
+    #[arg(long, default_value_t = 8)]
+    render_rows: usize,
+    /// Model preset to measure.
+    #[arg(long, default_value = "paper", value_parser = crate::preset_values())]
+    preset: String,
+}
+
+pub fn bench(a: BenchArgs) -> Result<()> {
+    let opts = nerf::bench::BenchOptions { rays: a.rays, steps: a.steps.max(1), render_size: a.render_size, render_rows: a.render_rows, preset: a.preset };
+    let report = nerf::bench::run(&opts, &mut |line| println!("{line}"))?;
+    println!("{}", serde_json::to_string_pretty(&report)?);
+    Ok(())
+}
