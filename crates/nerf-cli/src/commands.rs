@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::data::{blender, image::save_rgb_png, Background, Split};
+use nerf::renderer::RenderSettings;
 use nerf::train::run::{self, Event, LoadedRun, RunOptions, StopReason};
 use nerf::train::TrainConfig;
 
@@ -72,7 +73,14 @@ fn synth_into(opts: &SynthOptions, out: &Path) -> Result<()> {
     let t0 = Instant::now();
     let n = synth::generate(opts, out, &mut |done, _| pb.set_position(done as u64))?;
     pb.finish_and_clear();
-    println!("wrote {n} views of the {} ({}x{}) to {} in {:.1} s", opts.scene.name(), opts.size, opts.size, out.display(), t0.elapsed().as_secs_f64());
+    println!(
+        "wrote {n} views of the {} ({}x{}) to {} in {:.1} s",
+        opts.scene.name(),
+        opts.size,
+        opts.size,
+        out.display(),
+        t0.elapsed().as_secs_f64()
+    );
     Ok(())
 }
 
@@ -161,7 +169,10 @@ impl TrainArgs {
 }
 
 pub fn train(a: TrainArgs) -> Result<()> {
-    let out = a.out.clone().unwrap_or_else(|| crate::default_run(&a.data, &a.preset));
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| crate::default_run(&a.data, &a.preset));
     if a.resume {
         if let Some(steps) = a.steps {
             // A new target for a resumed run: record it so the schedule and later resumes agree.
@@ -171,11 +182,18 @@ pub fn train(a: TrainArgs) -> Result<()> {
             nerf::io::write_json(&path, &c)?;
         }
     }
-    let opts = RunOptions { out: out.clone(), config: a.config()?, minutes: a.minutes, resume: a.resume };
+    let opts = RunOptions {
+        out: out.clone(),
+        config: a.config()?,
+        minutes: a.minutes,
+        resume: a.resume,
+        pause_at: None,
+    };
     let summary = train_with_progress(&opts)?;
     let why = match summary.reason {
         StopReason::Steps => "all steps done".to_string(),
         StopReason::TimeBudget => format!("the {} minute budget ran out", a.minutes.unwrap_or(0.0)),
+        StopReason::Paused => "paused".to_string(),
     };
     println!(
         "stopped after step {} ({why}); {:.1} s of training; last batch PSNR {:.2} dB; checkpoint in {}",
@@ -193,7 +211,14 @@ fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
     let mut rays_per_s = 0.0;
     let mut batch = 0usize;
     let summary = run::train(opts, &mut |event| match event {
-        Event::Started { config, views, width, height, params, resumed_from } => {
+        Event::Started {
+            config,
+            views,
+            width,
+            height,
+            params,
+            resumed_from,
+        } => {
             batch = config.batch_rays;
             let m = &config.model;
             println!(
@@ -225,12 +250,18 @@ fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
                     last = (Instant::now(), s.step);
                 }
                 p.set_position(s.step);
-                p.set_message(format!("loss {:.4} psnr {:.2} {:.0} rays/s", s.loss, s.psnr, rays_per_s));
+                p.set_message(format!(
+                    "loss {:.4} psnr {:.2} {:.0} rays/s",
+                    s.loss, s.psnr, rays_per_s
+                ));
             }
         }
         Event::Validation { step, psnr, image } => {
             if let Some(p) = &pb {
-                p.println(format!("step {step}: validation PSNR {psnr:.2} dB ({})", image.display()));
+                p.println(format!(
+                    "step {step}: validation PSNR {psnr:.2} dB ({})",
+                    image.display()
+                ));
             }
         }
         Event::Checkpoint { .. } => {}
@@ -276,17 +307,27 @@ pub struct EvalArgs {
 pub fn eval(a: EvalArgs) -> Result<()> {
     let run = LoadedRun::open(&a.run)?;
     let split = a.split.split();
-    let out = a.out.unwrap_or_else(|| a.run.join(format!("eval_{}", split.name())));
+    let out = a
+        .out
+        .unwrap_or_else(|| a.run.join(format!("eval_{}", split.name())));
     eval_run(&run, split, a.every, &out)
 }
 
 fn eval_run(run: &LoadedRun, split: Split, every: usize, out: &Path) -> Result<()> {
-    let total = blender::load_transforms(&run.config.data, split)?.frames.len().div_ceil(every.max(1));
+    let total = blender::load_transforms(&run.config.data, split)?
+        .frames
+        .len()
+        .div_ceil(every.max(1));
     let pb = bar(total as u64, &format!("eval {}", split.name()));
-    let report = nerf::eval::evaluate(run, split, every, out, &mut |done, _| pb.set_position(done as u64))?;
+    let report = nerf::eval::evaluate(run, split, every, out, &mut |done, _| {
+        pb.set_position(done as u64)
+    })?;
     pb.finish_and_clear();
     for v in &report.views {
-        println!("  view {:3}  PSNR {:6.2} dB  SSIM {:.4}", v.index, v.psnr, v.ssim);
+        println!(
+            "  view {:3}  PSNR {:6.2} dB  SSIM {:.4}",
+            v.index, v.psnr, v.ssim
+        );
     }
     println!(
         "{} views of {} at step {} ({}x{}): mean PSNR {:.2} dB, mean SSIM {:.4}; images and metrics.json in {}",
@@ -340,7 +381,10 @@ pub fn render(a: RenderArgs) -> Result<()> {
         PathArg::Test => "test",
         PathArg::Orbit => "orbit",
     };
-    let out = a.out.clone().unwrap_or_else(|| a.run.join(format!("render_{name}")));
+    let out = a
+        .out
+        .clone()
+        .unwrap_or_else(|| a.run.join(format!("render_{name}")));
     render_run(&run, &a, &out)
 }
 
@@ -355,8 +399,14 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
                 .iter()
                 .enumerate()
                 .map(|(k, f)| {
-                    let pose = blender::parse_pose(&f.transform_matrix).map_err(|m| anyhow::anyhow!("test frame {k}: {m}"))?;
-                    Ok(nerf::camera::Camera::from_fov_x(size.0, size.1, t.camera_angle_x, pose))
+                    let pose = blender::parse_pose(&f.transform_matrix)
+                        .map_err(|m| anyhow::anyhow!("test frame {k}: {m}"))?;
+                    Ok(nerf::camera::Camera::from_fov_x(
+                        size.0,
+                        size.1,
+                        t.camera_angle_x,
+                        pose,
+                    ))
                 })
                 .collect::<Result<_>>()?
         }
@@ -367,23 +417,51 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
             };
             nerf::camera::orbit(a.frames.max(1), a.radius, a.elevation.to_radians())
                 .into_iter()
-                .map(|pose| nerf::camera::Camera::from_fov_x(size.0, size.1, train_json.camera_angle_x, pose))
+                .map(|pose| {
+                    nerf::camera::Camera::from_fov_x(
+                        size.0,
+                        size.1,
+                        train_json.camera_angle_x,
+                        pose,
+                    )
+                })
                 .collect()
         }
     };
     nerf::io::create_dir(out)?;
-    let bg = cfg.background.eval_colour();
+    let settings = RenderSettings {
+        near: blender::NEAR,
+        far: blender::FAR,
+        background: cfg.background.eval_colour(),
+        chunk_rays: cfg.chunk_rays,
+    };
     let pb = bar(cameras.len() as u64, "render");
     let t0 = Instant::now();
     for (k, cam) in cameras.iter().enumerate() {
-        let r = nerf::renderer::render_view(&run.model, &run.params, cam, blender::NEAR, blender::FAR, bg, cfg.chunk_rays, &|_| {});
-        save_rgb_png(&out.join(format!("frame_{k:04}.png")), r.width, r.height, &r.rgb)?;
-        save_rgb_png(&out.join(format!("frame_{k:04}_depth.png")), r.width, r.height, &r.depth_image(blender::NEAR, blender::FAR))?;
+        let r = nerf::renderer::render_view(&run.model, &run.params, cam, &settings, &|_| {});
+        save_rgb_png(
+            &out.join(format!("frame_{k:04}.png")),
+            r.width,
+            r.height,
+            &r.rgb,
+        )?;
+        save_rgb_png(
+            &out.join(format!("frame_{k:04}_depth.png")),
+            r.width,
+            r.height,
+            &r.depth_image(blender::NEAR, blender::FAR),
+        )?;
         pb.set_position(k as u64 + 1);
     }
     pb.finish_and_clear();
     let secs = t0.elapsed().as_secs_f64();
-    println!("rendered {} frames in {:.1} s ({:.2} frames/s) to {}", cameras.len(), secs, cameras.len() as f64 / secs, out.display());
+    println!(
+        "rendered {} frames in {:.1} s ({:.2} frames/s) to {}",
+        cameras.len(),
+        secs,
+        cameras.len() as f64 / secs,
+        out.display()
+    );
     Ok(())
 }
 
@@ -418,14 +496,26 @@ pub fn demo(a: DemoArgs) -> Result<()> {
     let t0 = Instant::now();
     let data = a.out.join("chair");
     if !blender::transforms_path(&data, Split::Test).exists() {
-        let opts = SynthOptions { scene: SceneKind::Chair, size: a.size, train_views: 60, val_views: 4, test_views: 20, supersample: 2, seed: 0 };
+        let opts = SynthOptions {
+            scene: SceneKind::Chair,
+            size: a.size,
+            train_views: 60,
+            val_views: 4,
+            test_views: 20,
+            supersample: 2,
+            seed: 0,
+        };
         synth_into(&opts, &data)?;
     } else {
         println!("using the existing scene in {}", data.display());
     }
     let run_dir = a.out.join("run");
     if run_dir.join(run::CHECKPOINT_FILE).exists() {
-        bail!("{} already holds a trained run: delete it, or use `nerf eval --run {}`", run_dir.display(), run_dir.display());
+        bail!(
+            "{} already holds a trained run: delete it, or use `nerf eval --run {}`",
+            run_dir.display(),
+            run_dir.display()
+        );
     }
     println!("training the reduced `demo` model (4x64 MLP, 32+32 samples per ray, 512 rays/step), not the paper's 8x256: the paper's takes hours on a CPU");
     let mut config = TrainConfig::from_preset(data.clone(), "demo")?;
@@ -437,18 +527,38 @@ pub fn demo(a: DemoArgs) -> Result<()> {
     config.val_every = 500;
     config.val_downscale = 1;
     config.checkpoint_every = 500;
-    let opts = RunOptions { out: run_dir.clone(), config, minutes: None, resume: false };
+    let opts = RunOptions {
+        out: run_dir.clone(),
+        config,
+        minutes: None,
+        resume: false,
+        pause_at: None,
+    };
     let summary = train_with_progress(&opts)?;
-    println!("trained {} steps in {:.1} s", summary.steps, summary.seconds);
+    println!(
+        "trained {} steps in {:.1} s",
+        summary.steps, summary.seconds
+    );
     let run = LoadedRun::open(&run_dir)?;
     let eval_dir = run_dir.join("eval_test");
     eval_run(&run, Split::Test, 1, &eval_dir)?;
-    let orbit = RenderArgs { run: run_dir.clone(), path: PathArg::Orbit, frames: 36, elevation: 30.0, radius: 4.0, size: None, out: None };
+    let orbit = RenderArgs {
+        run: run_dir.clone(),
+        path: PathArg::Orbit,
+        frames: 36,
+        elevation: 30.0,
+        radius: 4.0,
+        size: None,
+        out: None,
+    };
     let orbit_dir = run_dir.join("render_orbit");
     render_run(&run, &orbit, &orbit_dir)?;
     println!("\ndemo finished in {:.1} s", t0.elapsed().as_secs_f64());
     println!("  scene:       {}", data.display());
-    println!("  run:         {} (config.json, checkpoint.safetensors, metrics.jsonl, val/)", run_dir.display());
+    println!(
+        "  run:         {} (config.json, checkpoint.safetensors, metrics.jsonl, val/)",
+        run_dir.display()
+    );
     println!("  test images: {} (metrics.json)", eval_dir.display());
     println!("  orbit:       {}", orbit_dir.display());
     Ok(())
@@ -474,7 +584,13 @@ pub struct BenchArgs {
 }
 
 pub fn bench(a: BenchArgs) -> Result<()> {
-    let opts = nerf::bench::BenchOptions { rays: a.rays, steps: a.steps.max(1), render_size: a.render_size, render_rows: a.render_rows, preset: a.preset };
+    let opts = nerf::bench::BenchOptions {
+        rays: a.rays,
+        steps: a.steps.max(1),
+        render_size: a.render_size,
+        render_rows: a.render_rows,
+        preset: a.preset,
+    };
     let report = nerf::bench::run(&opts, &mut |line| println!("{line}"))?;
     println!("{}", serde_json::to_string_pretty(&report)?);
     Ok(())

@@ -8,7 +8,11 @@ use std::path::PathBuf;
 use clap::{builder::PossibleValue, Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "nerf", version, about = "Neural radiance fields (Mildenhall et al. 2020) on a CPU")]
+#[command(
+    name = "nerf",
+    version,
+    about = "Neural radiance fields (Mildenhall et al. 2020) on a CPU"
+)]
 struct Cli {
     /// Worker threads (default: all cores).
     #[arg(long, global = true)]
@@ -35,19 +39,28 @@ enum Command {
 
 /// `--preset` values with their one-line descriptions (for `--help`).
 pub fn preset_values() -> Vec<PossibleValue> {
-    nerf::presets::PRESETS.iter().map(|p| PossibleValue::new(p.name).help(p.help)).collect()
+    nerf::presets::PRESETS
+        .iter()
+        .map(|p| PossibleValue::new(p.name).help(p.help))
+        .collect()
 }
 
 /// `PathBuf` of the default run folder for a scene.
 pub fn default_run(data: &std::path::Path, preset: &str) -> PathBuf {
-    let scene = data.file_name().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "scene".into());
+    let scene = data
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into());
     PathBuf::from("runs").join(format!("{scene}-{preset}"))
 }
 
 fn main() {
     let cli = Cli::parse();
     if let Some(n) = cli.threads {
-        if let Err(e) = rayon::ThreadPoolBuilder::new().num_threads(n.max(1)).build_global() {
+        if let Err(e) = rayon::ThreadPoolBuilder::new()
+            .num_threads(n.max(1))
+            .build_global()
+        {
             eprintln!("warning: could not set {n} threads: {e}");
         }
     }

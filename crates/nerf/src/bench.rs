@@ -64,18 +64,33 @@ pub fn gemm_peak(m: usize, k: usize, n: usize, reps: usize) -> (f64, f64) {
     let mut c = vec![0.0f32; m * n];
     let time = |f: &mut dyn FnMut()| {
         f();
-        median((0..reps).map(|_| {
-            let t = Instant::now();
-            f();
-            t.elapsed().as_secs_f64()
-        }).collect())
+        median(
+            (0..reps)
+                .map(|_| {
+                    let t = Instant::now();
+                    f();
+                    t.elapsed().as_secs_f64()
+                })
+                .collect(),
+        )
     };
-    let one = flop / time(&mut || matmul(&mut c, MatRef::new(&a, m, k), MatRef::new(&b, k, n), false)) / 1e9;
-    let split = flop / time(&mut || matmul_parallel(&mut c, MatRef::new(&a, m, k), MatRef::new(&b, k, n), threads)) / 1e9;
+    let one = flop
+        / time(&mut || matmul(&mut c, MatRef::new(&a, m, k), MatRef::new(&b, k, n), false))
+        / 1e9;
+    let split =
+        flop / time(&mut || {
+            matmul_parallel(
+                &mut c,
+                MatRef::new(&a, m, k),
+                MatRef::new(&b, k, n),
+                threads,
+            )
+        }) / 1e9;
     let mut outs: Vec<Vec<f32>> = (0..threads).map(|_| vec![0.0f32; m * n]).collect();
     let independent = threads as f64 * flop
         / time(&mut || {
-            outs.par_iter_mut().for_each(|c| matmul(c, MatRef::new(&a, m, k), MatRef::new(&b, k, n), false));
+            outs.par_iter_mut()
+                .for_each(|c| matmul(c, MatRef::new(&a, m, k), MatRef::new(&b, k, n), false));
         })
         / 1e9;
     (one, split.max(independent))
@@ -86,9 +101,11 @@ pub fn peak_resident_mib() -> f64 {
     std::fs::read_to_string("/proc/self/status")
         .ok()
         .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("VmHWM:"))
-                .and_then(|l| l.split_whitespace().nth(1).and_then(|v| v.parse::<f64>().ok()))
+            s.lines().find(|l| l.starts_with("VmHWM:")).and_then(|l| {
+                l.split_whitespace()
+                    .nth(1)
+                    .and_then(|v| v.parse::<f64>().ok())
+            })
         })
         .map_or(0.0, |kb| kb / 1024.0)
 }
@@ -96,12 +113,21 @@ pub fn peak_resident_mib() -> f64 {
 /// Runs the benchmark, printing progress lines through `say`.
 pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchReport> {
     let threads = rayon::current_num_threads();
-    say(format!("measuring the GEMM peak (16384x256 by 256x256, {threads} threads)..."));
+    say(format!(
+        "measuring the GEMM peak (16384x256 by 256x256, {threads} threads)..."
+    ));
     let (gemm_one, gemm_peak) = gemm_peak(16384, 256, 256, 5);
-    say(format!("  gemm: {gemm_one:.1} GFLOP/s on one thread, peak {gemm_peak:.1} GFLOP/s"));
+    say(format!(
+        "  gemm: {gemm_one:.1} GFLOP/s on one thread, peak {gemm_peak:.1} GFLOP/s"
+    ));
 
     say("rendering a small built-in scene to train on...".into());
-    let synth_opts = SynthOptions { scene: SceneKind::Chair, size: 64, supersample: 1, ..Default::default() };
+    let synth_opts = SynthOptions {
+        scene: SceneKind::Chair,
+        size: 64,
+        supersample: 1,
+        ..Default::default()
+    };
     let data = synth::dataset(&synth_opts, Split::Train, 16);
     let mut config = TrainConfig::from_preset("(in memory)".into(), &opts.preset)?;
     config.batch_rays = opts.rays;
@@ -115,7 +141,12 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
         let t = Instant::now();
         trainer.step()?;
         times.push(t.elapsed().as_secs_f64());
-        say(format!("  training step {}/{}: {:.3} s", k + 1, opts.steps, times[k]));
+        say(format!(
+            "  training step {}/{}: {:.3} s",
+            k + 1,
+            opts.steps,
+            times[k]
+        ));
     }
     let step_s = median(times);
     let gflop_step = opts.rays as f64 * macs_per_ray * 2.0 * 3.0 / 1e9;
@@ -124,10 +155,25 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
     let size = opts.render_size;
     let rows = opts.render_rows.clamp(1, size);
     say(format!("rendering {rows} rows of a {size}x{size} view..."));
-    let full = Camera::from_fov_x(size, size, synth::FOV_X, crate::camera::look_at([0.0, -4.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]));
-    let band = Camera { height: rows, cy: full.cy - (size - rows) as f32 / 2.0, ..full };
+    let full = Camera::from_fov_x(
+        size,
+        size,
+        synth::FOV_X,
+        crate::camera::look_at([0.0, -4.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]),
+    );
+    let band = Camera {
+        height: rows,
+        cy: full.cy - (size - rows) as f32 / 2.0,
+        ..full
+    };
+    let settings = crate::renderer::RenderSettings {
+        near: 2.0,
+        far: 6.0,
+        background: [1.0; 3],
+        chunk_rays: trainer.config.chunk_rays,
+    };
     let t = Instant::now();
-    crate::renderer::render_view(&trainer.model, &trainer.params, &band, 2.0, 6.0, [1.0; 3], trainer.config.chunk_rays, &|_| {});
+    crate::renderer::render_view(&trainer.model, &trainer.params, &band, &settings, &|_| {});
     let render_s = t.elapsed().as_secs_f64();
     let render_rays = (size * rows) as f64;
     let render_gflops = render_rays * macs_per_ray * 2.0 / render_s / 1e9;

@@ -117,11 +117,7 @@ pub fn orbit(frames: usize, radius: f32, elevation: f32) -> Vec<Pose> {
     (0..frames)
         .map(|k| {
             let az = std::f32::consts::TAU * k as f32 / frames as f32;
-            look_at(
-                spherical(radius, az, elevation),
-                [0.0; 3],
-                [0.0, 0.0, 1.0],
-            )
+            look_at(spherical(radius, az, elevation), [0.0; 3], [0.0, 0.0, 1.0])
         })
         .collect()
 }
@@ -145,16 +141,29 @@ mod tests {
 
     #[test]
     fn image_up_is_world_up_and_right_is_right() {
-        let cam = Camera::from_fov_x(100, 100, 0.7, look_at([0.0, -4.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]));
+        let cam = Camera::from_fov_x(
+            100,
+            100,
+            0.7,
+            look_at([0.0, -4.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]),
+        );
         let top = cam.ray_at(50.0, 0.0).dir;
         let right = cam.ray_at(100.0, 50.0).dir;
         assert!(top[2] > 0.0, "row 0 looks up: {top:?}");
-        assert!(right[0] > 0.0, "last column looks right (+X from -Y): {right:?}");
+        assert!(
+            right[0] > 0.0,
+            "last column looks right (+X from -Y): {right:?}"
+        );
     }
 
     #[test]
     fn focal_from_fov() {
-        let cam = Camera::from_fov_x(800, 800, 0.6911112, look_at([0.0, 0.0, 4.0], [0.0; 3], [0.0, 1.0, 0.0]));
+        let cam = Camera::from_fov_x(
+            800,
+            800,
+            0.6911112,
+            look_at([0.0, 0.0, 4.0], [0.0; 3], [0.0, 1.0, 0.0]),
+        );
         assert!((cam.fx - 1111.111).abs() < 0.01, "{}", cam.fx);
         let half = cam.downscaled(2);
         assert_eq!(half.width, 400);

@@ -34,11 +34,19 @@ fn bytes(v: &[f32]) -> Vec<u8> {
 
 /// Writes `ckpt` (laid out by `layout`) to `path` atomically.
 pub fn save(path: &Path, layout: &ParamLayout, ckpt: &Checkpoint) -> Result<()> {
-    let groups = [("", &ckpt.params), ("adam.m.", &ckpt.adam_m), ("adam.v.", &ckpt.adam_v)];
+    let groups = [
+        ("", &ckpt.params),
+        ("adam.m.", &ckpt.adam_m),
+        ("adam.v.", &ckpt.adam_v),
+    ];
     let mut owned = Vec::new();
     for (prefix, values) in groups {
         for t in &layout.tensors {
-            owned.push((format!("{prefix}{}", t.name), t.shape.clone(), bytes(&values[t.range()])));
+            owned.push((
+                format!("{prefix}{}", t.name),
+                t.shape.clone(),
+                bytes(&values[t.range()]),
+            ));
         }
     }
     let views = owned
@@ -53,7 +61,10 @@ pub fn save(path: &Path, layout: &ParamLayout, ckpt: &Checkpoint) -> Result<()> 
         ("step".to_string(), ckpt.step.to_string()),
         ("seed".to_string(), ckpt.seed.to_string()),
         ("adam_t".to_string(), ckpt.adam_t.to_string()),
-        ("elapsed_seconds".to_string(), ckpt.elapsed_seconds.to_string()),
+        (
+            "elapsed_seconds".to_string(),
+            ckpt.elapsed_seconds.to_string(),
+        ),
     ]);
     let data = safetensors::serialize(views, Some(meta)).map_err(|e| problem(path, e))?;
     crate::io::write_atomic(path, &data)
@@ -66,7 +77,10 @@ pub fn load(path: &Path, layout: &ParamLayout) -> Result<Checkpoint> {
     let (_, header) = SafeTensors::read_metadata(&data).map_err(|e| problem(path, e))?;
     let meta = header.metadata().clone().unwrap_or_default();
     if meta.get("format").map(String::as_str) != Some(FORMAT) {
-        return Err(problem(path, "not a nerf checkpoint (metadata `format` missing or different)"));
+        return Err(problem(
+            path,
+            "not a nerf checkpoint (metadata `format` missing or different)",
+        ));
     }
     let num = |key: &str| -> Result<f64> {
         meta.get(key)
@@ -77,9 +91,24 @@ pub fn load(path: &Path, layout: &ParamLayout) -> Result<Checkpoint> {
         let mut out = vec![0.0f32; layout.total];
         for t in &layout.tensors {
             let name = format!("{prefix}{}", t.name);
-            let view = st.tensor(&name).map_err(|_| problem(path, format!("tensor `{name}` is missing; was it saved by another model configuration?")))?;
+            let view = st.tensor(&name).map_err(|_| {
+                problem(
+                    path,
+                    format!(
+                        "tensor `{name}` is missing; was it saved by another model configuration?"
+                    ),
+                )
+            })?;
             if view.dtype() != Dtype::F32 || view.shape() != t.shape.as_slice() {
-                return Err(problem(path, format!("tensor `{name}` is {:?} {:?}, expected F32 {:?}", view.dtype(), view.shape(), t.shape)));
+                return Err(problem(
+                    path,
+                    format!(
+                        "tensor `{name}` is {:?} {:?}, expected F32 {:?}",
+                        view.dtype(),
+                        view.shape(),
+                        t.shape
+                    ),
+                ));
             }
             for (o, b) in out[t.range()].iter_mut().zip(view.data().chunks_exact(4)) {
                 *o = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
@@ -89,7 +118,10 @@ pub fn load(path: &Path, layout: &ParamLayout) -> Result<Checkpoint> {
     };
     Ok(Checkpoint {
         step: num("step")? as u64,
-        seed: meta.get("seed").and_then(|v| v.parse().ok()).ok_or_else(|| problem(path, "metadata `seed` missing"))?,
+        seed: meta
+            .get("seed")
+            .and_then(|v| v.parse().ok())
+            .ok_or_else(|| problem(path, "metadata `seed` missing"))?,
         elapsed_seconds: num("elapsed_seconds")?,
         adam_t: num("adam_t")? as u64,
         params: read_group("")?,
@@ -136,7 +168,10 @@ mod tests {
         let mut other = ParamLayout::default();
         other.push("a.weight", &[3, 3]);
         let err = load(&path, &other).expect_err("shape mismatch");
-        assert!(err.to_string().contains("a.weight") && err.to_string().contains("ckpt.safetensors"), "{err}");
+        assert!(
+            err.to_string().contains("a.weight") && err.to_string().contains("ckpt.safetensors"),
+            "{err}"
+        );
 
         std::fs::write(&path, b"garbage").expect("write");
         assert!(load(&path, &layout()).is_err());

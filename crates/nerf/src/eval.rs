@@ -16,7 +16,12 @@ pub fn psnr_from_mse(mse: f64) -> f32 {
 /// PSNR between two packed images of the same size.
 pub fn psnr(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    let mse = a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum::<f64>() / a.len().max(1) as f64;
+    let mse = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| ((x - y) as f64).powi(2))
+        .sum::<f64>()
+        / a.len().max(1) as f64;
     psnr_from_mse(mse)
 }
 
@@ -27,7 +32,9 @@ pub fn ssim(a: &[f32], b: &[f32], width: usize, height: usize) -> f32 {
     const R: usize = 5;
     let (c1, c2) = (0.01f64.powi(2), 0.03f64.powi(2));
     let g: Vec<f64> = {
-        let raw: Vec<f64> = (0..=2 * R).map(|i| (-((i as f64 - R as f64).powi(2)) / (2.0 * 1.5 * 1.5)).exp()).collect();
+        let raw: Vec<f64> = (0..=2 * R)
+            .map(|i| (-((i as f64 - R as f64).powi(2)) / (2.0 * 1.5 * 1.5)).exp())
+            .collect();
         let s: f64 = raw.iter().sum();
         raw.iter().map(|v| v / s).collect()
     };
@@ -61,8 +68,13 @@ pub fn ssim(a: &[f32], b: &[f32], width: usize, height: usize) -> f32 {
         let (mx, my, sxx, syy, sxy) = (blur(&x), blur(&y), blur(&xx), blur(&yy), blur(&xy));
         let mut sum = 0.0;
         for i in 0..ow * oh {
-            let (vx, vy, cov) = (sxx[i] - mx[i] * mx[i], syy[i] - my[i] * my[i], sxy[i] - mx[i] * my[i]);
-            sum += ((2.0 * mx[i] * my[i] + c1) * (2.0 * cov + c2)) / ((mx[i] * mx[i] + my[i] * my[i] + c1) * (vx + vy + c2));
+            let (vx, vy, cov) = (
+                sxx[i] - mx[i] * mx[i],
+                syy[i] - my[i] * my[i],
+                sxy[i] - mx[i] * my[i],
+            );
+            sum += ((2.0 * mx[i] * my[i] + c1) * (2.0 * cov + c2))
+                / ((mx[i] * mx[i] + my[i] * my[i] + c1) * (vx + vy + c2));
         }
         total += sum / (ow * oh) as f64;
     }
@@ -96,21 +108,39 @@ pub struct EvalReport {
 /// Renders every `every`-th view of `split`, writes `NNN.png` and `NNN_depth.png` into
 /// `out_dir`, and `metrics.json` with per-view and mean PSNR / SSIM. `on_view(done, total)`
 /// reports progress.
-pub fn evaluate(run: &LoadedRun, split: Split, every: usize, out_dir: &Path, on_view: &mut dyn FnMut(usize, usize)) -> Result<EvalReport> {
+pub fn evaluate(
+    run: &LoadedRun,
+    split: Split,
+    every: usize,
+    out_dir: &Path,
+    on_view: &mut dyn FnMut(usize, usize),
+) -> Result<EvalReport> {
     let cfg = &run.config;
     let data = crate::data::blender::load(&cfg.data, split, cfg.downscale)?;
     crate::io::create_dir(out_dir)?;
     let bg = cfg.background.eval_colour();
+    let settings = crate::renderer::RenderSettings {
+        near: data.near,
+        far: data.far,
+        background: bg,
+        chunk_rays: cfg.chunk_rays,
+    };
     let picked: Vec<usize> = (0..data.views.len()).step_by(every.max(1)).collect();
     let mut views = Vec::new();
     for (k, &i) in picked.iter().enumerate() {
         let view = &data.views[i];
-        let r = crate::renderer::render_view(&run.model, &run.params, &view.camera, data.near, data.far, bg, cfg.chunk_rays, &|_| {});
+        let r =
+            crate::renderer::render_view(&run.model, &run.params, &view.camera, &settings, &|_| {});
         let truth = view.image.composite(bg);
         let image = out_dir.join(format!("{i:03}.png"));
         let depth = out_dir.join(format!("{i:03}_depth.png"));
         save_rgb_png(&image, r.width, r.height, &r.rgb)?;
-        save_rgb_png(&depth, r.width, r.height, &r.depth_image(data.near, data.far))?;
+        save_rgb_png(
+            &depth,
+            r.width,
+            r.height,
+            &r.depth_image(data.near, data.far),
+        )?;
         views.push(ViewMetrics {
             index: i,
             name: view.name.clone(),
@@ -153,7 +183,9 @@ mod tests {
     fn ssim_is_one_for_equal_images_and_drops_with_noise() {
         let (w, h) = (32, 24);
         let mut rng = Rng::new(4);
-        let a: Vec<f32> = (0..w * h * 3).map(|i| 0.5 + 0.4 * ((i / 3 % w) as f32 * 0.3).sin()).collect();
+        let a: Vec<f32> = (0..w * h * 3)
+            .map(|i| 0.5 + 0.4 * ((i / 3 % w) as f32 * 0.3).sin())
+            .collect();
         assert!((ssim(&a, &a, w, h) - 1.0).abs() < 1e-6);
         let noisy: Vec<f32> = a.iter().map(|v| v + rng.range(-0.1, 0.1)).collect();
         let very: Vec<f32> = a.iter().map(|v| v + rng.range(-0.4, 0.4)).collect();

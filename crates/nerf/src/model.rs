@@ -44,7 +44,9 @@ pub struct Model {
 impl Model {
     pub fn new(config: ModelConfig) -> Self {
         let coarse = VanillaNet::new(config.net.clone(), "coarse.");
-        let fine = config.hierarchical().then(|| VanillaNet::new(config.net.clone(), "fine."));
+        let fine = config
+            .hierarchical()
+            .then(|| VanillaNet::new(config.net.clone(), "fine."));
         let mut layout = coarse.layout.clone();
         if let Some(f) = &fine {
             for t in &f.layout.tensors {

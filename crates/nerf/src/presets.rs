@@ -17,16 +17,57 @@ pub struct Preset {
 
 /// Every preset, in the order of the paper's table.
 pub const PRESETS: &[Preset] = &[
-    Preset { name: "paper", help: "the complete model: PE (L=10/4), view dependence, hierarchical 64+128 (paper 31.01 dB)", paper_psnr: Some(31.01) },
-    Preset { name: "no-pe-vd-h", help: "raw xyz only: no PE, no view dependence, 256 coarse samples only (paper 26.67 dB)", paper_psnr: Some(26.67) },
-    Preset { name: "no-pe", help: "no positional encoding of position or direction (paper 28.77 dB)", paper_psnr: Some(28.77) },
-    Preset { name: "no-viewdirs", help: "colour independent of the view direction (paper 27.66 dB)", paper_psnr: Some(27.66) },
-    Preset { name: "no-hierarchical", help: "one network with 256 stratified samples, no fine pass (paper 30.06 dB)", paper_psnr: Some(30.06) },
-    Preset { name: "views-25", help: "the complete model trained on 25 of the training images (paper 27.78 dB)", paper_psnr: Some(27.78) },
-    Preset { name: "views-50", help: "the complete model trained on 50 of the training images (paper 29.79 dB)", paper_psnr: Some(29.79) },
-    Preset { name: "pe-5", help: "positional encoding with L=5 frequencies for position (paper 30.59 dB)", paper_psnr: Some(30.59) },
-    Preset { name: "pe-15", help: "positional encoding with L=15 frequencies for position (paper 30.81 dB)", paper_psnr: Some(30.81) },
-    Preset { name: "demo", help: "reduced model for minutes on a CPU (4x64 trunk, 32+32 samples); not in the paper", paper_psnr: None },
+    Preset {
+        name: "paper",
+        help:
+            "the complete model: PE (L=10/4), view dependence, hierarchical 64+128 (paper 31.01 dB)",
+        paper_psnr: Some(31.01),
+    },
+    Preset {
+        name: "no-pe-vd-h",
+        help: "raw xyz only: no PE, no view dependence, 256 coarse samples only (paper 26.67 dB)",
+        paper_psnr: Some(26.67),
+    },
+    Preset {
+        name: "no-pe",
+        help: "no positional encoding of position or direction (paper 28.77 dB)",
+        paper_psnr: Some(28.77),
+    },
+    Preset {
+        name: "no-viewdirs",
+        help: "colour independent of the view direction (paper 27.66 dB)",
+        paper_psnr: Some(27.66),
+    },
+    Preset {
+        name: "no-hierarchical",
+        help: "one network with 256 stratified samples, no fine pass (paper 30.06 dB)",
+        paper_psnr: Some(30.06),
+    },
+    Preset {
+        name: "views-25",
+        help: "the complete model trained on 25 of the training images (paper 27.78 dB)",
+        paper_psnr: Some(27.78),
+    },
+    Preset {
+        name: "views-50",
+        help: "the complete model trained on 50 of the training images (paper 29.79 dB)",
+        paper_psnr: Some(29.79),
+    },
+    Preset {
+        name: "pe-5",
+        help: "positional encoding with L=5 frequencies for position (paper 30.59 dB)",
+        paper_psnr: Some(30.59),
+    },
+    Preset {
+        name: "pe-15",
+        help: "positional encoding with L=15 frequencies for position (paper 30.81 dB)",
+        paper_psnr: Some(30.81),
+    },
+    Preset {
+        name: "demo",
+        help: "reduced model for minutes on a CPU (4x64 trunk, 32+32 samples); not in the paper",
+        paper_psnr: None,
+    },
 ];
 
 fn frequencies(l: usize) -> FrequencyEncoding {
@@ -49,7 +90,10 @@ pub fn paper() -> ModelConfig {
 pub fn find(name: &str) -> Result<&'static Preset> {
     PRESETS.iter().find(|p| p.name == name).ok_or_else(|| {
         let names: Vec<&str> = PRESETS.iter().map(|p| p.name).collect();
-        NerfError::Config(format!("unknown preset {name:?}; choose one of {}", names.join(", ")))
+        NerfError::Config(format!(
+            "unknown preset {name:?}; choose one of {}",
+            names.join(", ")
+        ))
     })
 }
 
@@ -105,7 +149,12 @@ mod tests {
             let (m, views) = build(p.name).expect("preset builds");
             match p.name {
                 "paper" => assert_eq!(m, paper()),
-                "no-pe-vd-h" => assert!(m.net.position_encoding.dims() == 3 && m.net.direction_encoding.is_none() && !m.hierarchical() && m.n_coarse == 256),
+                "no-pe-vd-h" => assert!(
+                    m.net.position_encoding.dims() == 3
+                        && m.net.direction_encoding.is_none()
+                        && !m.hierarchical()
+                        && m.n_coarse == 256
+                ),
                 "no-pe" => assert_eq!(m.net.position_encoding.dims(), 3),
                 "no-viewdirs" => assert!(m.net.direction_encoding.is_none() && m.hierarchical()),
                 "no-hierarchical" => assert!(!m.hierarchical() && m.n_coarse == 256),

@@ -10,6 +10,15 @@ use crate::model::Model;
 use crate::render::pipeline::{render_chunk, ChunkWorkspace, Rays};
 use crate::render::volume::RayOutput;
 
+/// How to render: marching bounds, background colour, rays per work unit.
+#[derive(Clone, Copy, Debug)]
+pub struct RenderSettings {
+    pub near: f32,
+    pub far: f32,
+    pub background: [f32; 3],
+    pub chunk_rays: usize,
+}
+
 /// Per-pixel results of one view.
 #[derive(Clone, Debug)]
 pub struct RenderedView {
@@ -23,13 +32,32 @@ pub struct RenderedView {
 }
 
 /// Renders `camera`'s view; `on_rows` is called with the number of rays finished so far.
-pub fn render_view(model: &Model, params: &[f32], camera: &Camera, near: f32, far: f32, bg: [f32; 3], chunk_rays: usize, on_progress: &(dyn Fn(usize) + Sync)) -> RenderedView {
+pub fn render_view(
+    model: &Model,
+    params: &[f32],
+    camera: &Camera,
+    settings: &RenderSettings,
+    on_progress: &(dyn Fn(usize) + Sync),
+) -> RenderedView {
+    let RenderSettings {
+        near,
+        far,
+        background: bg,
+        chunk_rays,
+    } = *settings;
     let (w, h) = (camera.width, camera.height);
     let mut out = vec![RayOutput::default(); w * h];
     let chunk = chunk_rays.max(1);
     let done = std::sync::atomic::AtomicUsize::new(0);
     out.par_chunks_mut(chunk).enumerate().for_each_init(
-        || (ChunkWorkspace::default(), Vec::new(), Vec::new(), Vec::new()),
+        || {
+            (
+                ChunkWorkspace::default(),
+                Vec::new(),
+                Vec::new(),
+                Vec::new(),
+            )
+        },
         |(ws, origins, dirs, bgs), (c, out)| {
             origins.clear();
             dirs.clear();

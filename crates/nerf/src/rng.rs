@@ -28,7 +28,9 @@ impl Rng {
 
     /// The generator for one independent stream of a step (e.g. one ray of one step).
     pub fn for_stream(seed: u64, step: u64, stream: u64) -> Self {
-        Rng::new(mix64(seed ^ mix64(step.wrapping_add(0x1234_5678)) ^ mix64(!stream)))
+        Rng::new(mix64(
+            seed ^ mix64(step.wrapping_add(0x1234_5678)) ^ mix64(!stream),
+        ))
     }
 
     #[inline]
@@ -46,7 +48,7 @@ impl Rng {
     /// Uniform integer in [0, n); n must be positive.
     #[inline]
     pub fn below(&mut self, n: usize) -> usize {
-        ((self.next_u64() >> 32) * n as u64 >> 32) as usize
+        (((self.next_u64() >> 32) * n as u64) >> 32) as usize
     }
 
     /// Uniform in [lo, hi).

@@ -51,7 +51,10 @@ pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
     if !(transforms.camera_angle_x > 0.0 && transforms.camera_angle_x < std::f32::consts::PI) {
         return Err(NerfError::format(
             &json_path,
-            format!("camera_angle_x {} is not an angle in (0, pi)", transforms.camera_angle_x),
+            format!(
+                "camera_angle_x {} is not an angle in (0, pi)",
+                transforms.camera_angle_x
+            ),
         ));
     }
     let base = json_path.parent().unwrap_or(Path::new("."));
@@ -66,7 +69,8 @@ pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
             })?;
             let image_path = image_path(base, &frame.file_path);
             let image = RgbaImage::load(&image_path)?.downscale(downscale);
-            let camera = Camera::from_fov_x(image.width, image.height, transforms.camera_angle_x, pose);
+            let camera =
+                Camera::from_fov_x(image.width, image.height, transforms.camera_angle_x, pose);
             Ok(View {
                 camera,
                 image,
@@ -75,7 +79,10 @@ pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
         })
         .collect::<Result<Vec<_>>>()?;
     let (w0, h0) = (views[0].image.width, views[0].image.height);
-    if let Some(bad) = views.iter().find(|v| (v.image.width, v.image.height) != (w0, h0)) {
+    if let Some(bad) = views
+        .iter()
+        .find(|v| (v.image.width, v.image.height) != (w0, h0))
+    {
         return Err(NerfError::format(
             image_path(base, &bad.name),
             format!(
@@ -111,7 +118,9 @@ pub fn image_path(base: &Path, file_path: &str) -> PathBuf {
 pub fn parse_pose(m: &[Vec<f32>]) -> std::result::Result<Pose, String> {
     if !(m.len() == 4 || m.len() == 3) || m.iter().any(|row| row.len() != 4) {
         let shape: Vec<usize> = m.iter().map(|r| r.len()).collect();
-        return Err(format!("transform_matrix must be 4x4, got rows of lengths {shape:?}"));
+        return Err(format!(
+            "transform_matrix must be 4x4, got rows of lengths {shape:?}"
+        ));
     }
     if m.iter().flatten().any(|v| !v.is_finite()) {
         return Err("transform_matrix has a non-finite entry".into());
@@ -135,6 +144,11 @@ pub fn pose_to_matrix(pose: &Pose) -> Vec<Vec<f32>> {
     m
 }
 
+/// Reads just the JSON of a split (no images).
+pub fn load_transforms(dir: &Path, split: Split) -> Result<Transforms> {
+    crate::io::read_json(&transforms_path(dir, split))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -145,7 +159,13 @@ mod tests {
         let mut frames = Vec::new();
         for (k, &(w, h)) in sizes.iter().enumerate() {
             let name = format!("./train/r_{k}");
-            save_rgba_png(&dir.join(format!("train/r_{k}.png")), w, h, &vec![0.5; w * h * 4]).expect("png");
+            save_rgba_png(
+                &dir.join(format!("train/r_{k}.png")),
+                w,
+                h,
+                &vec![0.5; w * h * 4],
+            )
+            .expect("png");
             frames.push(Frame {
                 file_path: name,
                 transform_matrix: matrix.clone(),
@@ -160,7 +180,9 @@ mod tests {
     }
 
     fn identity() -> Vec<Vec<f32>> {
-        (0..4).map(|r| (0..4).map(|c| if r == c { 1.0 } else { 0.0 }).collect()).collect()
+        (0..4)
+            .map(|r| (0..4).map(|c| if r == c { 1.0 } else { 0.0 }).collect())
+            .collect()
     }
 
     #[test]
@@ -186,7 +208,10 @@ mod tests {
         let dir = tempfile::tempdir().expect("tempdir");
         write_scene(dir.path(), identity(), &[(4, 4), (5, 4)]);
         let err = load(dir.path(), Split::Train, 1).expect_err("sizes differ");
-        assert!(err.to_string().contains("r_1.png") && err.to_string().contains("5x4"), "{err}");
+        assert!(
+            err.to_string().contains("r_1.png") && err.to_string().contains("5x4"),
+            "{err}"
+        );
 
         let dir = tempfile::tempdir().expect("tempdir");
         write_scene(dir.path(), identity(), &[(4, 4)]);
@@ -194,9 +219,13 @@ mod tests {
         let err = load(dir.path(), Split::Train, 1).expect_err("missing image");
         assert!(err.to_string().contains("r_0.png"), "{err}");
 
-        std::fs::write(transforms_path(dir.path(), Split::Train), "{ \"frames\": [").expect("write");
+        std::fs::write(transforms_path(dir.path(), Split::Train), "{ \"frames\": [")
+            .expect("write");
         let err = load(dir.path(), Split::Train, 1).expect_err("bad json");
-        assert!(err.to_string().contains("transforms_train.json") && err.to_string().contains("JSON"), "{err}");
+        assert!(
+            err.to_string().contains("transforms_train.json") && err.to_string().contains("JSON"),
+            "{err}"
+        );
 
         let err = load(dir.path(), Split::Val, 1).expect_err("missing split");
         assert!(err.to_string().contains("transforms_val.json"), "{err}");
@@ -219,9 +248,4 @@ mod tests {
         assert!((r - 4.03).abs() < 0.1, "radius {r}");
         assert!(v.image.has_transparency());
     }
-}
-
-/// Reads just the JSON of a split (no images).
-pub fn load_transforms(dir: &Path, split: Split) -> Result<Transforms> {
-    crate::io::read_json(&transforms_path(dir, split))
 }

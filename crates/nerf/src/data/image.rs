@@ -96,25 +96,43 @@ impl RgbaImage {
 pub fn save_rgb_png(path: &Path, width: usize, height: usize, rgb: &[f32]) -> Result<()> {
     let bytes: Vec<u8> = rgb.iter().map(|&v| to_u8(v)).collect();
     let img = image::RgbImage::from_raw(width as u32, height as u32, bytes).ok_or_else(|| {
-        NerfError::format(path, format!("buffer does not hold {width}x{height} RGB pixels"))
+        NerfError::format(
+            path,
+            format!("buffer does not hold {width}x{height} RGB pixels"),
+        )
     })?;
-    save_atomic(path, |tmp| img.save_with_format(tmp, image::ImageFormat::Png))
+    save_atomic(path, |tmp| {
+        img.save_with_format(tmp, image::ImageFormat::Png)
+    })
 }
 
 /// Writes straight-alpha RGBA in [0, 1] as an 8-bit PNG.
 pub fn save_rgba_png(path: &Path, width: usize, height: usize, rgba: &[f32]) -> Result<()> {
     let bytes: Vec<u8> = rgba.iter().map(|&v| to_u8(v)).collect();
     let img = image::RgbaImage::from_raw(width as u32, height as u32, bytes).ok_or_else(|| {
-        NerfError::format(path, format!("buffer does not hold {width}x{height} RGBA pixels"))
+        NerfError::format(
+            path,
+            format!("buffer does not hold {width}x{height} RGBA pixels"),
+        )
     })?;
-    save_atomic(path, |tmp| img.save_with_format(tmp, image::ImageFormat::Png))
+    save_atomic(path, |tmp| {
+        img.save_with_format(tmp, image::ImageFormat::Png)
+    })
 }
 
 /// Writes a 16-bit grayscale PNG.
 pub fn save_gray16_png(path: &Path, width: usize, height: usize, values: Vec<u16>) -> Result<()> {
-    let img = image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width as u32, height as u32, values)
-        .ok_or_else(|| NerfError::format(path, format!("buffer does not hold {width}x{height} pixels")))?;
-    save_atomic(path, |tmp| img.save_with_format(tmp, image::ImageFormat::Png))
+    let img =
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width as u32, height as u32, values)
+            .ok_or_else(|| {
+                NerfError::format(
+                    path,
+                    format!("buffer does not hold {width}x{height} pixels"),
+                )
+            })?;
+    save_atomic(path, |tmp| {
+        img.save_with_format(tmp, image::ImageFormat::Png)
+    })
 }
 
 fn save_atomic(path: &Path, write: impl FnOnce(&Path) -> image::ImageResult<()>) -> Result<()> {
@@ -141,7 +159,9 @@ mod tests {
         let img = RgbaImage {
             width: 2,
             height: 2,
-            data: vec![1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            data: vec![
+                1.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
+            ],
         };
         let small = img.downscale(2);
         assert_eq!(small.data, vec![0.25, 0.0, 0.0, 0.25]);
@@ -157,7 +177,11 @@ mod tests {
         save_rgba_png(&path, 2, 1, &rgba).expect("save");
         let back = RgbaImage::load(&path).expect("load");
         assert_eq!((back.width, back.height), (2, 1));
-        assert!((back.data[5] - 0.502).abs() < 0.01, "premultiplied green {}", back.data[5]);
+        assert!(
+            (back.data[5] - 0.502).abs() < 0.01,
+            "premultiplied green {}",
+            back.data[5]
+        );
         assert!((back.data[7] - 0.502).abs() < 0.01);
         let bytes = std::fs::read(&path).expect("read");
         std::fs::write(&path, &bytes[..bytes.len() / 2]).expect("truncate");

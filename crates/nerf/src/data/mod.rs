@@ -39,7 +39,10 @@ impl Dataset {
         }
         let keep: Vec<usize> = (0..n).map(|k| k * total / n).collect();
         let mut views = std::mem::take(&mut self.views);
-        self.views = keep.iter().map(|&i| std::mem::replace(&mut views[i], placeholder())).collect();
+        self.views = keep
+            .iter()
+            .map(|&i| std::mem::replace(&mut views[i], placeholder()))
+            .collect();
     }
 
     pub fn image_size(&self) -> (usize, usize) {

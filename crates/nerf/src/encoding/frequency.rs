@@ -89,9 +89,19 @@ mod tests {
 
     #[test]
     fn layout_and_widths() {
-        let e = FrequencyEncoding { frequencies: 10, paper_form: false };
+        let e = FrequencyEncoding {
+            frequencies: 10,
+            paper_form: false,
+        };
         assert_eq!(e.dims(), 63);
-        assert_eq!(FrequencyEncoding { frequencies: 4, paper_form: false }.dims(), 27);
+        assert_eq!(
+            FrequencyEncoding {
+                frequencies: 4,
+                paper_form: false
+            }
+            .dims(),
+            27
+        );
         let mut out = vec![0.0; 63];
         e.encode(&[0.5, -1.0, 2.0], &mut out);
         assert_eq!(&out[..3], &[0.5, -1.0, 2.0]);
@@ -99,7 +109,10 @@ mod tests {
         assert!((out[6 + 2] - 2.0f32.cos()).abs() < 1e-6);
         // Frequency 2^3 on y, sine slot.
         assert!((out[3 + 6 * 3 + 1] - (-8.0f32).sin()).abs() < 1e-5);
-        let p = FrequencyEncoding { frequencies: 2, paper_form: true };
+        let p = FrequencyEncoding {
+            frequencies: 2,
+            paper_form: true,
+        };
         let mut out = vec![0.0; 12];
         p.encode(&[0.25, 0.0, 0.0], &mut out);
         assert!((out[0] - (std::f32::consts::PI * 0.25).sin()).abs() < 1e-6);
@@ -108,15 +121,23 @@ mod tests {
     #[test]
     fn backward_matches_finite_differences() {
         for paper_form in [false, true] {
-            let e = FrequencyEncoding { frequencies: 4, paper_form };
+            let e = FrequencyEncoding {
+                frequencies: 4,
+                paper_form,
+            };
             let p = [0.3f32, -0.7, 0.2];
-            let d_out: Vec<f32> = (0..e.dims()).map(|i| ((i * 7) as f32 * 0.3).sin()).collect();
+            let d_out: Vec<f32> = (0..e.dims())
+                .map(|i| ((i * 7) as f32 * 0.3).sin())
+                .collect();
             let mut d_p = [0.0; 3];
             e.encode_bwd(&p, &d_out, &mut d_p);
             let loss = |q: &[f32]| -> f64 {
                 let mut o = vec![0.0; e.dims()];
                 e.encode(q, &mut o);
-                o.iter().zip(&d_out).map(|(a, b)| (*a as f64) * (*b as f64)).sum()
+                o.iter()
+                    .zip(&d_out)
+                    .map(|(a, b)| (*a as f64) * (*b as f64))
+                    .sum()
             };
             for c in 0..3 {
                 let h = 1e-3;
@@ -124,7 +145,11 @@ mod tests {
                 a[c] += h;
                 b[c] -= h;
                 let fd = (loss(&a) - loss(&b)) / (2.0 * h as f64);
-                assert!((fd - d_p[c] as f64).abs() < 2e-2 * (1.0 + fd.abs()), "c {c}: fd {fd} vs {}", d_p[c]);
+                assert!(
+                    (fd - d_p[c] as f64).abs() < 2e-2 * (1.0 + fd.abs()),
+                    "c {c}: fd {fd} vs {}",
+                    d_p[c]
+                );
             }
         }
     }

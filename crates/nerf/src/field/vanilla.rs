@@ -90,7 +90,12 @@ enum Heads {
 fn dense(layout: &mut ParamLayout, name: &str, fan_in: usize, fan_out: usize) -> Dense {
     let w = layout.push(format!("{name}.weight"), &[fan_in, fan_out]);
     let b = layout.push(format!("{name}.bias"), &[fan_out]);
-    Dense { w, b, fan_in, fan_out }
+    Dense {
+        w,
+        b,
+        fan_in,
+        fan_out,
+    }
 }
 
 impl VanillaNet {
@@ -112,7 +117,12 @@ impl VanillaNet {
             Some(dir) => Heads::ViewDependent {
                 sigma: dense(&mut layout, &format!("{prefix}sigma"), w, 1),
                 feature: dense(&mut layout, &format!("{prefix}feature"), w, w),
-                view: dense(&mut layout, &format!("{prefix}view"), w + dir.dims(), config.view_width),
+                view: dense(
+                    &mut layout,
+                    &format!("{prefix}view"),
+                    w + dir.dims(),
+                    config.view_width,
+                ),
                 rgb: dense(&mut layout, &format!("{prefix}rgb"), config.view_width, 3),
             },
             None => Heads::Direct {
@@ -136,9 +146,15 @@ impl VanillaNet {
     pub fn macs_per_sample(&self) -> usize {
         let trunk: usize = self.trunk.iter().map(|d| d.fan_in * d.fan_out).sum();
         let heads = match &self.heads {
-            Heads::ViewDependent { sigma, feature, view, rgb } => {
-                [sigma, feature, view, rgb].iter().map(|d| d.fan_in * d.fan_out).sum()
-            }
+            Heads::ViewDependent {
+                sigma,
+                feature,
+                view,
+                rgb,
+            } => [sigma, feature, view, rgb]
+                .iter()
+                .map(|d| d.fan_in * d.fan_out)
+                .sum(),
             Heads::Direct { output } => output.fan_in * output.fan_out,
         };
         trunk + heads
@@ -147,55 +163,110 @@ impl VanillaNet {
     /// Evaluates `n = dirs.len() / 3 * samples_per_ray` samples. `positions` is `n x 3`,
     /// `dirs` is one unit direction per ray (`r x 3`). Fills `ws.sigma` (`n`, after ReLU)
     /// and `ws.rgb` (`n x 3`, after sigmoid) and keeps what [`Self::backward`] needs.
-    pub fn forward(&self, params: &[f32], positions: &[f32], dirs: &[f32], samples_per_ray: usize, ws: &mut VanillaWorkspace) {
+    pub fn forward(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        dirs: &[f32],
+        samples_per_ray: usize,
+        ws: &mut VanillaWorkspace,
+    ) {
         let rays = dirs.len() / 3;
         let n = rays * samples_per_ray;
-        assert_eq!(positions.len(), n * 3, "positions must be rays x samples_per_ray x 3");
+        assert_eq!(
+            positions.len(),
+            n * 3,
+            "positions must be rays x samples_per_ray x 3"
+        );
         ws.resize(&self.config, n, rays);
         let cfg = &self.config;
         let (in_x, w) = (cfg.position_encoding.dims(), cfg.width);
-        cfg.position_encoding.encode_all(positions, &mut ws.enc[..n * in_x]);
+        cfg.position_encoding
+            .encode_all(positions, &mut ws.enc[..n * in_x]);
 
         for (l, layer) in self.trunk.iter().enumerate() {
             let (before, rest) = ws.hidden.split_at_mut(l);
             let out = &mut rest[0][..n * w];
             fill_bias(out, &params[layer.b..][..w]);
             if l == 0 {
-                matmul(out, MatRef::new(&ws.enc, n, in_x), weight(params, layer, 0, in_x), true);
+                matmul(
+                    out,
+                    MatRef::new(&ws.enc, n, in_x),
+                    weight(params, layer, 0, in_x),
+                    true,
+                );
             } else {
-                matmul(out, MatRef::new(&before[l - 1], n, w), weight(params, layer, 0, w), true);
+                matmul(
+                    out,
+                    MatRef::new(&before[l - 1], n, w),
+                    weight(params, layer, 0, w),
+                    true,
+                );
                 if cfg.skip == Some(l - 1) {
-                    matmul(out, MatRef::new(&ws.enc, n, in_x), weight(params, layer, w, in_x), true);
+                    matmul(
+                        out,
+                        MatRef::new(&ws.enc, n, in_x),
+                        weight(params, layer, w, in_x),
+                        true,
+                    );
                 }
             }
             relu(out);
         }
         let last = &ws.hidden[cfg.depth - 1][..n * w];
         match &self.heads {
-            Heads::ViewDependent { sigma, feature, view, rgb } => {
+            Heads::ViewDependent {
+                sigma,
+                feature,
+                view,
+                rgb,
+            } => {
                 // Density: one dot product per sample.
                 let ws_sigma = &params[sigma.w..][..w];
                 for (s, h) in ws.raw_sigma[..n].iter_mut().zip(last.chunks_exact(w)) {
                     *s = params[sigma.b] + dot(h, ws_sigma);
                 }
                 fill_bias(&mut ws.feature[..n * w], &params[feature.b..][..w]);
-                matmul(&mut ws.feature[..n * w], MatRef::new(last, n, w), weight(params, feature, 0, w), true);
+                matmul(
+                    &mut ws.feature[..n * w],
+                    MatRef::new(last, n, w),
+                    weight(params, feature, 0, w),
+                    true,
+                );
                 // View branch: feature part per sample, direction part once per ray.
-                let dir_enc = cfg.direction_encoding.expect("view-dependent heads have a direction encoding");
+                let dir_enc = cfg
+                    .direction_encoding
+                    .expect("view-dependent heads have a direction encoding");
                 let (in_d, vw) = (dir_enc.dims(), cfg.view_width);
                 dir_enc.encode_all(dirs, &mut ws.dir_enc[..rays * in_d]);
                 fill_bias(&mut ws.dir_proj[..rays * vw], &params[view.b..][..vw]);
-                matmul(&mut ws.dir_proj[..rays * vw], MatRef::new(&ws.dir_enc, rays, in_d), weight(params, view, w, in_d), true);
-                for (r, rows) in ws.view_hidden[..n * vw].chunks_exact_mut(samples_per_ray * vw).enumerate() {
+                matmul(
+                    &mut ws.dir_proj[..rays * vw],
+                    MatRef::new(&ws.dir_enc, rays, in_d),
+                    weight(params, view, w, in_d),
+                    true,
+                );
+                for (r, rows) in ws.view_hidden[..n * vw]
+                    .chunks_exact_mut(samples_per_ray * vw)
+                    .enumerate()
+                {
                     let proj = &ws.dir_proj[r * vw..][..vw];
                     for row in rows.chunks_exact_mut(vw) {
                         row.copy_from_slice(proj);
                     }
                 }
-                matmul(&mut ws.view_hidden[..n * vw], MatRef::new(&ws.feature, n, w), weight(params, view, 0, w), true);
+                matmul(
+                    &mut ws.view_hidden[..n * vw],
+                    MatRef::new(&ws.feature, n, w),
+                    weight(params, view, 0, w),
+                    true,
+                );
                 relu(&mut ws.view_hidden[..n * vw]);
                 let (wr, br) = (&params[rgb.w..][..vw * 3], &params[rgb.b..][..3]);
-                for (h, out) in ws.view_hidden[..n * vw].chunks_exact(vw).zip(ws.rgb.chunks_exact_mut(3)) {
+                for (h, out) in ws.view_hidden[..n * vw]
+                    .chunks_exact(vw)
+                    .zip(ws.rgb.chunks_exact_mut(3))
+                {
                     for c in 0..3 {
                         let mut acc = br[c];
                         for (k, &hk) in h.iter().enumerate() {
@@ -207,7 +278,11 @@ impl VanillaNet {
             }
             Heads::Direct { output } => {
                 let (wo, bo) = (&params[output.w..][..w * 4], &params[output.b..][..4]);
-                for ((h, out), s) in last.chunks_exact(w).zip(ws.rgb.chunks_exact_mut(3)).zip(&mut ws.raw_sigma) {
+                for ((h, out), s) in last
+                    .chunks_exact(w)
+                    .zip(ws.rgb.chunks_exact_mut(3))
+                    .zip(&mut ws.raw_sigma)
+                {
                     let mut acc = [bo[0], bo[1], bo[2], bo[3]];
                     for (k, &hk) in h.iter().enumerate() {
                         for (c, a) in acc.iter_mut().enumerate() {
@@ -226,7 +301,14 @@ impl VanillaNet {
 
     /// Backward of the last [`Self::forward`] on `ws`: given `d_sigma` (`n`) and `d_rgb`
     /// (`n x 3`), accumulates parameter gradients into `grads` (same layout as `params`).
-    pub fn backward(&self, params: &[f32], ws: &mut VanillaWorkspace, d_sigma: &[f32], d_rgb: &[f32], grads: &mut [f32]) {
+    pub fn backward(
+        &self,
+        params: &[f32],
+        ws: &mut VanillaWorkspace,
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        grads: &mut [f32],
+    ) {
         let (n, rays) = (ws.n, ws.rays);
         let spr = n / rays.max(1);
         let cfg = &self.config;
@@ -234,13 +316,24 @@ impl VanillaNet {
         let last = &ws.hidden[cfg.depth - 1][..n * w];
         // `d_a` receives the gradient with respect to the last trunk layer's output.
         match &self.heads {
-            Heads::ViewDependent { sigma, feature, view, rgb } => {
-                let dir_enc = cfg.direction_encoding.expect("view-dependent heads have a direction encoding");
+            Heads::ViewDependent {
+                sigma,
+                feature,
+                view,
+                rgb,
+            } => {
+                let dir_enc = cfg
+                    .direction_encoding
+                    .expect("view-dependent heads have a direction encoding");
                 let (in_d, vw) = (dir_enc.dims(), cfg.view_width);
                 // RGB layer (sigmoid): d_raw = d_rgb * rgb (1 - rgb).
                 let wr = &params[rgb.w..][..vw * 3];
                 let (gw, gb) = grad_pair(grads, rgb);
-                for (s, (h, dh)) in ws.view_hidden[..n * vw].chunks_exact(vw).zip(ws.d_view.chunks_exact_mut(vw)).enumerate() {
+                for (s, (h, dh)) in ws.view_hidden[..n * vw]
+                    .chunks_exact(vw)
+                    .zip(ws.d_view.chunks_exact_mut(vw))
+                    .enumerate()
+                {
                     let mut d_raw = [0.0f32; 3];
                     for c in 0..3 {
                         let y = ws.rgb[s * 3 + c];
@@ -254,7 +347,9 @@ impl VanillaNet {
                         g[2] += h[k] * d_raw[2];
                         // ReLU of the view layer folded in.
                         dh[k] = if h[k] > 0.0 {
-                            wr[k * 3] * d_raw[0] + wr[k * 3 + 1] * d_raw[1] + wr[k * 3 + 2] * d_raw[2]
+                            wr[k * 3] * d_raw[0]
+                                + wr[k * 3 + 1] * d_raw[1]
+                                + wr[k * 3 + 2] * d_raw[2]
                         } else {
                             0.0
                         };
@@ -265,7 +360,12 @@ impl VanillaNet {
                 {
                     let (gw, gb) = grad_pair(grads, view);
                     col_sum_into(d_view, vw, gb);
-                    matmul(&mut gw[..w * vw], MatRef::new(&ws.feature, n, w).t(), MatRef::new(d_view, n, vw), true);
+                    matmul(
+                        &mut gw[..w * vw],
+                        MatRef::new(&ws.feature, n, w).t(),
+                        MatRef::new(d_view, n, vw),
+                        true,
+                    );
                     for (r, rows) in d_view.chunks_exact(spr * vw).enumerate() {
                         let dp = &mut ws.d_dir_proj[r * vw..][..vw];
                         dp.fill(0.0);
@@ -275,23 +375,47 @@ impl VanillaNet {
                             }
                         }
                     }
-                    matmul(&mut gw[w * vw..], MatRef::new(&ws.dir_enc, rays, in_d).t(), MatRef::new(&ws.d_dir_proj, rays, vw), true);
+                    matmul(
+                        &mut gw[w * vw..],
+                        MatRef::new(&ws.dir_enc, rays, in_d).t(),
+                        MatRef::new(&ws.d_dir_proj, rays, vw),
+                        true,
+                    );
                 }
                 let d_feat = &mut ws.d_a[..n * w];
-                matmul(d_feat, MatRef::new(d_view, n, vw), weight(params, view, 0, w).t(), false);
+                matmul(
+                    d_feat,
+                    MatRef::new(d_view, n, vw),
+                    weight(params, view, 0, w).t(),
+                    false,
+                );
                 // Feature layer (linear).
                 {
                     let (gw, gb) = grad_pair(grads, feature);
                     col_sum_into(d_feat, w, gb);
-                    matmul(gw, MatRef::new(last, n, w).t(), MatRef::new(d_feat, n, w), true);
+                    matmul(
+                        gw,
+                        MatRef::new(last, n, w).t(),
+                        MatRef::new(d_feat, n, w),
+                        true,
+                    );
                 }
                 let d_last = &mut ws.d_b[..n * w];
-                matmul(d_last, MatRef::new(&ws.d_a, n, w), weight(params, feature, 0, w).t(), false);
+                matmul(
+                    d_last,
+                    MatRef::new(&ws.d_a, n, w),
+                    weight(params, feature, 0, w).t(),
+                    false,
+                );
                 // Density head (ReLU on the raw output).
                 let w_sigma = &params[sigma.w..][..w];
                 let (gw, gb) = grad_pair(grads, sigma);
                 for s in 0..n {
-                    let ds = if ws.raw_sigma[s] > 0.0 { d_sigma[s] } else { 0.0 };
+                    let ds = if ws.raw_sigma[s] > 0.0 {
+                        d_sigma[s]
+                    } else {
+                        0.0
+                    };
                     if ds == 0.0 {
                         continue;
                     }
@@ -313,12 +437,26 @@ impl VanillaNet {
                         let y = ws.rgb[s * 3 + c];
                         d_raw[s * 4 + c] = d_rgb[s * 3 + c] * y * (1.0 - y);
                     }
-                    d_raw[s * 4 + 3] = if ws.raw_sigma[s] > 0.0 { d_sigma[s] } else { 0.0 };
+                    d_raw[s * 4 + 3] = if ws.raw_sigma[s] > 0.0 {
+                        d_sigma[s]
+                    } else {
+                        0.0
+                    };
                 }
                 let (gw, gb) = grad_pair(grads, output);
                 col_sum_into(d_raw, 4, gb);
-                matmul(gw, MatRef::new(last, n, w).t(), MatRef::new(d_raw, n, 4), true);
-                matmul(&mut ws.d_a[..n * w], MatRef::new(d_raw, n, 4), MatRef::new(wo, w, 4).t(), false);
+                matmul(
+                    gw,
+                    MatRef::new(last, n, w).t(),
+                    MatRef::new(d_raw, n, 4),
+                    true,
+                );
+                matmul(
+                    &mut ws.d_a[..n * w],
+                    MatRef::new(d_raw, n, 4),
+                    MatRef::new(wo, w, 4).t(),
+                    false,
+                );
             }
         }
         // Trunk, top to bottom; `d_a` holds d(output of layer l).
@@ -329,15 +467,30 @@ impl VanillaNet {
             let (gw, gb) = grad_pair(grads, layer);
             col_sum_into(dz, w, gb);
             if l == 0 {
-                matmul(gw, MatRef::new(&ws.enc, n, in_x).t(), MatRef::new(dz, n, w), true);
+                matmul(
+                    gw,
+                    MatRef::new(&ws.enc, n, in_x).t(),
+                    MatRef::new(dz, n, w),
+                    true,
+                );
                 break;
             }
             let below = MatRef::new(&ws.hidden[l - 1], n, w);
             matmul(&mut gw[..w * w], below.t(), MatRef::new(dz, n, w), true);
             if cfg.skip == Some(l - 1) {
-                matmul(&mut gw[w * w..], MatRef::new(&ws.enc, n, in_x).t(), MatRef::new(dz, n, w), true);
+                matmul(
+                    &mut gw[w * w..],
+                    MatRef::new(&ws.enc, n, in_x).t(),
+                    MatRef::new(dz, n, w),
+                    true,
+                );
             }
-            matmul(&mut ws.d_b[..n * w], MatRef::new(dz, n, w), weight(params, layer, 0, w).t(), false);
+            matmul(
+                &mut ws.d_b[..n * w],
+                MatRef::new(dz, n, w),
+                weight(params, layer, 0, w).t(),
+                false,
+            );
             std::mem::swap(&mut ws.d_a, &mut ws.d_b);
         }
     }
@@ -345,12 +498,19 @@ impl VanillaNet {
 
 /// Rows `[row0, row0 + rows)` of a layer's `fan_in x fan_out` weight.
 fn weight<'a>(params: &'a [f32], d: &Dense, row0: usize, rows: usize) -> MatRef<'a> {
-    MatRef::new(&params[d.w + row0 * d.fan_out..][..rows * d.fan_out], rows, d.fan_out)
+    MatRef::new(
+        &params[d.w + row0 * d.fan_out..][..rows * d.fan_out],
+        rows,
+        d.fan_out,
+    )
 }
 
 fn grad_pair<'a>(grads: &'a mut [f32], d: &Dense) -> (&'a mut [f32], &'a mut [f32]) {
     let (head, tail) = grads.split_at_mut(d.b);
-    (&mut head[d.w..][..d.fan_in * d.fan_out], &mut tail[..d.fan_out])
+    (
+        &mut head[d.w..][..d.fan_in * d.fan_out],
+        &mut tail[..d.fan_out],
+    )
 }
 
 fn fill_bias(out: &mut [f32], bias: &[f32]) {
@@ -446,8 +606,22 @@ impl VanillaWorkspace {
 
     /// Bytes held, for memory reports.
     pub fn bytes(&self) -> usize {
-        let vecs = [&self.enc, &self.raw_sigma, &self.feature, &self.dir_enc, &self.dir_proj, &self.view_hidden, &self.sigma, &self.rgb, &self.d_a, &self.d_b, &self.d_view, &self.d_dir_proj];
-        4 * (vecs.iter().map(|v| v.len()).sum::<usize>() + self.hidden.iter().map(|v| v.len()).sum::<usize>())
+        let vecs = [
+            &self.enc,
+            &self.raw_sigma,
+            &self.feature,
+            &self.dir_enc,
+            &self.dir_proj,
+            &self.view_hidden,
+            &self.sigma,
+            &self.rgb,
+            &self.d_a,
+            &self.d_b,
+            &self.d_view,
+            &self.d_dir_proj,
+        ];
+        4 * (vecs.iter().map(|v| v.len()).sum::<usize>()
+            + self.hidden.iter().map(|v| v.len()).sum::<usize>())
     }
 }
 
@@ -491,15 +665,29 @@ mod tests {
         let n = rays * spr;
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let dirs: Vec<f32> = (0..rays)
-            .flat_map(|_| crate::math::normalize_or_zero([rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)]))
+            .flat_map(|_| {
+                crate::math::normalize_or_zero([
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                ])
+            })
             .collect();
         let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let mut ws = VanillaWorkspace::default();
         let loss = |p: &[f32], ws: &mut VanillaWorkspace| -> f64 {
             net.forward(p, &pos, &dirs, spr, ws);
-            let s: f64 = ws.sigma[..n].iter().zip(&a).map(|(x, y)| (*x as f64) * (*y as f64)).sum();
-            s + ws.rgb[..n * 3].iter().zip(&b).map(|(x, y)| (*x as f64) * (*y as f64)).sum::<f64>()
+            let s: f64 = ws.sigma[..n]
+                .iter()
+                .zip(&a)
+                .map(|(x, y)| (*x as f64) * (*y as f64))
+                .sum();
+            s + ws.rgb[..n * 3]
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (*x as f64) * (*y as f64))
+                .sum::<f64>()
         };
         loss(&params, &mut ws);
         let mut grads = vec![0.0; params.len()];

@@ -50,7 +50,12 @@ impl Adam {
         let bc2 = 1.0 - beta2.powf(self.t as f32);
         let step = lr / bc1;
         let inv_bc2 = 1.0 / bc2;
-        for (((p, &g), m), v) in params.iter_mut().zip(grads).zip(&mut self.m).zip(&mut self.v) {
+        for (((p, &g), m), v) in params
+            .iter_mut()
+            .zip(grads)
+            .zip(&mut self.m)
+            .zip(&mut self.v)
+        {
             *m = beta1 * *m + (1.0 - beta1) * g;
             *v = beta2 * *v + (1.0 - beta2) * g * g;
             *p -= step * *m / ((*v * inv_bc2).sqrt() + eps);
@@ -67,7 +72,10 @@ mod tests {
         let mut adam = Adam::new(AdamConfig::default(), 2);
         let mut p = vec![1.0, -1.0];
         adam.step(&mut p, &[3.0, -0.5], 0.1);
-        assert!((p[0] - 0.9).abs() < 1e-5 && (p[1] + 0.9).abs() < 1e-5, "{p:?}");
+        assert!(
+            (p[0] - 0.9).abs() < 1e-5 && (p[1] + 0.9).abs() < 1e-5,
+            "{p:?}"
+        );
     }
 
     #[test]

@@ -19,7 +19,12 @@ impl<'a> MatRef<'a> {
     /// `rows x cols`, row-major, densely packed. Panics if `data` is too short, as that
     /// is a bug in the caller rather than something a user can cause.
     pub fn new(data: &'a [f32], rows: usize, cols: usize) -> Self {
-        assert!(data.len() >= rows * cols, "matrix {rows}x{cols} needs {} values, got {}", rows * cols, data.len());
+        assert!(
+            data.len() >= rows * cols,
+            "matrix {rows}x{cols} needs {} values, got {}",
+            rows * cols,
+            data.len()
+        );
         MatRef {
             data,
             rows,
@@ -147,7 +152,12 @@ mod tests {
         }
         // (b^T a^T) = (a b)^T
         let mut ct = vec![0.0; n * m];
-        matmul(&mut ct, MatRef::new(&b, k, n).t(), MatRef::new(&a, m, k).t(), false);
+        matmul(
+            &mut ct,
+            MatRef::new(&b, k, n).t(),
+            MatRef::new(&a, m, k).t(),
+            false,
+        );
         for i in 0..m {
             for j in 0..n {
                 assert!((ct[j * m + i] - want[i * n + j]).abs() < 1e-5);

@@ -34,7 +34,11 @@ impl Rays<'_> {
         [self.dirs[r * 3], self.dirs[r * 3 + 1], self.dirs[r * 3 + 2]]
     }
     fn bg(&self, r: usize) -> [f32; 3] {
-        [self.backgrounds[r * 3], self.backgrounds[r * 3 + 1], self.backgrounds[r * 3 + 2]]
+        [
+            self.backgrounds[r * 3],
+            self.backgrounds[r * 3 + 1],
+            self.backgrounds[r * 3 + 2],
+        ]
     }
 }
 
@@ -74,31 +78,62 @@ fn prepare(ws: &mut ChunkWorkspace, rays: &Rays) {
 fn coarse_samples(ws: &mut ChunkWorkspace, rays: &Rays, n: usize, mut rngs: Option<&mut [Rng]>) {
     ws.t_coarse.resize(rays.len() * n, 0.0);
     for (k, t) in ws.t_coarse.chunks_exact_mut(n).enumerate() {
-        stratified(rays.near, rays.far, rngs.as_deref_mut().map(|g| &mut g[k]), t);
+        stratified(
+            rays.near,
+            rays.far,
+            rngs.as_deref_mut().map(|g| &mut g[k]),
+            t,
+        );
     }
 }
 
 /// Draws the importance samples from the coarse weights (in `ws.weights`) and merges them with
 /// the coarse samples into `ws.t_fine`.
-fn fine_samples(ws: &mut ChunkWorkspace, r: usize, n_c: usize, n_f: usize, mut rngs: Option<&mut [Rng]>) {
+fn fine_samples(
+    ws: &mut ChunkWorkspace,
+    r: usize,
+    n_c: usize,
+    n_f: usize,
+    mut rngs: Option<&mut [Rng]>,
+) {
     ws.t_fine.resize(r * (n_c + n_f), 0.0);
     ws.t_new.resize(n_f, 0.0);
     for k in 0..r {
         let tc = &ws.t_coarse[k * n_c..][..n_c];
-        sample_pdf(tc, &ws.weights[k * n_c..][..n_c], rngs.as_deref_mut().map(|g| &mut g[k]), &mut ws.t_new, &mut ws.cdf);
+        sample_pdf(
+            tc,
+            &ws.weights[k * n_c..][..n_c],
+            rngs.as_deref_mut().map(|g| &mut g[k]),
+            &mut ws.t_new,
+            &mut ws.cdf,
+        );
         ws.t_new.sort_unstable_by(f32::total_cmp);
-        merge_sorted(tc, &ws.t_new, &mut ws.t_fine[k * (n_c + n_f)..][..n_c + n_f]);
+        merge_sorted(
+            tc,
+            &ws.t_new,
+            &mut ws.t_fine[k * (n_c + n_f)..][..n_c + n_f],
+        );
     }
 }
 
 /// Evaluates `net` at depths `t` (`r x spr`) and composites each ray into `ws.outputs`,
 /// leaving the weights in `ws.weights` and activations in `ws.net`.
-fn pass_forward(net: &VanillaNet, params: &[f32], rays: &Rays, t: &[f32], spr: usize, ws: &mut ChunkWorkspace) {
+fn pass_forward(
+    net: &VanillaNet,
+    params: &[f32],
+    rays: &Rays,
+    t: &[f32],
+    spr: usize,
+    ws: &mut ChunkWorkspace,
+) {
     let r = rays.len();
     ws.positions.resize(r * spr * 3, 0.0);
     for k in 0..r {
         let (o, d) = (&rays.origins[k * 3..][..3], rays.dir(k));
-        for (s, p) in ws.positions[k * spr * 3..][..spr * 3].chunks_exact_mut(3).enumerate() {
+        for (s, p) in ws.positions[k * spr * 3..][..spr * 3]
+            .chunks_exact_mut(3)
+            .enumerate()
+        {
             let tt = t[k * spr + s];
             p.copy_from_slice(&[o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
         }
@@ -120,7 +155,17 @@ fn pass_forward(net: &VanillaNet, params: &[f32], rays: &Rays, t: &[f32], spr: u
 /// Loss on the last pass, its backward through compositing and the network. Returns the
 /// pass's sum of squared errors.
 #[allow(clippy::too_many_arguments)]
-fn pass_backward(net: &VanillaNet, params: &[f32], rays: &Rays, t: &[f32], spr: usize, targets: &[f32], loss_scale: f32, ws: &mut ChunkWorkspace, grads: &mut [f32]) -> f64 {
+fn pass_backward(
+    net: &VanillaNet,
+    params: &[f32],
+    rays: &Rays,
+    t: &[f32],
+    spr: usize,
+    targets: &[f32],
+    loss_scale: f32,
+    ws: &mut ChunkWorkspace,
+    grads: &mut [f32],
+) -> f64 {
     let r = rays.len();
     ws.d_sigma.resize(r * spr, 0.0);
     ws.d_rgb.resize(r * spr * 3, 0.0);
@@ -149,10 +194,30 @@ fn pass_backward(net: &VanillaNet, params: &[f32], rays: &Rays, t: &[f32], spr: 
     sse
 }
 
+/// What a training chunk is compared with: colours (`r x 3`) and the factor that turns the
+/// sum of squared errors into this chunk's share of the loss.
+#[derive(Clone, Copy, Debug)]
+pub struct Targets<'a> {
+    pub rgb: &'a [f32],
+    pub loss_scale: f32,
+}
+
 /// One training chunk: forward and backward of both passes against `targets` (`r x 3`).
 /// The loss is `loss_scale * sum of squared errors` per pass (so `1 / (3 * batch)` gives the
 /// batch MSE); gradients are accumulated into `grads` (layout of `model.layout`).
-pub fn train_chunk(model: &Model, params: &[f32], rays: &Rays, targets: &[f32], rngs: &mut [Rng], loss_scale: f32, ws: &mut ChunkWorkspace, grads: &mut [f32]) -> ChunkLoss {
+pub fn train_chunk(
+    model: &Model,
+    params: &[f32],
+    rays: &Rays,
+    targets: Targets,
+    rngs: &mut [Rng],
+    ws: &mut ChunkWorkspace,
+    grads: &mut [f32],
+) -> ChunkLoss {
+    let Targets {
+        rgb: targets,
+        loss_scale,
+    } = targets;
     let r = rays.len();
     let (n_c, n_f) = (model.config.n_coarse, model.config.n_fine);
     let (p_coarse, p_fine) = model.split(params);
@@ -161,22 +226,51 @@ pub fn train_chunk(model: &Model, params: &[f32], rays: &Rays, targets: &[f32], 
     coarse_samples(ws, rays, n_c, Some(rngs));
     let t = std::mem::take(&mut ws.t_coarse);
     pass_forward(&model.coarse, p_coarse, rays, &t, n_c, ws);
-    let coarse_sse = pass_backward(&model.coarse, p_coarse, rays, &t, n_c, targets, loss_scale, ws, g_coarse);
+    let coarse_sse = pass_backward(
+        &model.coarse,
+        p_coarse,
+        rays,
+        &t,
+        n_c,
+        targets,
+        loss_scale,
+        ws,
+        g_coarse,
+    );
     ws.t_coarse = t;
     let mut fine_sse = 0.0;
     if let Some(fine) = &model.fine {
         fine_samples(ws, r, n_c, n_f, Some(rngs));
         let t = std::mem::take(&mut ws.t_fine);
         pass_forward(fine, p_fine, rays, &t, n_c + n_f, ws);
-        fine_sse = pass_backward(fine, p_fine, rays, &t, n_c + n_f, targets, loss_scale, ws, g_fine);
+        fine_sse = pass_backward(
+            fine,
+            p_fine,
+            rays,
+            &t,
+            n_c + n_f,
+            targets,
+            loss_scale,
+            ws,
+            g_fine,
+        );
         ws.t_fine = t;
     }
-    ChunkLoss { coarse_sse, fine_sse }
+    ChunkLoss {
+        coarse_sse,
+        fine_sse,
+    }
 }
 
 /// Renders a chunk for evaluation: bin-midpoint coarse samples, evenly spaced importance
 /// samples, the fine network's result (the coarse one without a fine network).
-pub fn render_chunk(model: &Model, params: &[f32], rays: &Rays, ws: &mut ChunkWorkspace, out: &mut [RayOutput]) {
+pub fn render_chunk(
+    model: &Model,
+    params: &[f32],
+    rays: &Rays,
+    ws: &mut ChunkWorkspace,
+    out: &mut [RayOutput],
+) {
     let r = rays.len();
     let (n_c, n_f) = (model.config.n_coarse, model.config.n_fine);
     let (p_coarse, p_fine) = model.split(params);

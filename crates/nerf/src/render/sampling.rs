@@ -31,9 +31,18 @@ pub fn stratified(near: f32, far: f32, rng: Option<&mut Rng>, out: &mut [f32]) {
 /// `w_2 .. w_{N-1}` (+1e-5, so empty rays still sample uniformly). Draws `out.len()`
 /// samples, uniform `u` with `rng`, evenly spaced `u` in [0, 1] without. Output is sorted
 /// when `rng` is `None`; callers sort the union anyway.
-pub fn sample_pdf(t: &[f32], weights: &[f32], rng: Option<&mut Rng>, out: &mut [f32], cdf: &mut Vec<f32>) {
+pub fn sample_pdf(
+    t: &[f32],
+    weights: &[f32],
+    rng: Option<&mut Rng>,
+    out: &mut [f32],
+    cdf: &mut Vec<f32>,
+) {
     let n = t.len();
-    assert!(n >= 3, "importance sampling needs at least 3 coarse samples");
+    assert!(
+        n >= 3,
+        "importance sampling needs at least 3 coarse samples"
+    );
     assert_eq!(weights.len(), n);
     // Bin edges: the n-1 midpoints; bin k = [mid_k, mid_{k+1}] has weight w_{k+1}.
     let mid = |k: usize| 0.5 * (t[k] + t[k + 1]);

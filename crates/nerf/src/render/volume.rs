@@ -34,7 +34,14 @@ fn delta(t: &[f32], i: usize, dir_norm: f32) -> f32 {
 /// per-sample weights `w_i` into `weights` (for hierarchical sampling).
 ///
 /// Example: one sample, sigma large, colour red, white bg -> rgb `[1, 0, 0]`, opacity 1.
-pub fn composite(t: &[f32], sigma: &[f32], rgb: &[f32], dir_norm: f32, bg: [f32; 3], weights: &mut [f32]) -> RayOutput {
+pub fn composite(
+    t: &[f32],
+    sigma: &[f32],
+    rgb: &[f32],
+    dir_norm: f32,
+    bg: [f32; 3],
+    weights: &mut [f32],
+) -> RayOutput {
     let mut out = RayOutput::default();
     let mut trans = 1.0f32;
     for i in 0..t.len() {
@@ -81,7 +88,11 @@ pub fn composite_bwd(
         for c in 0..3 {
             let ci = rgb[i * 3 + c];
             prefix[c] += w * ci;
-            let suffix = if i + 1 == t.len() { trans * bg[c] } else { rendered[c] - prefix[c] };
+            let suffix = if i + 1 == t.len() {
+                trans * bg[c]
+            } else {
+                rendered[c] - prefix[c]
+            };
             ds += d_rgb_out[c] * (trans * ci - suffix);
             d_rgb[i * 3 + c] = w * d_rgb_out[c];
         }
@@ -100,7 +111,10 @@ mod tests {
         // background shows through with weight exp(-0.7 * 2).
         let n = 400;
         let t: Vec<f32> = (0..n).map(|i| 2.0 + 0.01 * i as f32).collect();
-        let sigma: Vec<f32> = t.iter().map(|&x| if x < 3.995 { 0.7 } else { 0.0 }).collect();
+        let sigma: Vec<f32> = t
+            .iter()
+            .map(|&x| if x < 3.995 { 0.7 } else { 0.0 })
+            .collect();
         let rgb = vec![0.0; n * 3];
         let mut w = vec![0.0; n];
         let out = composite(&t, &sigma, &rgb, 1.0, [1.0; 3], &mut w);
@@ -116,7 +130,14 @@ mod tests {
     fn opaque_surface_gives_its_colour_and_depth() {
         let t = [2.0, 3.0, 4.0];
         let mut w = [0.0; 3];
-        let out = composite(&t, &[0.0, 1e4, 0.0], &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0], 1.0, [1.0; 3], &mut w);
+        let out = composite(
+            &t,
+            &[0.0, 1e4, 0.0],
+            &[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0],
+            1.0,
+            [1.0; 3],
+            &mut w,
+        );
         assert!((out.rgb[0] - 1.0).abs() < 1e-6 && out.rgb[1].abs() < 1e-6);
         assert!((out.depth - 3.0).abs() < 1e-5 && (out.opacity - 1.0).abs() < 1e-6);
     }
@@ -128,7 +149,9 @@ mod tests {
         let mut t: Vec<f32> = (0..n).map(|_| rng.range(2.0, 6.0)).collect();
         t.sort_by(f32::total_cmp);
         // Last sample's delta is 1e10: keep its sigma clear of 0 so exp underflows cleanly.
-        let sigma: Vec<f32> = (0..n).map(|i| if i + 1 == n { 1.0 } else { rng.range(0.0, 2.0) }).collect();
+        let sigma: Vec<f32> = (0..n)
+            .map(|i| if i + 1 == n { 1.0 } else { rng.range(0.0, 2.0) })
+            .collect();
         let rgb: Vec<f32> = (0..n * 3).map(|_| rng.uniform()).collect();
         let (dn, bg, g) = (1.3, [0.2, 0.5, 0.9], [0.7, -1.1, 0.4]);
         let loss = |s: &[f32], c: &[f32]| -> f64 {
@@ -146,14 +169,22 @@ mod tests {
             a[i] += h;
             b[i] -= h;
             let fd = (loss(&a, &rgb) - loss(&b, &rgb)) / (2.0 * h as f64);
-            assert!((fd - ds[i] as f64).abs() < 2e-3 * (1.0 + fd.abs()), "sigma {i}: fd {fd} vs {}", ds[i]);
+            assert!(
+                (fd - ds[i] as f64).abs() < 2e-3 * (1.0 + fd.abs()),
+                "sigma {i}: fd {fd} vs {}",
+                ds[i]
+            );
         }
         for i in 0..n * 3 {
             let (mut a, mut b) = (rgb.clone(), rgb.clone());
             a[i] += h;
             b[i] -= h;
             let fd = (loss(&sigma, &a) - loss(&sigma, &b)) / (2.0 * h as f64);
-            assert!((fd - dc[i] as f64).abs() < 2e-3, "rgb {i}: fd {fd} vs {}", dc[i]);
+            assert!(
+                (fd - dc[i] as f64).abs() < 2e-3,
+                "rgb {i}: fd {fd} vs {}",
+                dc[i]
+            );
         }
     }
 }

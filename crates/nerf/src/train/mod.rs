@@ -19,7 +19,7 @@ use crate::data::{Background, Dataset};
 use crate::error::{NerfError, Result};
 use crate::model::{Model, ModelConfig};
 use crate::nn::adam::{Adam, AdamConfig};
-use crate::render::pipeline::{train_chunk, ChunkLoss, ChunkWorkspace, Rays};
+use crate::render::pipeline::{train_chunk, ChunkLoss, ChunkWorkspace, Rays, Targets};
 use crate::rng::Rng;
 
 /// Everything that defines a training run; saved as `config.json` in the run folder.
@@ -190,26 +190,44 @@ impl Trainer {
         let n_chunks = batch.div_ceil(chunk);
         let n_workers = self.workers.len();
         let loss_scale = 1.0 / (3 * batch) as f32;
-        let crop = if step < cfg.precrop_steps { cfg.precrop_fraction } else { 1.0 };
+        let crop = if step < cfg.precrop_steps {
+            cfg.precrop_fraction
+        } else {
+            1.0
+        };
         let (model, params, data) = (&self.model, &self.params, &self.data);
-        self.workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
-            worker.grads.fill(0.0);
-            worker.loss = ChunkLoss::default();
-            for c in (w..n_chunks).step_by(n_workers) {
-                let rays = (c * chunk)..((c + 1) * chunk).min(batch);
-                worker.sample_rays(data, cfg, step, rays, crop);
-                let r = Rays {
-                    origins: &worker.origins,
-                    dirs: &worker.dirs,
-                    backgrounds: &worker.backgrounds,
-                    near: data.near,
-                    far: data.far,
-                };
-                let l = train_chunk(model, params, &r, &worker.targets, &mut worker.rngs, loss_scale, &mut worker.ws, &mut worker.grads);
-                worker.loss.coarse_sse += l.coarse_sse;
-                worker.loss.fine_sse += l.fine_sse;
-            }
-        });
+        self.workers
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(w, worker)| {
+                worker.grads.fill(0.0);
+                worker.loss = ChunkLoss::default();
+                for c in (w..n_chunks).step_by(n_workers) {
+                    let rays = (c * chunk)..((c + 1) * chunk).min(batch);
+                    worker.sample_rays(data, cfg, step, rays, crop);
+                    let r = Rays {
+                        origins: &worker.origins,
+                        dirs: &worker.dirs,
+                        backgrounds: &worker.backgrounds,
+                        near: data.near,
+                        far: data.far,
+                    };
+                    let l = train_chunk(
+                        model,
+                        params,
+                        &r,
+                        Targets {
+                            rgb: &worker.targets,
+                            loss_scale,
+                        },
+                        &mut worker.rngs,
+                        &mut worker.ws,
+                        &mut worker.grads,
+                    );
+                    worker.loss.coarse_sse += l.coarse_sse;
+                    worker.loss.fine_sse += l.fine_sse;
+                }
+            });
         let (first, rest) = self.workers.split_at_mut(1);
         let grads = &mut first[0].grads;
         let mut total = first[0].loss;
@@ -224,12 +242,19 @@ impl Trainer {
         let (mse_c, mse_f) = (total.coarse_sse / denom, total.fine_sse / denom);
         let loss = (mse_c + mse_f) as f32;
         if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
-            return Err(NerfError::Diverged { step: step + 1, loss });
+            return Err(NerfError::Diverged {
+                step: step + 1,
+                loss,
+            });
         }
         let lr = cfg.learning_rate(step);
         self.adam.step(&mut self.params, grads, lr);
         self.step += 1;
-        let final_mse = if self.model.fine.is_some() { mse_f } else { mse_c };
+        let final_mse = if self.model.fine.is_some() {
+            mse_f
+        } else {
+            mse_c
+        };
         Ok(StepStats {
             step: self.step,
             loss,
@@ -243,8 +268,20 @@ impl Worker {
     /// Picks the rays `range` of this step: a uniformly random training pixel each (inside
     /// the central crop while warming up), its target colour over the ray's background, and
     /// the ray's random stream, which later also draws its sample positions.
-    fn sample_rays(&mut self, data: &Dataset, cfg: &TrainConfig, step: u64, range: std::ops::Range<usize>, crop: f32) {
-        for v in [&mut self.origins, &mut self.dirs, &mut self.backgrounds, &mut self.targets] {
+    fn sample_rays(
+        &mut self,
+        data: &Dataset,
+        cfg: &TrainConfig,
+        step: u64,
+        range: std::ops::Range<usize>,
+        crop: f32,
+    ) {
+        for v in [
+            &mut self.origins,
+            &mut self.dirs,
+            &mut self.backgrounds,
+            &mut self.targets,
+        ] {
             v.clear();
         }
         self.rngs.clear();
@@ -252,7 +289,10 @@ impl Worker {
             let mut rng = Rng::for_stream(cfg.seed, step, g as u64);
             let view = &data.views[rng.below(data.views.len())];
             let (w, h) = (view.image.width, view.image.height);
-            let (cw, ch) = (((w as f32 * crop) as usize).max(1), ((h as f32 * crop) as usize).max(1));
+            let (cw, ch) = (
+                ((w as f32 * crop) as usize).max(1),
+                ((h as f32 * crop) as usize).max(1),
+            );
             let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
             let (i, j) = (x0 + rng.below(cw), y0 + rng.below(ch));
             let ray = view.camera.ray(i, j);
@@ -264,7 +304,8 @@ impl Worker {
             self.origins.extend_from_slice(&ray.origin);
             self.dirs.extend_from_slice(&ray.dir);
             self.backgrounds.extend_from_slice(&bg);
-            self.targets.extend_from_slice(&view.image.composite_pixel(j * w + i, bg));
+            self.targets
+                .extend_from_slice(&view.image.composite_pixel(j * w + i, bg));
             self.rngs.push(rng);
         }
     }

@@ -27,6 +27,9 @@ pub struct RunOptions {
     pub minutes: Option<f64>,
     /// Continue the run in `out` from its checkpoint (its saved config wins).
     pub resume: bool,
+    /// Pause (with a checkpoint) once this step is reached, before `steps`; the learning-rate
+    /// schedule still spans the whole run.
+    pub pause_at: Option<u64>,
 }
 
 /// Why a run stopped.
@@ -36,15 +39,30 @@ pub enum StopReason {
     Steps,
     /// The `--minutes` budget ran out.
     TimeBudget,
+    /// `pause_at` was reached.
+    Paused,
 }
 
 /// What a run reports as it goes.
 #[derive(Debug)]
 pub enum Event<'a> {
-    Started { config: &'a TrainConfig, views: usize, width: usize, height: usize, params: usize, resumed_from: Option<u64> },
+    Started {
+        config: &'a TrainConfig,
+        views: usize,
+        width: usize,
+        height: usize,
+        params: usize,
+        resumed_from: Option<u64>,
+    },
     Step(&'a StepStats),
-    Validation { step: u64, psnr: f32, image: &'a Path },
-    Checkpoint { step: u64 },
+    Validation {
+        step: u64,
+        psnr: f32,
+        image: &'a Path,
+    },
+    Checkpoint {
+        step: u64,
+    },
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -100,7 +118,10 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let ckpt_path = out.join(CHECKPOINT_FILE);
     let config = if opts.resume {
         if !ckpt_path.exists() {
-            return Err(NerfError::Config(format!("cannot resume: {} does not exist", ckpt_path.display())));
+            return Err(NerfError::Config(format!(
+                "cannot resume: {} does not exist",
+                ckpt_path.display()
+            )));
         }
         crate::io::read_json::<TrainConfig>(&config_path)?
     } else {
@@ -137,7 +158,14 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         resumed_from = Some(ckpt.step);
         truncate_metrics(&out.join(METRICS_FILE), ckpt.step)?;
     }
-    on_event(Event::Started { config: &config, views, width, height, params: trainer.params.len(), resumed_from });
+    on_event(Event::Started {
+        config: &config,
+        views,
+        width,
+        height,
+        params: trainer.params.len(),
+        resumed_from,
+    });
 
     let metrics_path = out.join(METRICS_FILE);
     let mut metrics = std::fs::OpenOptions::new()
@@ -170,19 +198,44 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         if budget.is_some_and(|b| start.elapsed().as_secs_f64() >= b) {
             break StopReason::TimeBudget;
         }
+        if opts.pause_at.is_some_and(|p| trainer.step >= p) {
+            break StopReason::Paused;
+        }
         let stats = trainer.step()?;
         last_psnr = stats.psnr;
         let elapsed = elapsed_before + start.elapsed().as_secs_f64();
-        let line = MetricLine { step: stats.step, loss: stats.loss, psnr: stats.psnr, lr: stats.lr, elapsed_s: elapsed };
+        let line = MetricLine {
+            step: stats.step,
+            loss: stats.loss,
+            psnr: stats.psnr,
+            lr: stats.lr,
+            elapsed_s: elapsed,
+        };
         append_line(&mut metrics, &metrics_path, &line)?;
         on_event(Event::Step(&stats));
         if config.val_every > 0 && stats.step % config.val_every == 0 {
             if let Some(view) = &val_view {
                 let image = out.join("val").join(format!("step_{:07}.png", stats.step));
                 let psnr = validate(&trainer, view, &image)?;
-                let name = image.strip_prefix(out).unwrap_or(&image).to_string_lossy().into_owned();
-                append_line(&mut metrics, &metrics_path, &ValLine { step: stats.step, val_psnr: psnr, image: &name })?;
-                on_event(Event::Validation { step: stats.step, psnr, image: &image });
+                let name = image
+                    .strip_prefix(out)
+                    .unwrap_or(&image)
+                    .to_string_lossy()
+                    .into_owned();
+                append_line(
+                    &mut metrics,
+                    &metrics_path,
+                    &ValLine {
+                        step: stats.step,
+                        val_psnr: psnr,
+                        image: &name,
+                    },
+                )?;
+                on_event(Event::Validation {
+                    step: stats.step,
+                    psnr,
+                    image: &image,
+                });
             }
         }
         if config.checkpoint_every > 0 && stats.step % config.checkpoint_every == 0 {
@@ -193,7 +246,12 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let seconds = elapsed_before + start.elapsed().as_secs_f64();
     save(&trainer, seconds)?;
     on_event(Event::Checkpoint { step: trainer.step });
-    Ok(RunSummary { steps: trainer.step, reason, seconds, last_psnr })
+    Ok(RunSummary {
+        steps: trainer.step,
+        reason,
+        seconds,
+        last_psnr,
+    })
 }
 
 /// The first validation view (first training view if the scene has no val split), at the
@@ -202,7 +260,11 @@ fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
     if config.val_every == 0 {
         return Ok(None);
     }
-    let split = if blender::transforms_path(&config.data, Split::Val).exists() { Split::Val } else { Split::Train };
+    let split = if blender::transforms_path(&config.data, Split::Val).exists() {
+        Split::Val
+    } else {
+        Split::Train
+    };
     let mut data = blender::load(&config.data, split, config.downscale * config.val_downscale)?;
     data.views.truncate(1);
     Ok(data.views.pop())
@@ -210,7 +272,19 @@ fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
 
 fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
     let bg = trainer.config.background.eval_colour();
-    let r = crate::renderer::render_view(&trainer.model, &trainer.params, &view.camera, trainer.data.near, trainer.data.far, bg, trainer.config.chunk_rays, &|_| {});
+    let settings = crate::renderer::RenderSettings {
+        near: trainer.data.near,
+        far: trainer.data.far,
+        background: bg,
+        chunk_rays: trainer.config.chunk_rays,
+    };
+    let r = crate::renderer::render_view(
+        &trainer.model,
+        &trainer.params,
+        &view.camera,
+        &settings,
+        &|_| {},
+    );
     if let Some(dir) = path.parent() {
         crate::io::create_dir(dir)?;
     }
@@ -219,14 +293,18 @@ fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
 }
 
 fn append_line<T: Serialize>(file: &mut std::fs::File, path: &Path, value: &T) -> Result<()> {
-    let mut line = serde_json::to_string(value).map_err(|e| NerfError::write(path, std::io::Error::other(e)))?;
+    let mut line = serde_json::to_string(value)
+        .map_err(|e| NerfError::write(path, std::io::Error::other(e)))?;
     line.push('\n');
-    file.write_all(line.as_bytes()).map_err(|e| NerfError::write(path, e))
+    file.write_all(line.as_bytes())
+        .map_err(|e| NerfError::write(path, e))
 }
 
 /// Drops metric lines written after the checkpoint a run resumes from.
 fn truncate_metrics(path: &Path, step: u64) -> Result<()> {
-    let Ok(text) = std::fs::read_to_string(path) else { return Ok(()) };
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Ok(());
+    };
     let kept: String = text
         .lines()
         .filter(|l| {

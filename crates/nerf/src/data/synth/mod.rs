@@ -62,13 +62,19 @@ impl Default for SynthOptions {
 
 /// Camera poses of one split.
 pub fn poses(split: Split, count: usize, seed: u64) -> Vec<Pose> {
-    let mut rng = Rng::new(seed ^ (split as u64 + 1) * 0x51f1);
+    let mut rng = Rng::new(seed ^ ((split as u64 + 1) * 0x51f1));
     (0..count)
         .map(|k| {
             let (az, el) = match split {
-                Split::Test => (std::f32::consts::TAU * k as f32 / count as f32, 30f32.to_radians()),
+                Split::Test => (
+                    std::f32::consts::TAU * k as f32 / count as f32,
+                    30f32.to_radians(),
+                ),
                 // Uniform on the hemisphere above 5 degrees.
-                _ => (rng.range(0.0, std::f32::consts::TAU), rng.range(5f32.to_radians().sin(), 1.0).asin()),
+                _ => (
+                    rng.range(0.0, std::f32::consts::TAU),
+                    rng.range(5f32.to_radians().sin(), 1.0).asin(),
+                ),
             };
             look_at(spherical(RADIUS, az, el), [0.0; 3], [0.0, 0.0, 1.0])
         })
@@ -119,7 +125,10 @@ pub fn render(scene: &Scene, camera: &Camera, supersample: usize) -> SynthImage 
             (rgba, depth)
         })
         .collect();
-    let mut img = SynthImage { rgba: Vec::with_capacity(w * h * 4), depth: Vec::with_capacity(w * h) };
+    let mut img = SynthImage {
+        rgba: Vec::with_capacity(w * h * 4),
+        depth: Vec::with_capacity(w * h),
+    };
     for (r, d) in rows {
         img.rgba.extend(r);
         img.depth.extend(d);
@@ -128,12 +137,23 @@ pub fn render(scene: &Scene, camera: &Camera, supersample: usize) -> SynthImage 
 }
 
 /// Renders all splits into `out` (creating it). Returns the number of images written.
-pub fn generate(opts: &SynthOptions, out: &Path, on_image: &mut dyn FnMut(usize, usize)) -> Result<usize> {
+pub fn generate(
+    opts: &SynthOptions,
+    out: &Path,
+    on_image: &mut dyn FnMut(usize, usize),
+) -> Result<usize> {
     if opts.size < 8 {
-        return Err(NerfError::Config(format!("image size {} is too small (minimum 8)", opts.size)));
+        return Err(NerfError::Config(format!(
+            "image size {} is too small (minimum 8)",
+            opts.size
+        )));
     }
     let scene = Scene::new(opts.scene.parts());
-    let splits = [(Split::Train, opts.train_views), (Split::Val, opts.val_views), (Split::Test, opts.test_views)];
+    let splits = [
+        (Split::Train, opts.train_views),
+        (Split::Val, opts.val_views),
+        (Split::Test, opts.test_views),
+    ];
     let total: usize = splits.iter().map(|s| s.1).sum();
     let mut done = 0;
     for (split, count) in splits {
@@ -143,9 +163,23 @@ pub fn generate(opts: &SynthOptions, out: &Path, on_image: &mut dyn FnMut(usize,
         for (k, pose) in poses(split, count, opts.seed).into_iter().enumerate() {
             let camera = Camera::from_fov_x(opts.size, opts.size, FOV_X, pose);
             let img = render(&scene, &camera, opts.supersample);
-            save_rgba_png(&dir.join(format!("r_{k}.png")), opts.size, opts.size, &img.rgba)?;
-            let mm: Vec<u16> = img.depth.iter().map(|&d| (d * 1000.0).round().clamp(0.0, 65535.0) as u16).collect();
-            save_gray16_png(&dir.join(format!("r_{k}_depth.png")), opts.size, opts.size, mm)?;
+            save_rgba_png(
+                &dir.join(format!("r_{k}.png")),
+                opts.size,
+                opts.size,
+                &img.rgba,
+            )?;
+            let mm: Vec<u16> = img
+                .depth
+                .iter()
+                .map(|&d| (d * 1000.0).round().clamp(0.0, 65535.0) as u16)
+                .collect();
+            save_gray16_png(
+                &dir.join(format!("r_{k}_depth.png")),
+                opts.size,
+                opts.size,
+                mm,
+            )?;
             frames.push(Frame {
                 file_path: format!("./{}/r_{k}", split.name()),
                 transform_matrix: pose_to_matrix(&camera.c2w),
@@ -154,7 +188,14 @@ pub fn generate(opts: &SynthOptions, out: &Path, on_image: &mut dyn FnMut(usize,
             done += 1;
             on_image(done, total);
         }
-        save_transforms(out, split, &Transforms { camera_angle_x: FOV_X, frames })?;
+        save_transforms(
+            out,
+            split,
+            &Transforms {
+                camera_angle_x: FOV_X,
+                frames,
+            },
+        )?;
     }
     Ok(total)
 }
@@ -173,11 +214,23 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
                     px[c] *= px[3];
                 }
             }
-            let image = super::RgbaImage { width: opts.size, height: opts.size, data };
-            super::View { camera, image, name: format!("{}/r_{k}", split.name()) }
+            let image = super::RgbaImage {
+                width: opts.size,
+                height: opts.size,
+                data,
+            };
+            super::View {
+                camera,
+                image,
+                name: format!("{}/r_{k}", split.name()),
+            }
         })
         .collect();
-    super::Dataset { views, near: super::blender::NEAR, far: super::blender::FAR }
+    super::Dataset {
+        views,
+        near: super::blender::NEAR,
+        far: super::blender::FAR,
+    }
 }
 
 /// The unit direction from the origin to a camera, for tests of the view layout.
@@ -193,13 +246,26 @@ mod tests {
     #[test]
     fn generates_a_loadable_deterministic_dataset_with_true_depth() {
         let dir = tempfile::tempdir().expect("tempdir");
-        let opts = SynthOptions { size: 24, train_views: 3, val_views: 1, test_views: 2, supersample: 2, ..Default::default() };
-        assert_eq!(generate(&opts, dir.path(), &mut |_, _| {}).expect("synth"), 6);
+        let opts = SynthOptions {
+            size: 24,
+            train_views: 3,
+            val_views: 1,
+            test_views: 2,
+            supersample: 2,
+            ..Default::default()
+        };
+        assert_eq!(
+            generate(&opts, dir.path(), &mut |_, _| {}).expect("synth"),
+            6
+        );
         let train = blender::load(dir.path(), Split::Train, 1).expect("load train");
         assert_eq!(train.views.len(), 3);
         let img = &train.views[0].image;
         let coverage = img.data.chunks_exact(4).filter(|p| p[3] > 0.5).count();
-        assert!(coverage > 24 * 24 / 20 && coverage < 24 * 24 * 3 / 4, "object covers {coverage} pixels");
+        assert!(
+            coverage > 24 * 24 / 20 && coverage < 24 * 24 * 3 / 4,
+            "object covers {coverage} pixels"
+        );
         // Same seed, same pixels.
         let again = tempfile::tempdir().expect("tempdir");
         generate(&opts, again.path(), &mut |_, _| {}).expect("synth");
@@ -209,12 +275,18 @@ mod tests {
         // Depth agrees with a directly traced ray at the image centre.
         let cam = &train.views[0].camera;
         let scene = Scene::new(SceneKind::Chair.parts());
-        let depth = image::open(dir.path().join("train/r_0_depth.png")).expect("depth").to_luma16();
+        let depth = image::open(dir.path().join("train/r_0_depth.png"))
+            .expect("depth")
+            .to_luma16();
         let ray = cam.ray(12, 12);
         let norm = length(ray.dir);
         if let Some(hit) = scene.trace(ray.origin, scale(ray.dir, 1.0 / norm)) {
             let stored = depth.get_pixel(12, 12).0[0] as f32 / 1000.0;
-            assert!((stored - hit.t / norm).abs() < 0.05, "{stored} vs {}", hit.t / norm);
+            assert!(
+                (stored - hit.t / norm).abs() < 0.05,
+                "{stored} vs {}",
+                hit.t / norm
+            );
         }
         // Test views on the 30-degree circle, all at radius 4.
         for p in poses(Split::Test, 8, 0) {

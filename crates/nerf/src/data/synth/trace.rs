@@ -22,8 +22,14 @@ const HIT_EPS: f32 = 2e-4;
 
 fn lights() -> [Light; 2] {
     [
-        Light { dir: normalize_or_zero([0.55, -0.45, 0.75]), colour: [0.85, 0.8, 0.72] },
-        Light { dir: normalize_or_zero([-0.6, 0.5, 0.45]), colour: [0.3, 0.36, 0.45] },
+        Light {
+            dir: normalize_or_zero([0.55, -0.45, 0.75]),
+            colour: [0.85, 0.8, 0.72],
+        },
+        Light {
+            dir: normalize_or_zero([-0.6, 0.5, 0.45]),
+            colour: [0.3, 0.36, 0.45],
+        },
     ]
 }
 
@@ -44,7 +50,11 @@ impl Scene {
             }
         }
         let center = scale(add(lo, hi), 0.5);
-        Scene { parts, center, radius: 0.5 * length(sub(hi, lo)) + 0.01 }
+        Scene {
+            parts,
+            center,
+            radius: 0.5 * length(sub(hi, lo)) + 0.01,
+        }
     }
 
     /// Axis-aligned bounds of all parts.
@@ -101,7 +111,9 @@ impl Scene {
 
     /// Soft shadow factor in [0, 1] towards a directional light (1 = fully lit).
     fn shadow(&self, p: V3, l: V3) -> f32 {
-        let Some((_, exit)) = self.enter_exit(p, l) else { return 1.0 };
+        let Some((_, exit)) = self.enter_exit(p, l) else {
+            return 1.0;
+        };
         let (mut t, mut lit) = (0.01f32, 1.0f32);
         while t < exit {
             let (dist, _) = self.distance(add(p, scale(l, t)));
@@ -147,7 +159,10 @@ impl Scene {
                 colour[c] += lit * light.colour[c] * (albedo[c] * diffuse + spec);
             }
         }
-        Some(Hit { t, colour: colour.map(|c| c.clamp(0.0, 1.0)) })
+        Some(Hit {
+            t,
+            colour: colour.map(|c| c.clamp(0.0, 1.0)),
+        })
     }
 }
 
@@ -160,8 +175,15 @@ mod tests {
 
     fn ball(specular: f32) -> Scene {
         Scene::new(vec![Part {
-            shape: Shape::Sphere { center: [0.0; 3], radius: 1.0 },
-            material: Material { pattern: Pattern::Solid([0.5, 0.5, 0.5]), specular, shininess: 20.0 },
+            shape: Shape::Sphere {
+                center: [0.0; 3],
+                radius: 1.0,
+            },
+            material: Material {
+                pattern: Pattern::Solid([0.5, 0.5, 0.5]),
+                specular,
+                shininess: 20.0,
+            },
         }])
     }
 

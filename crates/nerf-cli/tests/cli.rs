@@ -1,0 +1,153 @@
+//! The `nerf` binary as a user runs it: every subcommand on a tiny scene, and clear errors.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn nerf(args: &[&str], cwd: &Path) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_nerf"))
+        .args(args)
+        .current_dir(cwd)
+        .output()
+        .expect("run nerf")
+}
+
+fn ok(out: &Output) -> String {
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(out.status.success(), "nerf failed:\n{text}");
+    text
+}
+
+#[test]
+fn synth_train_eval_render() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    ok(&nerf(
+        &[
+            "synth",
+            "--scene",
+            "table",
+            "--out",
+            "scene",
+            "--size",
+            "16",
+            "--train-views",
+            "10",
+            "--val-views",
+            "1",
+            "--test-views",
+            "4",
+        ],
+        d,
+    ));
+    assert!(
+        d.join("scene/transforms_test.json").exists()
+            && d.join("scene/train/r_9_depth.png").exists()
+    );
+    let text = ok(&nerf(
+        &[
+            "--threads",
+            "2",
+            "train",
+            "--data",
+            "scene",
+            "--out",
+            "run",
+            "--preset",
+            "demo",
+            "--steps",
+            "30",
+            "--batch",
+            "64",
+            "--val-every",
+            "10",
+        ],
+        d,
+    ));
+    assert!(
+        text.contains("stopped after step 30 (all steps done)"),
+        "{text}"
+    );
+    for f in [
+        "config.json",
+        "checkpoint.safetensors",
+        "metrics.jsonl",
+        "val/step_0000030.png",
+    ] {
+        assert!(d.join("run").join(f).exists(), "missing {f}");
+    }
+    // Resuming a finished run with a later target continues it.
+    let text = ok(&nerf(
+        &[
+            "train", "--data", "scene", "--out", "run", "--resume", "--steps", "35",
+        ],
+        d,
+    ));
+    assert!(
+        text.contains("resuming from the checkpoint at step 30")
+            && text.contains("stopped after step 35"),
+        "{text}"
+    );
+    let text = ok(&nerf(&["eval", "--run", "run", "--every", "2"], d));
+    assert!(
+        text.contains("2 views of test") && text.contains("mean PSNR"),
+        "{text}"
+    );
+    let metrics: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("run/eval_test/metrics.json")).expect("metrics"),
+    )
+    .expect("json");
+    assert_eq!(metrics["views"].as_array().map(|v| v.len()), Some(2));
+    assert!(metrics["mean_ssim"]
+        .as_f64()
+        .is_some_and(|s| s > 0.0 && s <= 1.0));
+    ok(&nerf(
+        &[
+            "render", "--run", "run", "--path", "orbit", "--frames", "3", "--size", "12",
+        ],
+        d,
+    ));
+    assert!(
+        d.join("run/render_orbit/frame_0002.png").exists()
+            && d.join("run/render_orbit/frame_0002_depth.png").exists()
+    );
+    ok(&nerf(
+        &[
+            "render",
+            "--run",
+            "run",
+            "--path",
+            "test",
+            "--out",
+            "testviews",
+        ],
+        d,
+    ));
+    assert!(d.join("testviews/frame_0003.png").exists());
+}
+
+#[test]
+fn errors_name_the_file_and_exit_non_zero() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = nerf(&["train", "--data", "nowhere", "--steps", "1"], dir.path());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("nowhere/transforms_train.json"), "{err}");
+    let out = nerf(&["eval", "--run", "norun"], dir.path());
+    assert!(
+        !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("norun/config.json")
+    );
+}
+
+#[test]
+fn train_help_lists_every_preset() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let help = ok(&nerf(&["train", "--help"], dir.path()));
+    for p in nerf::presets::PRESETS {
+        assert!(help.contains(p.name), "--help does not list {}", p.name);
+    }
+    assert!(help.contains("paper 31.01 dB"));
+}
