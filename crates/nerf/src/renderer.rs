@@ -19,6 +19,14 @@ pub struct RenderSettings {
     pub chunk_rays: usize,
 }
 
+#[derive(Default)]
+struct Scratch {
+    ws: ChunkWorkspace,
+    origins: Vec<f32>,
+    dirs: Vec<f32>,
+    backgrounds: Vec<f32>,
+}
+
 /// Per-pixel results of one view.
 #[derive(Clone, Debug)]
 pub struct RenderedView {
@@ -49,37 +57,38 @@ pub fn render_view(
     let mut out = vec![RayOutput::default(); w * h];
     let chunk = chunk_rays.max(1);
     let done = std::sync::atomic::AtomicUsize::new(0);
-    out.par_chunks_mut(chunk).enumerate().for_each_init(
-        || {
-            (
-                ChunkWorkspace::default(),
-                Vec::new(),
-                Vec::new(),
-                Vec::new(),
-            )
-        },
-        |(ws, origins, dirs, bgs), (c, out)| {
-            origins.clear();
-            dirs.clear();
-            bgs.clear();
-            for p in c * chunk..c * chunk + out.len() {
-                let ray = camera.ray(p % w, p / w);
-                origins.extend_from_slice(&ray.origin);
-                dirs.extend_from_slice(&ray.dir);
-                bgs.extend_from_slice(&bg);
-            }
-            let rays = Rays {
-                origins,
-                dirs,
-                backgrounds: bgs,
-                near,
-                far,
-            };
-            render_chunk(model, params, &rays, ws, out);
-            let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
-            on_progress(n);
-        },
-    );
+    // Workspaces grow to ~100 MB for the paper's model; a small pool hands the same few to
+    // whichever thread takes the next chunk instead of building one per rayon job.
+    let pool = std::sync::Mutex::new(Vec::<Scratch>::new());
+    out.par_chunks_mut(chunk).enumerate().for_each(|(c, out)| {
+        let mut s = pool
+            .lock()
+            .ok()
+            .and_then(|mut p| p.pop())
+            .unwrap_or_default();
+        s.origins.clear();
+        s.dirs.clear();
+        s.backgrounds.clear();
+        for p in c * chunk..c * chunk + out.len() {
+            let ray = camera.ray(p % w, p / w);
+            s.origins.extend_from_slice(&ray.origin);
+            s.dirs.extend_from_slice(&ray.dir);
+            s.backgrounds.extend_from_slice(&bg);
+        }
+        let rays = Rays {
+            origins: &s.origins,
+            dirs: &s.dirs,
+            backgrounds: &s.backgrounds,
+            near,
+            far,
+        };
+        render_chunk(model, params, &rays, &mut s.ws, out);
+        if let Ok(mut p) = pool.lock() {
+            p.push(s);
+        }
+        let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
+        on_progress(n);
+    });
     RenderedView {
         width: w,
         height: h,

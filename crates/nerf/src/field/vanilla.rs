@@ -463,9 +463,8 @@ impl VanillaNet {
         for l in (0..cfg.depth).rev() {
             let layer = &self.trunk[l];
             let dz = &mut ws.d_a[..n * w];
-            relu_bwd(dz, &ws.hidden[l][..n * w]);
             let (gw, gb) = grad_pair(grads, layer);
-            col_sum_into(dz, w, gb);
+            relu_bwd_bias(dz, &ws.hidden[l][..n * w], w, gb);
             if l == 0 {
                 matmul(
                     gw,
@@ -523,11 +522,14 @@ fn relu(x: &mut [f32]) {
     x.iter_mut().for_each(|v| *v = v.max(0.0));
 }
 
-/// `dz = dh * (h > 0)`, with `h` the layer's post-ReLU output.
-fn relu_bwd(dh: &mut [f32], h: &[f32]) {
-    for (d, &y) in dh.iter_mut().zip(h) {
-        if y <= 0.0 {
-            *d = 0.0;
+/// `dz = dh * (h > 0)` in place (`h` is the layer's post-ReLU output), and the bias
+/// gradient `d_bias += sum over rows of dz`, in one pass. Written as a select rather than a
+/// conditional store so that it vectorises.
+fn relu_bwd_bias(dh: &mut [f32], h: &[f32], cols: usize, d_bias: &mut [f32]) {
+    for (drow, hrow) in dh.chunks_exact_mut(cols).zip(h.chunks_exact(cols)) {
+        for ((d, &y), b) in drow.iter_mut().zip(hrow).zip(d_bias.iter_mut()) {
+            *d = if y > 0.0 { *d } else { 0.0 };
+            *b += *d;
         }
     }
 }
