@@ -144,7 +144,9 @@ pub struct TrainArgs {
 
 impl TrainArgs {
     fn config(&self) -> Result<TrainConfig> {
-        let mut c = TrainConfig::from_preset(self.data.clone(), &self.preset)?;
+        // Absolute, so `eval` and `render` find the scene from any working directory.
+        let data = std::fs::canonicalize(&self.data).unwrap_or_else(|_| self.data.clone());
+        let mut c = TrainConfig::from_preset(data, &self.preset)?;
         c.steps = self.steps.unwrap_or(c.steps);
         c.batch_rays = self.batch;
         c.lr_init = self.lr;
@@ -210,6 +212,7 @@ fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
     let mut last = (Instant::now(), 0u64);
     let mut rays_per_s = 0.0;
     let mut batch = 0usize;
+    let mut last_line = Instant::now();
     let summary = run::train(opts, &mut |event| match event {
         Event::Started {
             config,
@@ -254,6 +257,14 @@ fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
                     "loss {:.4} psnr {:.2} {:.0} rays/s",
                     s.loss, s.psnr, rays_per_s
                 ));
+                // Without a terminal (logs, CI) the bar is hidden: print a line now and then.
+                if p.is_hidden() && last_line.elapsed().as_secs_f64() >= 30.0 {
+                    println!(
+                        "step {}: loss {:.4}, batch PSNR {:.2} dB, {:.0} rays/s",
+                        s.step, s.loss, s.psnr, rays_per_s
+                    );
+                    last_line = Instant::now();
+                }
             }
         }
         Event::Validation { step, psnr, image } => {
@@ -581,6 +592,9 @@ pub struct BenchArgs {
     /// Model preset to measure.
     #[arg(long, default_value = "paper", value_parser = crate::preset_values())]
     preset: String,
+    /// Print the figures as JSON.
+    #[arg(long)]
+    json: bool,
 }
 
 pub fn bench(a: BenchArgs) -> Result<()> {
@@ -592,6 +606,24 @@ pub fn bench(a: BenchArgs) -> Result<()> {
         preset: a.preset,
     };
     let report = nerf::bench::run(&opts, &mut |line| println!("{line}"))?;
-    println!("{}", serde_json::to_string_pretty(&report)?);
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    let r = &report;
+    println!("\n{} threads, preset {}", r.threads, r.preset);
+    println!(
+        "GEMM peak (gemm crate, 16384x256x256): {:.1} GFLOP/s ({:.1} on one thread)",
+        r.gemm_peak_gflops, r.gemm_gflops_one_thread
+    );
+    println!(
+        "training step, {} rays: {:.3} s (median), {:.0} rays/s, {:.0} samples/s, {:.1} GFLOP/step, {:.1} GFLOP/s = {:.1}% of the GEMM peak",
+        r.train_rays, r.train_step_seconds_median, r.train_rays_per_second, r.train_samples_per_second, r.train_gflop_per_step, r.train_gflops, r.train_percent_of_gemm_peak
+    );
+    println!(
+        "rendering {0}x{0} (from {1} rows): {2:.1} s per view, {3:.0} rays/s, {4:.0} samples/s, {5:.1} GFLOP/s = {6:.1}% of the GEMM peak",
+        r.render_size, r.render_rows_measured, r.render_seconds_full_view, r.render_rays_per_second, r.render_samples_per_second, r.render_gflops, r.render_percent_of_gemm_peak
+    );
+    println!("peak resident memory: {:.0} MiB", r.peak_resident_mib);
     Ok(())
 }

@@ -37,11 +37,15 @@ impl Dataset {
         if n == 0 || n >= total {
             return;
         }
-        let keep: Vec<usize> = (0..n).map(|k| k * total / n).collect();
-        let mut views = std::mem::take(&mut self.views);
-        self.views = keep
-            .iter()
-            .map(|&i| std::mem::replace(&mut views[i], placeholder()))
+        let mut keep = vec![false; total];
+        for k in 0..n {
+            keep[k * total / n] = true;
+        }
+        let views = std::mem::take(&mut self.views);
+        self.views = views
+            .into_iter()
+            .zip(keep)
+            .filter_map(|(v, k)| k.then_some(v))
             .collect();
     }
 
@@ -50,18 +54,6 @@ impl Dataset {
             .first()
             .map(|v| (v.image.width, v.image.height))
             .unwrap_or((0, 0))
-    }
-}
-
-fn placeholder() -> View {
-    View {
-        camera: Camera::from_fov_x(0, 0, 1.0, [[0.0; 4]; 3]),
-        image: RgbaImage {
-            width: 0,
-            height: 0,
-            data: Vec::new(),
-        },
-        name: String::new(),
     }
 }
 

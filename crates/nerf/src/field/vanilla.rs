@@ -18,6 +18,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::encoding::FrequencyEncoding;
+use crate::nn::activation::{col_sum_into, relu, relu_bwd_bias, sigmoid};
 use crate::nn::linalg::{matmul, MatRef};
 use crate::nn::ParamLayout;
 
@@ -518,38 +519,9 @@ fn fill_bias(out: &mut [f32], bias: &[f32]) {
     }
 }
 
-fn relu(x: &mut [f32]) {
-    x.iter_mut().for_each(|v| *v = v.max(0.0));
-}
-
-/// `dz = dh * (h > 0)` in place (`h` is the layer's post-ReLU output), and the bias
-/// gradient `d_bias += sum over rows of dz`, in one pass. Written as a select rather than a
-/// conditional store so that it vectorises.
-fn relu_bwd_bias(dh: &mut [f32], h: &[f32], cols: usize, d_bias: &mut [f32]) {
-    for (drow, hrow) in dh.chunks_exact_mut(cols).zip(h.chunks_exact(cols)) {
-        for ((d, &y), b) in drow.iter_mut().zip(hrow).zip(d_bias.iter_mut()) {
-            *d = if y > 0.0 { *d } else { 0.0 };
-            *b += *d;
-        }
-    }
-}
-
-fn col_sum_into(m: &[f32], cols: usize, out: &mut [f32]) {
-    for row in m.chunks_exact(cols) {
-        for (o, v) in out.iter_mut().zip(row) {
-            *o += v;
-        }
-    }
-}
-
 #[inline]
 fn dot(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
-}
-
-#[inline]
-pub fn sigmoid(x: f32) -> f32 {
-    1.0 / (1.0 + (-x).exp())
 }
 
 /// Activations of one chunk, kept for the backward pass, plus scratch for it. Grows to the

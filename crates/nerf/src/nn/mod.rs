@@ -1,6 +1,7 @@
 //! Dense networks by hand: a flat parameter vector with named slices, matrix products via
 //! the `gemm` crate, Adam, and Glorot initialisation.
 
+pub mod activation;
 pub mod adam;
 pub mod linalg;
 pub mod params;

@@ -22,7 +22,7 @@ use super::image::{save_gray16_png, save_rgba_png};
 use super::Split;
 use crate::camera::{look_at, spherical, Camera, Pose};
 use crate::error::{NerfError, Result};
-use crate::math::{length, normalize_or_zero, scale};
+use crate::math::{length, scale};
 use crate::rng::Rng;
 pub use scenes::SceneKind;
 pub use trace::Scene;
@@ -233,15 +233,11 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
     }
 }
 
-/// The unit direction from the origin to a camera, for tests of the view layout.
-pub fn view_direction(pose: &Pose) -> [f32; 3] {
-    normalize_or_zero([pose[0][3], pose[1][3], pose[2][3]])
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::data::blender;
+    use crate::math::normalize_or_zero;
 
     #[test]
     fn generates_a_loadable_deterministic_dataset_with_true_depth() {
@@ -290,7 +286,7 @@ mod tests {
         }
         // Test views on the 30-degree circle, all at radius 4.
         for p in poses(Split::Test, 8, 0) {
-            let d = view_direction(&p);
+            let d = normalize_or_zero([p[0][3], p[1][3], p[2][3]]);
             assert!((d[2] - 0.5).abs() < 1e-5);
         }
     }
