@@ -94,42 +94,39 @@ impl RgbaImage {
 
 /// Writes packed RGB in [0, 1] as an 8-bit PNG, through a temporary file renamed into place.
 pub fn save_rgb_png(path: &Path, width: usize, height: usize, rgb: &[f32]) -> Result<()> {
-    let bytes: Vec<u8> = rgb.iter().map(|&v| to_u8(v)).collect();
-    let img = image::RgbImage::from_raw(width as u32, height as u32, bytes).ok_or_else(|| {
-        NerfError::format(
-            path,
-            format!("buffer does not hold {width}x{height} RGB pixels"),
-        )
-    })?;
-    save_atomic(path, |tmp| {
-        img.save_with_format(tmp, image::ImageFormat::Png)
-    })
+    save_png::<image::Rgb<u8>>(path, width, height, rgb.iter().map(|&v| to_u8(v)).collect())
 }
 
 /// Writes straight-alpha RGBA in [0, 1] as an 8-bit PNG.
 pub fn save_rgba_png(path: &Path, width: usize, height: usize, rgba: &[f32]) -> Result<()> {
-    let bytes: Vec<u8> = rgba.iter().map(|&v| to_u8(v)).collect();
-    let img = image::RgbaImage::from_raw(width as u32, height as u32, bytes).ok_or_else(|| {
-        NerfError::format(
-            path,
-            format!("buffer does not hold {width}x{height} RGBA pixels"),
-        )
-    })?;
-    save_atomic(path, |tmp| {
-        img.save_with_format(tmp, image::ImageFormat::Png)
-    })
+    save_png::<image::Rgba<u8>>(
+        path,
+        width,
+        height,
+        rgba.iter().map(|&v| to_u8(v)).collect(),
+    )
 }
 
 /// Writes a 16-bit grayscale PNG.
 pub fn save_gray16_png(path: &Path, width: usize, height: usize, values: Vec<u16>) -> Result<()> {
-    let img =
-        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(width as u32, height as u32, values)
-            .ok_or_else(|| {
-                NerfError::format(
-                    path,
-                    format!("buffer does not hold {width}x{height} pixels"),
-                )
-            })?;
+    save_png::<image::Luma<u16>>(path, width, height, values)
+}
+
+fn save_png<P>(path: &Path, width: usize, height: usize, values: Vec<P::Subpixel>) -> Result<()>
+where
+    P: image::PixelWithColorType,
+    [P::Subpixel]: image::EncodableLayout,
+{
+    let img = image::ImageBuffer::<P, _>::from_raw(width as u32, height as u32, values)
+        .ok_or_else(|| {
+            NerfError::format(
+                path,
+                format!(
+                    "buffer does not hold {width}x{height} pixels of {} channels",
+                    P::CHANNEL_COUNT
+                ),
+            )
+        })?;
     save_atomic(path, |tmp| {
         img.save_with_format(tmp, image::ImageFormat::Png)
     })

@@ -48,6 +48,22 @@ impl<'a> MatRef<'a> {
 
 /// `out (m x n, row-major) = a b`, or `out += a b` when `accumulate`.
 pub fn matmul(out: &mut [f32], a: MatRef, b: MatRef, accumulate: bool) {
+    gemm_checked(out, a, b, accumulate, gemm::Parallelism::None);
+}
+
+/// Like [`matmul`] but lets `gemm` split the one product over `threads` threads
+/// (used by the benchmark to measure the library's peak).
+pub fn matmul_parallel(out: &mut [f32], a: MatRef, b: MatRef, threads: usize) {
+    gemm_checked(out, a, b, false, gemm::Parallelism::Rayon(threads));
+}
+
+fn gemm_checked(
+    out: &mut [f32],
+    a: MatRef,
+    b: MatRef,
+    accumulate: bool,
+    parallelism: gemm::Parallelism,
+) {
     assert_eq!(a.cols, b.rows, "inner dimensions differ");
     let (m, n, k) = (a.rows, b.cols, a.cols);
     assert!(out.len() >= m * n, "output too short");
@@ -83,39 +99,7 @@ pub fn matmul(out: &mut [f32], a: MatRef, b: MatRef, accumulate: bool) {
             false,
             false,
             false,
-            gemm::Parallelism::None,
-        );
-    }
-}
-
-/// Like [`matmul`] but lets `gemm` split the one product over `threads` threads
-/// (used by the benchmark to measure the library's peak).
-pub fn matmul_parallel(out: &mut [f32], a: MatRef, b: MatRef, threads: usize) {
-    assert_eq!(a.cols, b.rows);
-    let (m, n, k) = (a.rows, b.cols, a.cols);
-    assert!(out.len() >= m * n);
-    // SAFETY: as in `matmul`.
-    unsafe {
-        gemm::gemm(
-            m,
-            n,
-            k,
-            out.as_mut_ptr(),
-            1,
-            n as isize,
-            false,
-            a.data.as_ptr(),
-            a.col_stride as isize,
-            a.row_stride as isize,
-            b.data.as_ptr(),
-            b.col_stride as isize,
-            b.row_stride as isize,
-            1.0,
-            1.0,
-            false,
-            false,
-            false,
-            gemm::Parallelism::Rayon(threads),
+            parallelism,
         );
     }
 }
