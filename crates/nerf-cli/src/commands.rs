@@ -325,13 +325,10 @@ pub fn eval(a: EvalArgs) -> Result<()> {
 }
 
 fn eval_run(run: &LoadedRun, split: Split, every: usize, out: &Path) -> Result<()> {
-    let total = blender::load_transforms(&run.config.data, split)?
-        .frames
-        .len()
-        .div_ceil(every.max(1));
-    let pb = bar(total as u64, &format!("eval {}", split.name()));
-    let report = nerf::eval::evaluate(run, split, every, out, &mut |done, _| {
-        pb.set_position(done as u64)
+    let pb = bar(0, &format!("eval {} rays", split.name()));
+    let report = nerf::eval::evaluate(run, split, every, out, &|done, total| {
+        pb.set_length(total as u64);
+        pb.set_position(done as u64);
     })?;
     pb.finish_and_clear();
     for v in &report.views {
@@ -446,10 +443,16 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
         background: cfg.background.eval_colour(),
         chunk_rays: cfg.chunk_rays,
     };
-    let pb = bar(cameras.len() as u64, "render");
+    let rays: usize = cameras.iter().map(|c| c.width * c.height).sum();
+    let pb = bar(rays as u64, "render rays");
     let t0 = Instant::now();
+    let mut done = 0;
     for (k, cam) in cameras.iter().enumerate() {
-        let r = nerf::renderer::render_view(&run.model, &run.params, cam, &settings, &|_| {});
+        pb.set_message(format!("frame {}/{}", k + 1, cameras.len()));
+        let r = nerf::renderer::render_view(&run.model, &run.params, cam, &settings, &|n| {
+            pb.set_position((done + n) as u64)
+        });
+        done += cam.width * cam.height;
         save_rgb_png(
             &out.join(format!("frame_{k:04}.png")),
             r.width,
@@ -462,7 +465,6 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
             r.height,
             &r.depth_image(blender::NEAR, blender::FAR),
         )?;
-        pb.set_position(k as u64 + 1);
     }
     pb.finish_and_clear();
     let secs = t0.elapsed().as_secs_f64();

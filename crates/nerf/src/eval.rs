@@ -106,17 +106,18 @@ pub struct EvalReport {
 }
 
 /// Renders every `every`-th view of `split`, writes `NNN.png` and `NNN_depth.png` into
-/// `out_dir`, and `metrics.json` with per-view and mean PSNR / SSIM. `on_view(done, total)`
-/// reports progress.
+/// `out_dir`, and `metrics.json` with per-view and mean PSNR / SSIM.
+/// `on_progress(rays_done, rays_total)` reports progress.
 pub fn evaluate(
     run: &LoadedRun,
     split: Split,
     every: usize,
     out_dir: &Path,
-    on_view: &mut dyn FnMut(usize, usize),
+    on_progress: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<EvalReport> {
     let cfg = &run.config;
-    let data = crate::data::blender::load(&cfg.data, split, cfg.downscale)?;
+    let every = every.max(1);
+    let data = crate::data::blender::load_every(&cfg.data, split, cfg.downscale, every)?;
     crate::io::create_dir(out_dir)?;
     let bg = cfg.background.eval_colour();
     let settings = crate::renderer::RenderSettings {
@@ -125,12 +126,16 @@ pub fn evaluate(
         background: bg,
         chunk_rays: cfg.chunk_rays,
     };
-    let picked: Vec<usize> = (0..data.views.len()).step_by(every.max(1)).collect();
+    let (width, height) = data.image_size();
+    let total_rays = data.views.len() * width * height;
     let mut views = Vec::new();
-    for (k, &i) in picked.iter().enumerate() {
-        let view = &data.views[i];
+    for (k, view) in data.views.iter().enumerate() {
+        let i = k * every;
+        let done_before = k * width * height;
         let r =
-            crate::renderer::render_view(&run.model, &run.params, &view.camera, &settings, &|_| {});
+            crate::renderer::render_view(&run.model, &run.params, &view.camera, &settings, &|n| {
+                on_progress(done_before + n, total_rays)
+            });
         let truth = view.image.composite(bg);
         let image = out_dir.join(format!("{i:03}.png"));
         let depth = out_dir.join(format!("{i:03}_depth.png"));
@@ -149,14 +154,12 @@ pub fn evaluate(
             image,
             depth,
         });
-        on_view(k + 1, picked.len());
     }
     let n = views.len().max(1) as f32;
-    let (width, height) = data.image_size();
     let report = EvalReport {
         split,
         step: run.step,
-        every: every.max(1),
+        every,
         width,
         height,
         mean_psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,

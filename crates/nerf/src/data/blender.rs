@@ -43,6 +43,12 @@ pub fn transforms_path(dir: &Path, split: Split) -> PathBuf {
 
 /// Loads one split, area-downscaling images by `downscale` (1 = full size).
 pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
+    load_every(dir, split, downscale, 1)
+}
+
+/// Loads frames `0, every, 2 every, ...` of one split (quick evaluations, validation views),
+/// reading only their images.
+pub fn load_every(dir: &Path, split: Split, downscale: usize, every: usize) -> Result<Dataset> {
     let json_path = transforms_path(dir, split);
     let transforms: Transforms = crate::io::read_json(&json_path)?;
     if transforms.frames.is_empty() {
@@ -63,6 +69,7 @@ pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
         .frames
         .par_iter()
         .enumerate()
+        .step_by(every.max(1))
         .map(|(k, frame)| {
             let pose = parse_pose(&frame.transform_matrix).map_err(|m| {
                 NerfError::format(&json_path, format!("frame {k} ({}): {m}", frame.file_path))

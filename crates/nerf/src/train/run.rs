@@ -265,9 +265,13 @@ fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
     } else {
         Split::Train
     };
-    let mut data = blender::load(&config.data, split, config.downscale * config.val_downscale)?;
-    data.views.truncate(1);
-    Ok(data.views.pop())
+    let data = blender::load_every(
+        &config.data,
+        split,
+        config.downscale * config.val_downscale,
+        usize::MAX,
+    )?;
+    Ok(data.views.into_iter().next())
 }
 
 fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
