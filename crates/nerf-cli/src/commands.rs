@@ -140,6 +140,10 @@ pub struct TrainArgs {
     /// Continue the run in --out from its last checkpoint.
     #[arg(long)]
     resume: bool,
+    /// Stop this session after step N with a checkpoint (the learning-rate schedule still
+    /// spans --steps); continue later with --resume.
+    #[arg(long)]
+    pause_at: Option<u64>,
 }
 
 impl TrainArgs {
@@ -189,13 +193,16 @@ pub fn train(a: TrainArgs) -> Result<()> {
         config: a.config()?,
         minutes: a.minutes,
         resume: a.resume,
-        pause_at: None,
+        pause_at: a.pause_at,
     };
     let summary = train_with_progress(&opts)?;
     let why = match summary.reason {
         StopReason::Steps => "all steps done".to_string(),
         StopReason::TimeBudget => format!("the {} minute budget ran out", a.minutes.unwrap_or(0.0)),
-        StopReason::Paused => "paused".to_string(),
+        StopReason::Paused => format!(
+            "paused at step {}; continue with --resume",
+            a.pause_at.unwrap_or(0)
+        ),
     };
     println!(
         "stopped after step {} ({why}); {:.1} s of training; last batch PSNR {:.2} dB; checkpoint in {}",
