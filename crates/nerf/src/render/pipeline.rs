@@ -287,3 +287,89 @@ pub fn render_chunk(
     }
     out[..r].copy_from_slice(&ws.outputs[..r]);
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::ModelConfig;
+
+    fn tiny_model() -> Model {
+        let (mut config, _) = crate::presets::build("demo").expect("preset");
+        config.net.width = 16;
+        config.net.view_width = 8;
+        config.n_coarse = 8;
+        config.n_fine = 8;
+        Model::new(ModelConfig { ..config })
+    }
+
+    fn rays(n: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let mut rng = Rng::new(9);
+        let origins = (0..n).flat_map(|_| [0.0, -4.0, 0.5]).collect();
+        let dirs = (0..n)
+            .flat_map(|_| [rng.range(-0.3, 0.3), 1.0, rng.range(-0.3, 0.3)])
+            .collect();
+        let bgs = (0..n)
+            .flat_map(|_| [rng.uniform(), rng.uniform(), rng.uniform()])
+            .collect();
+        (origins, dirs, bgs)
+    }
+
+    /// Chunking is an implementation detail: one chunk of 8 rays and two of 4 give the same
+    /// loss and gradients, in training and in rendering.
+    #[test]
+    fn results_do_not_depend_on_chunking() {
+        let model = tiny_model();
+        let params = model.init_params(3);
+        let (o, d, b) = rays(8);
+        let targets: Vec<f32> = (0..24).map(|i| (i % 5) as f32 * 0.2).collect();
+        let rngs: Vec<Rng> = (0..8).map(|r| Rng::for_stream(1, 2, r)).collect();
+        let run = |ranges: &[std::ops::Range<usize>]| {
+            let mut grads = vec![0.0; params.len()];
+            let mut ws = ChunkWorkspace::default();
+            let mut sse = 0.0;
+            let mut rendered = vec![RayOutput::default(); 8];
+            for r in ranges {
+                let sub = |v: &[f32]| v[r.start * 3..r.end * 3].to_vec();
+                let (so, sd, sb) = (sub(&o), sub(&d), sub(&b));
+                let rays = Rays {
+                    origins: &so,
+                    dirs: &sd,
+                    backgrounds: &sb,
+                    near: 2.0,
+                    far: 6.0,
+                };
+                let mut g = rngs[r.clone()].to_vec();
+                let t = Targets {
+                    rgb: &targets[r.start * 3..r.end * 3],
+                    loss_scale: 1.0 / 24.0,
+                };
+                let l = train_chunk(&model, &params, &rays, t, &mut g, &mut ws, &mut grads);
+                sse += l.coarse_sse + l.fine_sse;
+                render_chunk(&model, &params, &rays, &mut ws, &mut rendered[r.clone()]);
+            }
+            (sse, grads, rendered)
+        };
+        let (sse_a, grads_a, out_a) = run(&[0..8]);
+        let (sse_b, grads_b, out_b) = run(&[0..4, 4..8]);
+        assert!(
+            (sse_a - sse_b).abs() < 1e-6 * sse_a.max(1.0),
+            "{sse_a} vs {sse_b}"
+        );
+        let norm: f32 = grads_a.iter().map(|g| g * g).sum::<f32>().sqrt();
+        let diff: f32 = grads_a
+            .iter()
+            .zip(&grads_b)
+            .map(|(x, y)| (x - y) * (x - y))
+            .sum::<f32>()
+            .sqrt();
+        assert!(
+            norm > 0.0 && diff <= 1e-5 * norm,
+            "gradient differs by {diff} (norm {norm})"
+        );
+        for (x, y) in out_a.iter().zip(&out_b) {
+            for c in 0..3 {
+                assert!((x.rgb[c] - y.rgb[c]).abs() < 1e-6);
+            }
+        }
+    }
+}
