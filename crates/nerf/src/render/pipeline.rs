@@ -349,7 +349,7 @@ mod tests {
             }
             (sse, grads, rendered)
         };
-        let (sse_a, grads_a, out_a) = run(&[0..8]);
+        let (sse_a, grads_a, out_a) = run(std::slice::from_ref(&(0..8)));
         let (sse_b, grads_b, out_b) = run(&[0..4, 4..8]);
         assert!(
             (sse_a - sse_b).abs() < 1e-6 * sse_a.max(1.0),
