@@ -50,7 +50,7 @@ pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
 /// reading only their images.
 pub fn load_every(dir: &Path, split: Split, downscale: usize, every: usize) -> Result<Dataset> {
     let json_path = transforms_path(dir, split);
-    let transforms: Transforms = crate::io::read_json(&json_path)?;
+    let transforms = load_transforms(dir, split)?;
     if transforms.frames.is_empty() {
         return Err(NerfError::format(&json_path, "lists no frames"));
     }

@@ -26,18 +26,26 @@ impl RgbaImage {
         })?;
         let rgba = img.to_rgba32f();
         let (w, h) = rgba.dimensions();
-        let mut data = rgba.into_raw();
+        Ok(RgbaImage::from_straight_alpha(
+            w as usize,
+            h as usize,
+            rgba.into_raw(),
+        ))
+    }
+
+    /// An image from straight-alpha RGBA values (as PNGs store them), premultiplied here.
+    pub fn from_straight_alpha(width: usize, height: usize, mut data: Vec<f32>) -> RgbaImage {
         for px in data.chunks_exact_mut(4) {
             let a = px[3];
             px[0] *= a;
             px[1] *= a;
             px[2] *= a;
         }
-        Ok(RgbaImage {
-            width: w as usize,
-            height: h as usize,
+        RgbaImage {
+            width,
+            height,
             data,
-        })
+        }
     }
 
     /// Area-average downscale by an integer factor (partial blocks at the edges are dropped,

@@ -208,17 +208,8 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
         .enumerate()
         .map(|(k, pose)| {
             let camera = Camera::from_fov_x(opts.size, opts.size, FOV_X, pose);
-            let mut data = render(&scene, &camera, opts.supersample).rgba;
-            for px in data.chunks_exact_mut(4) {
-                for c in 0..3 {
-                    px[c] *= px[3];
-                }
-            }
-            let image = super::RgbaImage {
-                width: opts.size,
-                height: opts.size,
-                data,
-            };
+            let rgba = render(&scene, &camera, opts.supersample).rgba;
+            let image = super::RgbaImage::from_straight_alpha(opts.size, opts.size, rgba);
             super::View {
                 camera,
                 image,

@@ -33,6 +33,18 @@ fn lights() -> [Light; 2] {
     ]
 }
 
+fn bounds_of(parts: &[Part]) -> (V3, V3) {
+    let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
+    for p in parts {
+        let (a, b) = p.shape.bounds();
+        for c in 0..3 {
+            lo[c] = lo[c].min(a[c]);
+            hi[c] = hi[c].max(b[c]);
+        }
+    }
+    (lo, hi)
+}
+
 /// A primary-ray hit: distance along the unit direction and shaded colour.
 pub struct Hit {
     pub t: f32,
@@ -41,14 +53,7 @@ pub struct Hit {
 
 impl Scene {
     pub fn new(parts: Vec<Part>) -> Scene {
-        let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
-        for p in &parts {
-            let (a, b) = p.shape.bounds();
-            for c in 0..3 {
-                lo[c] = lo[c].min(a[c]);
-                hi[c] = hi[c].max(b[c]);
-            }
-        }
+        let (lo, hi) = bounds_of(&parts);
         let center = scale(add(lo, hi), 0.5);
         Scene {
             parts,
@@ -59,15 +64,7 @@ impl Scene {
 
     /// Axis-aligned bounds of all parts.
     pub fn bounds(&self) -> (V3, V3) {
-        let (mut lo, mut hi) = ([f32::MAX; 3], [f32::MIN; 3]);
-        for p in &self.parts {
-            let (a, b) = p.shape.bounds();
-            for c in 0..3 {
-                lo[c] = lo[c].min(a[c]);
-                hi[c] = hi[c].max(b[c]);
-            }
-        }
-        (lo, hi)
+        bounds_of(&self.parts)
     }
 
     fn distance(&self, p: V3) -> (f32, usize) {
