@@ -1,5 +1,8 @@
 //! Input encodings of positions and directions.
 
 pub mod frequency;
+pub mod hash_grid;
+pub mod spherical_harmonics;
 
 pub use frequency::FrequencyEncoding;
+pub use hash_grid::{HashGrid, HashGridConfig};

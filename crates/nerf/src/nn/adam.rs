@@ -40,27 +40,67 @@ impl Adam {
         }
     }
 
-    /// One bias-corrected update `p -= lr * m_hat / (sqrt(v_hat) + eps)`.
+    /// One bias-corrected update `p -= lr * m_hat / (sqrt(v_hat) + eps)` of every parameter.
     pub fn step(&mut self, params: &mut [f32], grads: &[f32], lr: f32) {
         assert_eq!(params.len(), grads.len());
         assert_eq!(params.len(), self.m.len());
+        let step = self.begin_step(lr);
+        self.update(params, grads, 0..params.len(), step, Rule::default());
+    }
+
+    /// Starts an update that [`update`](Self::update) then applies range by range.
+    pub fn begin_step(&mut self, lr: f32) -> AdamStep {
         self.t += 1;
-        let AdamConfig { beta1, beta2, eps } = self.config;
-        let bc1 = 1.0 - beta1.powf(self.t as f32);
-        let bc2 = 1.0 - beta2.powf(self.t as f32);
-        let step = lr / bc1;
-        let inv_bc2 = 1.0 / bc2;
-        for (((p, &g), m), v) in params
-            .iter_mut()
-            .zip(grads)
-            .zip(&mut self.m)
-            .zip(&mut self.v)
-        {
-            *m = beta1 * *m + (1.0 - beta1) * g;
-            *v = beta2 * *v + (1.0 - beta2) * g * g;
-            *p -= step * *m / ((*v * inv_bc2).sqrt() + eps);
+        let AdamConfig { beta1, beta2, .. } = self.config;
+        AdamStep {
+            lr_over_bc1: lr / (1.0 - beta1.powf(self.t as f32)),
+            inv_bc2: 1.0 / (1.0 - beta2.powf(self.t as f32)),
         }
     }
+
+    /// Applies `step` to `params[range]` with gradients `grads[range]`.
+    pub fn update(
+        &mut self,
+        params: &mut [f32],
+        grads: &[f32],
+        range: std::ops::Range<usize>,
+        step: AdamStep,
+        rule: Rule,
+    ) {
+        let AdamConfig { beta1, beta2, eps } = self.config;
+        let r = range;
+        for (((p, &g), m), v) in params[r.clone()]
+            .iter_mut()
+            .zip(&grads[r.clone()])
+            .zip(&mut self.m[r.clone()])
+            .zip(&mut self.v[r])
+        {
+            if rule.lazy && g == 0.0 {
+                continue;
+            }
+            let g = g + rule.weight_decay * *p;
+            *m = beta1 * *m + (1.0 - beta1) * g;
+            *v = beta2 * *v + (1.0 - beta2) * g * g;
+            *p -= step.lr_over_bc1 * *m / ((*v * step.inv_bc2).sqrt() + eps);
+        }
+    }
+}
+
+/// The bias-corrected factors of one update.
+#[derive(Clone, Copy, Debug)]
+pub struct AdamStep {
+    lr_over_bc1: f32,
+    inv_bc2: f32,
+}
+
+/// How a range of parameters is updated.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Rule {
+    /// Leave parameters whose gradient is exactly zero (and their moments) untouched: hash
+    /// table entries no sample reached this step (as instant-ngp does).
+    pub lazy: bool,
+    /// L2 penalty `weight_decay / 2 * p^2` added to the loss.
+    pub weight_decay: f32,
 }
 
 #[cfg(test)]
@@ -76,6 +116,25 @@ mod tests {
             (p[0] - 0.9).abs() < 1e-5 && (p[1] + 0.9).abs() < 1e-5,
             "{p:?}"
         );
+    }
+
+    #[test]
+    fn lazy_rule_skips_zero_gradients_and_decay_pulls_to_zero() {
+        let mut adam = Adam::new(AdamConfig::default(), 2);
+        let mut p = vec![1.0, 1.0];
+        let s = adam.begin_step(0.1);
+        let lazy = Rule {
+            lazy: true,
+            weight_decay: 0.0,
+        };
+        adam.update(&mut p, &[0.0, 0.0], 0..1, s, lazy);
+        assert_eq!((p[0], adam.m[0], adam.v[0]), (1.0, 0.0, 0.0));
+        let decay = Rule {
+            lazy: false,
+            weight_decay: 1.0,
+        };
+        adam.update(&mut p, &[0.0, 0.0], 1..2, s, decay);
+        assert!((p[1] - 0.9).abs() < 1e-5, "{p:?}");
     }
 
     #[test]

@@ -3,8 +3,10 @@
 
 pub mod activation;
 pub mod adam;
+pub mod grads;
 pub mod linalg;
 pub mod params;
 
 pub use adam::Adam;
+pub use grads::GradBuffer;
 pub use params::{ParamLayout, Tensor};

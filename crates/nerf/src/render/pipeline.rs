@@ -10,7 +10,7 @@ use crate::field::{VanillaNet, VanillaWorkspace};
 use crate::math::{length, scale};
 use crate::model::Model;
 use crate::render::sampling::{merge_sorted, sample_pdf, stratified};
-use crate::render::volume::{composite, composite_bwd, RayOutput};
+use crate::render::volume::{composite, composite_bwd, depth_deltas, RayOutput};
 use crate::rng::Rng;
 
 /// A chunk of rays: packed `r x 3` origins, (unnormalised) directions and background colours.
@@ -51,6 +51,7 @@ pub struct ChunkWorkspace {
     t_coarse: Vec<f32>,
     t_fine: Vec<f32>,
     t_new: Vec<f32>,
+    deltas: Vec<f32>,
     weights: Vec<f32>,
     cdf: Vec<f32>,
     d_sigma: Vec<f32>,
@@ -140,12 +141,15 @@ fn pass_forward(
     }
     net.forward(params, &ws.positions, &ws.unit_dirs, spr, &mut ws.net);
     ws.weights.resize(r * spr, 0.0);
+    ws.deltas.resize(r * spr, 0.0);
     for k in 0..r {
+        let deltas = &mut ws.deltas[k * spr..][..spr];
+        depth_deltas(&t[k * spr..][..spr], length(rays.dir(k)), deltas);
         ws.outputs[k] = composite(
             &t[k * spr..][..spr],
+            deltas,
             &ws.net.sigma[k * spr..][..spr],
             &ws.net.rgb[k * spr * 3..][..spr * 3],
-            length(rays.dir(k)),
             rays.bg(k),
             &mut ws.weights[k * spr..][..spr],
         );
@@ -159,7 +163,6 @@ fn pass_backward(
     net: &VanillaNet,
     params: &[f32],
     rays: &Rays,
-    t: &[f32],
     spr: usize,
     targets: &[f32],
     loss_scale: f32,
@@ -179,10 +182,9 @@ fn pass_backward(
             d_out[c] = 2.0 * e * loss_scale;
         }
         composite_bwd(
-            &t[k * spr..][..spr],
+            &ws.deltas[k * spr..][..spr],
             &ws.net.sigma[k * spr..][..spr],
             &ws.net.rgb[k * spr * 3..][..spr * 3],
-            length(rays.dir(k)),
             rays.bg(k),
             out.rgb,
             d_out,
@@ -230,7 +232,6 @@ pub fn train_chunk(
         &model.coarse,
         p_coarse,
         rays,
-        &t,
         n_c,
         targets,
         loss_scale,
@@ -247,7 +248,6 @@ pub fn train_chunk(
             fine,
             p_fine,
             rays,
-            &t,
             n_c + n_f,
             targets,
             loss_scale,

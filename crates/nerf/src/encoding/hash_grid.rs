@@ -1,0 +1,297 @@
+//! Multiresolution hash encoding (Mueller et al., "Instant Neural Graphics Primitives", 2022).
+//!
+//! `L` levels of grids over the unit cube, resolutions growing geometrically from
+//! `base_resolution` to `max_resolution` cells per axis. Each level stores `FEATURES`
+//! trainable values per grid vertex, in a table of at most `2^log2_table_size` entries:
+//! a level whose `(N + 1)^3` vertices fit is indexed densely, a finer one through the spatial
+//! hash `x ^ (y * 2654435761) ^ (z * 805459861) mod T` (collisions are left to the MLP to
+//! resolve). A point's encoding is, per level, the trilinear interpolation of its cell's
+//! eight corner features, concatenated into `L * FEATURES` values.
+//!
+//! Work mapping: loops run level by level over the whole batch, so one level's table (at most
+//! 4 MiB at the default size) stays in cache while every sample reads it; the backward
+//! recomputes corners and weights instead of storing them (cheaper than the memory traffic).
+
+use serde::{Deserialize, Serialize};
+
+use crate::nn::grads::GradBuffer;
+use crate::nn::ParamLayout;
+use crate::rng::Rng;
+
+/// Features per level (the paper's choice, and what the kernels are written for).
+pub const FEATURES: usize = 2;
+
+const PRIME_Y: u32 = 2_654_435_761;
+const PRIME_Z: u32 = 805_459_861;
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct HashGridConfig {
+    pub levels: usize,
+    /// At most `2^log2_table_size` entries per level.
+    pub log2_table_size: u32,
+    pub base_resolution: usize,
+    pub max_resolution: usize,
+}
+
+impl Default for HashGridConfig {
+    /// The paper's NeRF setting: 16 levels, 2^19 entries, 16 to 2048 cells per axis.
+    fn default() -> Self {
+        HashGridConfig {
+            levels: 16,
+            log2_table_size: 19,
+            base_resolution: 16,
+            max_resolution: 2048,
+        }
+    }
+}
+
+/// One level: its resolution and where its table sits in the parameter vector.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Level {
+    /// Cells per axis.
+    pub resolution: u32,
+    /// Table entries (`FEATURES` floats each).
+    pub entries: usize,
+    /// Vertices are indexed densely (`true`) or hashed.
+    pub dense: bool,
+    /// Offset of the table (in floats) in the parameter vector.
+    pub offset: usize,
+}
+
+impl Level {
+    #[inline(always)]
+    fn index(&self, x: u32, y: u32, z: u32) -> usize {
+        if self.dense {
+            let s = self.resolution + 1;
+            (x + s * (y + s * z)) as usize
+        } else {
+            ((x ^ y.wrapping_mul(PRIME_Y) ^ z.wrapping_mul(PRIME_Z)) as usize) & (self.entries - 1)
+        }
+    }
+
+    /// The eight corners of the cell holding unit-cube point `u`: table indices and
+    /// trilinear weights.
+    #[inline(always)]
+    fn corners(&self, u: [f32; 3]) -> ([usize; 8], [f32; 8]) {
+        let n = self.resolution;
+        let mut cell = [0u32; 3];
+        let mut frac = [0f32; 3];
+        for a in 0..3 {
+            let p = u[a].clamp(0.0, 1.0) * n as f32;
+            let c = (p as u32).min(n - 1);
+            cell[a] = c;
+            frac[a] = p - c as f32;
+        }
+        let mut idx = [0usize; 8];
+        let mut w = [0f32; 8];
+        for k in 0..8 {
+            let (bx, by, bz) = ((k & 1) as u32, ((k >> 1) & 1) as u32, ((k >> 2) & 1) as u32);
+            idx[k] = self.index(cell[0] + bx, cell[1] + by, cell[2] + bz);
+            let wx = if bx == 1 { frac[0] } else { 1.0 - frac[0] };
+            let wy = if by == 1 { frac[1] } else { 1.0 - frac[1] };
+            let wz = if bz == 1 { frac[2] } else { 1.0 - frac[2] };
+            w[k] = wx * wy * wz;
+        }
+        (idx, w)
+    }
+}
+
+/// The level structure of a hash grid, placed in a parameter layout.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HashGrid {
+    pub config: HashGridConfig,
+    pub levels: Vec<Level>,
+}
+
+impl HashGrid {
+    /// Lays out the level tables as tensors `{prefix}level_NN` of shape `[entries, 2]`.
+    pub fn new(config: HashGridConfig, prefix: &str, layout: &mut ParamLayout) -> Self {
+        let max_entries = 1usize << config.log2_table_size;
+        let (lo, hi) = (
+            config.base_resolution as f64,
+            config.max_resolution.max(config.base_resolution) as f64,
+        );
+        let growth = if config.levels > 1 {
+            ((hi.ln() - lo.ln()) / (config.levels - 1) as f64).exp()
+        } else {
+            1.0
+        };
+        let levels = (0..config.levels)
+            .map(|l| {
+                let resolution = ((lo * growth.powi(l as i32)).round() as u32).max(1);
+                let vertices = (resolution as usize + 1).pow(3);
+                let dense = vertices <= max_entries;
+                let entries = if dense { vertices } else { max_entries };
+                let offset = layout.push(format!("{prefix}level_{l:02}"), &[entries, FEATURES]);
+                Level {
+                    resolution,
+                    entries,
+                    dense,
+                    offset,
+                }
+            })
+            .collect();
+        HashGrid { config, levels }
+    }
+
+    /// Encoded width: `levels * FEATURES`.
+    pub fn dims(&self) -> usize {
+        self.levels.len() * FEATURES
+    }
+
+    /// Number of parameters of all tables.
+    pub fn num_params(&self) -> usize {
+        self.levels.iter().map(|l| l.entries * FEATURES).sum()
+    }
+
+    /// The range of the parameter vector the tables occupy.
+    pub fn param_range(&self) -> std::ops::Range<usize> {
+        let start = self.levels.first().map_or(0, |l| l.offset);
+        start..start + self.num_params()
+    }
+
+    /// Table values `U(-1e-4, 1e-4)` (the paper's initialisation) written into `params`.
+    pub fn init(&self, params: &mut [f32], rng: &mut Rng) {
+        for v in &mut params[self.param_range()] {
+            *v = rng.range(-1e-4, 1e-4);
+        }
+    }
+
+    /// Encodes `n` unit-cube points (packed `n x 3`) into `out` (`n x dims()`).
+    pub fn encode(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
+        let d = self.dims();
+        let n = points.len() / 3;
+        assert!(out.len() >= n * d);
+        for (l, level) in self.levels.iter().enumerate() {
+            let table = &params[level.offset..][..level.entries * FEATURES];
+            for s in 0..n {
+                let u = [points[3 * s], points[3 * s + 1], points[3 * s + 2]];
+                let (idx, w) = level.corners(u);
+                let mut f = [0f32; FEATURES];
+                for k in 0..8 {
+                    let e = &table[idx[k] * FEATURES..][..FEATURES];
+                    f[0] += w[k] * e[0];
+                    f[1] += w[k] * e[1];
+                }
+                out[s * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
+            }
+        }
+    }
+
+    /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
+    /// gradients, marking the blocks it touches.
+    pub fn backward(&self, points: &[f32], d_out: &[f32], grads: &mut GradBuffer) {
+        let d = self.dims();
+        let n = points.len() / 3;
+        for (l, level) in self.levels.iter().enumerate() {
+            for s in 0..n {
+                let g = &d_out[s * d + l * FEATURES..][..FEATURES];
+                if g[0] == 0.0 && g[1] == 0.0 {
+                    continue;
+                }
+                let u = [points[3 * s], points[3 * s + 1], points[3 * s + 2]];
+                let (idx, w) = level.corners(u);
+                for k in 0..8 {
+                    let at = level.offset + idx[k] * FEATURES;
+                    grads.add_pair(at, [w[k] * g[0], w[k] * g[1]]);
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn small() -> (HashGrid, ParamLayout) {
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(
+            HashGridConfig {
+                levels: 4,
+                log2_table_size: 8,
+                base_resolution: 2,
+                max_resolution: 16,
+            },
+            "hash.",
+            &mut layout,
+        );
+        (grid, layout)
+    }
+
+    #[test]
+    fn levels_grow_geometrically_and_hash_once_too_fine() {
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(HashGridConfig::default(), "hash.", &mut layout);
+        let res: Vec<u32> = grid.levels.iter().map(|l| l.resolution).collect();
+        assert_eq!((res[0], res[15]), (16, 2048));
+        assert!(res.windows(2).all(|w| w[1] > w[0]), "{res:?}");
+        // Resolutions 16 .. 58 fit their (N+1)^3 vertices in 2^19 entries; 81 and up hash.
+        assert!(grid.levels[0].dense && grid.levels[0].entries == 17 * 17 * 17);
+        assert!(!grid.levels[15].dense && grid.levels[15].entries == 1 << 19);
+        assert_eq!(layout.total, grid.num_params());
+        assert_eq!(grid.param_range(), 0..layout.total);
+    }
+
+    #[test]
+    fn interpolates_vertex_values_exactly_at_vertices_and_linearly_between() {
+        let (grid, layout) = small();
+        let mut params = vec![0.0; layout.total];
+        let level = grid.levels[0]; // resolution 2, dense
+        assert!(level.dense);
+        // Feature 0 = x coordinate of the vertex, feature 1 = 1: the encoding of level 0
+        // must then be exactly (x, 1) for any point (trilinear reproduces linear functions).
+        for z in 0..=2u32 {
+            for y in 0..=2u32 {
+                for x in 0..=2u32 {
+                    let i = level.offset + level.index(x, y, z) * FEATURES;
+                    params[i] = x as f32 / 2.0;
+                    params[i + 1] = 1.0;
+                }
+            }
+        }
+        let pts = [0.3, 0.8, 0.55, 1.0, 0.0, 0.25];
+        let mut out = vec![0.0; 2 * grid.dims()];
+        grid.encode(&params, &pts, &mut out);
+        for s in 0..2 {
+            let f = &out[s * grid.dims()..][..2];
+            assert!((f[0] - pts[3 * s]).abs() < 1e-6 && (f[1] - 1.0).abs() < 1e-6, "{f:?}");
+        }
+    }
+
+    #[test]
+    fn backward_matches_finite_differences() {
+        let (grid, layout) = small();
+        let mut rng = Rng::new(4);
+        let params: Vec<f32> = (0..layout.total).map(|_| rng.range(-1.0, 1.0)).collect();
+        let n = 5;
+        let pts: Vec<f32> = (0..n * 3).map(|_| rng.uniform()).collect();
+        let d_out: Vec<f32> = (0..n * grid.dims()).map(|_| rng.range(-1.0, 1.0)).collect();
+        let loss = |p: &[f32]| -> f64 {
+            let mut out = vec![0.0; n * grid.dims()];
+            grid.encode(p, &pts, &mut out);
+            out.iter().zip(&d_out).map(|(a, b)| (a * b) as f64).sum()
+        };
+        let mut grads = GradBuffer::new(layout.total);
+        grid.backward(&pts, &d_out, &mut grads);
+        let mut checked = 0;
+        for i in 0..layout.total {
+            let g = grads.values[i];
+            if g == 0.0 {
+                continue;
+            }
+            assert!(grads.is_dirty(i), "gradient {i} written without marking its block");
+            let h = 1e-2;
+            let (mut a, mut b) = (params.clone(), params.clone());
+            a[i] += h;
+            b[i] -= h;
+            let fd = (loss(&a) - loss(&b)) / (2.0 * h as f64);
+            assert!((fd - g as f64).abs() < 1e-3, "param {i}: fd {fd} vs {g}");
+            checked += 1;
+        }
+        assert!(checked > 20, "only {checked} parameters received gradient");
+        // Parameters the points never touch get exactly zero gradient.
+        let untouched = (0..layout.total).filter(|&i| grads.values[i] == 0.0).count();
+        assert!(untouched > 0);
+    }
+}

@@ -1,0 +1,414 @@
+//! The fast radiance field (after Instant-NGP): a multiresolution hash encoding of the
+//! position, a one-hidden-layer density network whose first output is log-density, and a
+//! colour network fed by the spherical harmonics of the view direction and the density
+//! network's other outputs.
+//!
+//! ```text
+//! x -> hash grid (16 x 2) -> [64, ReLU] -> 16 outputs: sigma = exp(o_0), geo = o_1..o_15
+//! d -> SH degree 4 (16) ---------------------------------------+
+//! [SH(d), geo] (31) -> [64, ReLU] -> [64, ReLU] -> 3, sigmoid -> rgb
+//! ```
+//!
+//! Work mapping: a call evaluates a batch of `n` samples of any rays (the caller packs them),
+//! one stage at a time: the encoding level by level, then each layer as one single-threaded
+//! GEMM with its activation applied in the same pass over the output. The layers have no
+//! biases (as in tiny-cuda-nn's fully fused MLPs). Every buffer lives in a [`FastWorkspace`]
+//! reused across calls, so a training step allocates nothing once it has warmed up.
+
+use serde::{Deserialize, Serialize};
+
+use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
+use crate::encoding::spherical_harmonics::{sh4, SH_DIMS};
+use crate::nn::activation::{relu, sigmoid};
+use crate::nn::grads::GradBuffer;
+use crate::nn::linalg::{matmul, MatRef};
+use crate::nn::ParamLayout;
+use crate::rng::Rng;
+
+/// Log-densities are clamped here before `exp` so one bad step cannot overflow to infinity.
+pub const LOG_SIGMA_MAX: f32 = 15.0;
+
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FastFieldConfig {
+    pub grid: HashGridConfig,
+    /// Width of every hidden layer (64).
+    pub hidden: usize,
+    /// Outputs of the density network: log-density plus `geo_features - 1` features for the
+    /// colour network (16).
+    pub geo_features: usize,
+    /// Half-extent of the scene box `[-bound, bound]^3` the grid covers (Blender: 1.5).
+    pub bound: f32,
+}
+
+impl Default for FastFieldConfig {
+    fn default() -> Self {
+        FastFieldConfig {
+            grid: HashGridConfig::default(),
+            hidden: 64,
+            geo_features: 16,
+            bound: 1.5,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct FastField {
+    pub config: FastFieldConfig,
+    pub grid: HashGrid,
+    pub layout: ParamLayout,
+    /// Offsets of the weight matrices, in order: density 0, 1, colour 0, 1, 2.
+    weights: [usize; 5],
+}
+
+/// Reused buffers of one thread (activations and their gradients).
+#[derive(Default, Debug)]
+pub struct FastWorkspace {
+    unit: Vec<f32>,
+    enc: Vec<f32>,
+    h: Vec<f32>,
+    geo: Vec<f32>,
+    colour_in: Vec<f32>,
+    c1: Vec<f32>,
+    c2: Vec<f32>,
+    /// Densities of the last forward (one per sample).
+    pub sigma: Vec<f32>,
+    /// Colours of the last forward (three per sample).
+    pub rgb: Vec<f32>,
+    d_logit: Vec<f32>,
+    d_c2: Vec<f32>,
+    d_c1: Vec<f32>,
+    d_colour_in: Vec<f32>,
+    d_geo: Vec<f32>,
+    d_h: Vec<f32>,
+    d_enc: Vec<f32>,
+}
+
+fn grow(v: &mut Vec<f32>, n: usize) {
+    if v.len() < n {
+        v.resize(n, 0.0);
+    }
+}
+
+/// `dz = dh * (h > 0)` in place.
+fn relu_bwd(dh: &mut [f32], h: &[f32]) {
+    for (d, &y) in dh.iter_mut().zip(h) {
+        *d = if y > 0.0 { *d } else { 0.0 };
+    }
+}
+
+impl FastField {
+    pub fn new(config: FastFieldConfig) -> Self {
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(config.grid, "hash.", &mut layout);
+        let (w, g) = (config.hidden, config.geo_features);
+        let colour_in = SH_DIMS + g - 1;
+        let weights = [
+            layout.push("density.0.weight", &[grid.dims(), w]),
+            layout.push("density.1.weight", &[w, g]),
+            layout.push("colour.0.weight", &[colour_in, w]),
+            layout.push("colour.1.weight", &[w, w]),
+            layout.push("colour.2.weight", &[w, 3]),
+        ];
+        FastField {
+            config,
+            grid,
+            layout,
+            weights,
+        }
+    }
+
+    pub fn num_params(&self) -> usize {
+        self.layout.total
+    }
+
+    /// The parameters of the two MLPs (everything after the hash tables).
+    pub fn mlp_range(&self) -> std::ops::Range<usize> {
+        self.grid.param_range().end..self.layout.total
+    }
+
+    fn colour_in_dims(&self) -> usize {
+        SH_DIMS + self.config.geo_features - 1
+    }
+
+    /// Glorot-uniform MLP weights, hash tables `U(-1e-4, 1e-4)`.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        let mut rng = Rng::new(seed ^ 0xfa57);
+        let mut p = self.layout.init_glorot(&mut rng);
+        self.grid.init(&mut p, &mut rng);
+        p
+    }
+
+    fn weight<'a>(&self, params: &'a [f32], k: usize, rows: usize, cols: usize) -> MatRef<'a> {
+        MatRef::new(&params[self.weights[k]..][..rows * cols], rows, cols)
+    }
+
+    /// Multiply-adds of one sample through both networks (the encoding not counted).
+    pub fn macs_per_sample(&self) -> usize {
+        let (w, g) = (self.config.hidden, self.config.geo_features);
+        self.grid.dims() * w + w * g + self.colour_in_dims() * w + w * w + w * 3
+    }
+
+    /// World positions (packed `n x 3`) into the unit cube of the scene box.
+    fn to_unit(&self, positions: &[f32], unit: &mut [f32]) {
+        let b = self.config.bound;
+        let inv = 0.5 / b;
+        for (u, &p) in unit.iter_mut().zip(positions) {
+            *u = (p + b) * inv;
+        }
+    }
+
+    /// Density network only: leaves `ws.sigma` (and `ws.geo`) for `n` positions.
+    pub fn density(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
+        let n = positions.len() / 3;
+        let (w, g, e) = (self.config.hidden, self.config.geo_features, self.grid.dims());
+        grow(&mut ws.unit, n * 3);
+        grow(&mut ws.enc, n * e);
+        grow(&mut ws.h, n * w);
+        grow(&mut ws.geo, n * g);
+        grow(&mut ws.sigma, n);
+        self.to_unit(positions, &mut ws.unit[..n * 3]);
+        self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
+        let h = &mut ws.h[..n * w];
+        matmul(
+            h,
+            MatRef::new(&ws.enc, n, e),
+            self.weight(params, 0, e, w),
+            false,
+        );
+        relu(h);
+        matmul(
+            &mut ws.geo,
+            MatRef::new(h, n, w),
+            self.weight(params, 1, w, g),
+            false,
+        );
+        for (s, row) in ws.sigma[..n].iter_mut().zip(ws.geo.chunks_exact(g)) {
+            *s = row[0].min(LOG_SIGMA_MAX).exp();
+        }
+    }
+
+    /// Density and colour of `n` samples at `positions` seen along unit `dirs` (both packed
+    /// `n x 3`), into `ws.sigma` and `ws.rgb`.
+    pub fn forward(&self, params: &[f32], positions: &[f32], dirs: &[f32], ws: &mut FastWorkspace) {
+        let n = positions.len() / 3;
+        let (w, g, ci) = (
+            self.config.hidden,
+            self.config.geo_features,
+            self.colour_in_dims(),
+        );
+        self.density(params, positions, ws);
+        grow(&mut ws.colour_in, n * ci);
+        grow(&mut ws.c1, n * w);
+        grow(&mut ws.c2, n * w);
+        grow(&mut ws.rgb, n * 3);
+        for s in 0..n {
+            let row = &mut ws.colour_in[s * ci..][..ci];
+            row[..SH_DIMS].copy_from_slice(&sh4([dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]]));
+            row[SH_DIMS..].copy_from_slice(&ws.geo[s * g + 1..][..g - 1]);
+        }
+        let c1 = &mut ws.c1[..n * w];
+        matmul(
+            c1,
+            MatRef::new(&ws.colour_in, n, ci),
+            self.weight(params, 2, ci, w),
+            false,
+        );
+        relu(c1);
+        let c2 = &mut ws.c2[..n * w];
+        matmul(c2, MatRef::new(c1, n, w), self.weight(params, 3, w, w), false);
+        relu(c2);
+        let rgb = &mut ws.rgb[..n * 3];
+        matmul(rgb, MatRef::new(c2, n, w), self.weight(params, 4, w, 3), false);
+        rgb.iter_mut().for_each(|v| *v = sigmoid(*v));
+    }
+
+    /// Backward of the last [`forward`](Self::forward) (over the same `n` samples): given
+    /// `d_sigma` (`n`) and `d_rgb` (`n x 3`), accumulates parameter gradients into `grads`.
+    pub fn backward(
+        &self,
+        params: &[f32],
+        ws: &mut FastWorkspace,
+        d_sigma: &[f32],
+        d_rgb: &[f32],
+        grads: &mut GradBuffer,
+    ) {
+        let n = d_sigma.len();
+        let (w, g, ci, e) = (
+            self.config.hidden,
+            self.config.geo_features,
+            self.colour_in_dims(),
+            self.grid.dims(),
+        );
+        for v in [&mut ws.d_logit] {
+            grow(v, n * 3);
+        }
+        grow(&mut ws.d_c2, n * w);
+        grow(&mut ws.d_c1, n * w);
+        grow(&mut ws.d_h, n * w);
+        grow(&mut ws.d_colour_in, n * ci);
+        grow(&mut ws.d_geo, n * g);
+        grow(&mut ws.d_enc, n * e);
+        let gw = |k: usize| self.weights[k];
+        let values = &mut grads.values;
+        // Colour network.
+        for ((dl, &y), &dy) in ws.d_logit[..n * 3].iter_mut().zip(&ws.rgb).zip(d_rgb) {
+            *dl = dy * y * (1.0 - y);
+        }
+        let d_logit = MatRef::new(&ws.d_logit, n, 3);
+        matmul(
+            &mut values[gw(4)..][..w * 3],
+            MatRef::new(&ws.c2, n, w).t(),
+            d_logit,
+            true,
+        );
+        let d_c2 = &mut ws.d_c2[..n * w];
+        matmul(d_c2, d_logit, self.weight(params, 4, w, 3).t(), false);
+        relu_bwd(d_c2, &ws.c2);
+        let d_c2 = MatRef::new(d_c2, n, w);
+        matmul(
+            &mut values[gw(3)..][..w * w],
+            MatRef::new(&ws.c1, n, w).t(),
+            d_c2,
+            true,
+        );
+        let d_c1 = &mut ws.d_c1[..n * w];
+        matmul(d_c1, d_c2, self.weight(params, 3, w, w).t(), false);
+        relu_bwd(d_c1, &ws.c1);
+        let d_c1 = MatRef::new(d_c1, n, w);
+        matmul(
+            &mut values[gw(2)..][..ci * w],
+            MatRef::new(&ws.colour_in, n, ci).t(),
+            d_c1,
+            true,
+        );
+        matmul(
+            &mut ws.d_colour_in,
+            d_c1,
+            self.weight(params, 2, ci, w).t(),
+            false,
+        );
+        // Density network: sigma = exp(min(o_0, max)), geo features come back from colour.
+        for s in 0..n {
+            let o0 = ws.geo[s * g];
+            let row = &mut ws.d_geo[s * g..][..g];
+            row[0] = if o0 < LOG_SIGMA_MAX {
+                d_sigma[s] * ws.sigma[s]
+            } else {
+                0.0
+            };
+            row[1..].copy_from_slice(&ws.d_colour_in[s * ci + SH_DIMS..][..g - 1]);
+        }
+        let d_geo = MatRef::new(&ws.d_geo, n, g);
+        matmul(
+            &mut values[gw(1)..][..w * g],
+            MatRef::new(&ws.h, n, w).t(),
+            d_geo,
+            true,
+        );
+        let d_h = &mut ws.d_h[..n * w];
+        matmul(d_h, d_geo, self.weight(params, 1, w, g).t(), false);
+        relu_bwd(d_h, &ws.h);
+        let d_h = MatRef::new(d_h, n, w);
+        matmul(
+            &mut values[gw(0)..][..e * w],
+            MatRef::new(&ws.enc, n, e).t(),
+            d_h,
+            true,
+        );
+        matmul(
+            &mut ws.d_enc,
+            d_h,
+            self.weight(params, 0, e, w).t(),
+            false,
+        );
+        grads.mark(self.mlp_range());
+        self.grid
+            .backward(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny() -> FastField {
+        FastField::new(FastFieldConfig {
+            grid: HashGridConfig {
+                levels: 3,
+                log2_table_size: 6,
+                base_resolution: 2,
+                max_resolution: 8,
+            },
+            hidden: 8,
+            geo_features: 4,
+            bound: 1.5,
+        })
+    }
+
+    #[test]
+    fn backward_matches_finite_differences() {
+        let field = tiny();
+        let mut rng = Rng::new(11);
+        // Larger table values than the init so every path carries signal.
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let n = 6;
+        let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+        let dirs: Vec<f32> = (0..n)
+            .flat_map(|_| {
+                let d = [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)];
+                crate::math::scale(d, 1.0 / crate::math::length(d))
+            })
+            .collect();
+        let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+        let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+        let loss = |p: &[f32]| -> f64 {
+            let mut ws = FastWorkspace::default();
+            field.forward(p, &pos, &dirs, &mut ws);
+            let ls: f64 = ws.sigma[..n].iter().zip(&a).map(|(s, a)| (s * a) as f64).sum();
+            let lc: f64 = ws.rgb[..n * 3].iter().zip(&b).map(|(c, b)| (c * b) as f64).sum();
+            ls + lc
+        };
+        let mut ws = FastWorkspace::default();
+        field.forward(&params, &pos, &dirs, &mut ws);
+        let mut grads = GradBuffer::new(field.num_params());
+        field.backward(&params, &mut ws, &a, &b, &mut grads);
+        let (mut err, mut norm, mut checked) = (0.0f64, 0.0f64, 0);
+        for t in &field.layout.tensors {
+            for i in t.range().step_by(3) {
+                let g = grads.values[i] as f64;
+                if g == 0.0 {
+                    continue;
+                }
+                let h = 1e-3;
+                let (mut p1, mut p2) = (params.clone(), params.clone());
+                p1[i] += h;
+                p2[i] -= h;
+                let fd = (loss(&p1) - loss(&p2)) / (2.0 * h as f64);
+                err += (fd - g).powi(2);
+                norm += g * g;
+                checked += 1;
+            }
+        }
+        let rel = (err / norm).sqrt();
+        assert!(checked > 50, "only {checked} parameters had gradients");
+        assert!(rel < 1e-2, "relative gradient error {rel} over {checked} parameters");
+    }
+
+    #[test]
+    fn density_alone_matches_the_full_forward() {
+        let field = tiny();
+        let params = field.init_params(2);
+        let pos = [0.1, 0.2, -0.3, 1.0, -1.2, 0.4];
+        let dirs = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0];
+        let mut ws = FastWorkspace::default();
+        field.forward(&params, &pos, &dirs, &mut ws);
+        let full = ws.sigma[..2].to_vec();
+        let mut ws2 = FastWorkspace::default();
+        field.density(&params, &pos, &mut ws2);
+        assert_eq!(full, ws2.sigma[..2].to_vec());
+        // Near-zero tables and zero-mean weights: density starts near exp(0) = 1.
+        assert!(full.iter().all(|s| (0.5..2.0).contains(s)), "{full:?}");
+    }
+}
