@@ -9,6 +9,7 @@ use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::data::{blender, image::save_rgb_png, Background, Split};
 use nerf::renderer::RenderSettings;
 use nerf::train::run::{self, Event, LoadedRun, RunOptions, StopReason};
+use nerf::model::ModelConfig;
 use nerf::train::TrainConfig;
 
 use crate::progress::bar;
@@ -99,44 +100,59 @@ pub struct TrainArgs {
     /// Run folder (config.json, checkpoint, metrics.jsonl, val/). Default: runs/<scene>-<preset>.
     #[arg(long)]
     out: Option<PathBuf>,
-    /// Model configuration: the paper's, one of its ablations, or a reduced demo model.
-    #[arg(long, default_value = "paper", value_parser = crate::preset_values())]
-    preset: String,
-    /// Steps to train (the learning rate decays 5e-4 -> 5e-5 over them). Default 200000.
+    /// Which model: `fast` (hash grid + occupancy grid, minutes) or `vanilla` (the paper's
+    /// MLPs, days). Default: fast, or vanilla when --preset is given.
+    #[arg(long, value_enum)]
+    model: Option<ModelArg>,
+    /// Vanilla model configuration: the paper's, one of its ablations, or a reduced demo
+    /// model (implies --model vanilla; default paper).
+    #[arg(long, value_parser = crate::preset_values())]
+    preset: Option<String>,
+    /// Steps to train (the learning rate decays 10x over them). Default: 5000 fast,
+    /// 200000 vanilla.
     #[arg(long)]
     steps: Option<u64>,
     /// Wall-clock budget in minutes: stop (with a checkpoint) when it runs out.
     #[arg(long)]
     minutes: Option<f64>,
-    /// Rays per step (paper: 4096).
-    #[arg(long, default_value_t = 1024)]
-    batch: usize,
-    /// Initial learning rate.
-    #[arg(long, default_value_t = 5e-4)]
-    lr: f32,
+    /// Vanilla: rays per step (default 1024; paper: 4096).
+    #[arg(long)]
+    batch: Option<usize>,
+    /// Fast: field samples per step; the number of rays adapts (default 65536).
+    #[arg(long)]
+    samples: Option<usize>,
+    /// Fast: log2 of the hash-table entries per level (default 19).
+    #[arg(long)]
+    table_log2: Option<u32>,
+    /// Initial learning rate (default 1e-2 fast, 5e-4 vanilla).
+    #[arg(long)]
+    lr: Option<f32>,
     /// Background behind transparent pixels; random = a new colour per ray while training.
-    #[arg(long, value_enum, default_value = "white")]
-    background: BackgroundArg,
+    /// Default: random for fast, white for vanilla.
+    #[arg(long, value_enum)]
+    background: Option<BackgroundArg>,
     /// Area-average downscale factor of the images.
     #[arg(long, default_value_t = 1)]
     downscale: usize,
-    /// Steps of central-crop warm-up (rays from the central half of each image).
-    #[arg(long, default_value_t = 500)]
-    precrop_steps: u64,
+    /// Steps of central-crop warm-up (rays from the central half of each image). Default:
+    /// 0 fast, 500 vanilla.
+    #[arg(long)]
+    precrop_steps: Option<u64>,
     /// Use the paper's printed positional encoding (sin(2^k pi p), no identity term).
     #[arg(long)]
     paper_pe: bool,
     #[arg(long, default_value_t = 0)]
     seed: u64,
-    /// Render a validation image every N steps (0: never).
-    #[arg(long, default_value_t = 1000)]
-    val_every: u64,
+    /// Render a validation image every N steps (0: never). Default: 500 fast, 1000 vanilla.
+    #[arg(long)]
+    val_every: Option<u64>,
     /// Save a checkpoint every N steps.
     #[arg(long, default_value_t = 500)]
     checkpoint_every: u64,
-    /// Rays per work unit per thread (memory: about 10 KB x 192 samples per ray).
-    #[arg(long, default_value_t = 64)]
-    chunk: usize,
+    /// Rays per work unit per thread (vanilla memory: about 10 KB x 192 samples per ray).
+    /// Default: 1024 fast, 64 vanilla.
+    #[arg(long)]
+    chunk: Option<usize>,
     /// Continue the run in --out from its last checkpoint.
     #[arg(long)]
     resume: bool,
@@ -146,30 +162,79 @@ pub struct TrainArgs {
     pause_at: Option<u64>,
 }
 
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ModelArg {
+    Fast,
+    Vanilla,
+}
+
 impl TrainArgs {
+    fn model(&self) -> Result<ModelArg> {
+        match (self.model, &self.preset) {
+            (Some(ModelArg::Fast), Some(p)) => bail!(
+                "--preset {p} names a vanilla configuration; drop it or use --model vanilla"
+            ),
+            (Some(m), _) => Ok(m),
+            (None, Some(_)) => Ok(ModelArg::Vanilla),
+            (None, None) => Ok(ModelArg::Fast),
+        }
+    }
+
+    /// Name for the default run folder.
+    fn label(&self) -> Result<String> {
+        Ok(match self.model()? {
+            ModelArg::Fast => "fast".into(),
+            ModelArg::Vanilla => self.preset.clone().unwrap_or_else(|| "paper".into()),
+        })
+    }
+
     fn config(&self) -> Result<TrainConfig> {
         // Absolute, so `eval` and `render` find the scene from any working directory.
         let data = std::fs::canonicalize(&self.data).unwrap_or_else(|_| self.data.clone());
-        let mut c = TrainConfig::from_preset(data, &self.preset)?;
-        c.steps = self.steps.unwrap_or(c.steps);
-        c.batch_rays = self.batch;
-        c.lr_init = self.lr;
-        c.lr_final = self.lr * 0.1;
-        c.background = match self.background {
-            BackgroundArg::White => Background::White,
-            BackgroundArg::Black => Background::Black,
-            BackgroundArg::Random => Background::Random,
+        let mut c = match self.model()? {
+            ModelArg::Fast => TrainConfig::fast(data),
+            ModelArg::Vanilla => {
+                TrainConfig::from_preset(data, self.preset.as_deref().unwrap_or("paper"))?
+            }
         };
-        c.downscale = self.downscale;
-        c.precrop_steps = self.precrop_steps;
-        c.model.net.position_encoding.paper_form = self.paper_pe;
-        if let Some(d) = &mut c.model.net.direction_encoding {
-            d.paper_form = self.paper_pe;
+        match &mut c.model {
+            ModelConfig::Vanilla(m) => {
+                m.net.position_encoding.paper_form = self.paper_pe;
+                if let Some(d) = &mut m.net.direction_encoding {
+                    d.paper_form = self.paper_pe;
+                }
+                if self.samples.is_some() || self.table_log2.is_some() {
+                    bail!("--samples and --table-log2 apply to --model fast only");
+                }
+            }
+            ModelConfig::Fast(m) => {
+                if self.batch.is_some() || self.paper_pe {
+                    bail!("--batch and --paper-pe apply to --model vanilla only");
+                }
+                m.samples_per_step = self.samples.unwrap_or(m.samples_per_step);
+                m.field.grid.log2_table_size =
+                    self.table_log2.unwrap_or(m.field.grid.log2_table_size);
+            }
         }
+        c.steps = self.steps.unwrap_or(c.steps);
+        c.batch_rays = self.batch.unwrap_or(c.batch_rays);
+        if let Some(lr) = self.lr {
+            c.lr_final *= lr / c.lr_init;
+            c.lr_init = lr;
+        }
+        if let Some(b) = self.background {
+            c.background = match b {
+                BackgroundArg::White => Background::White,
+                BackgroundArg::Black => Background::Black,
+                BackgroundArg::Random => Background::Random,
+            };
+        }
+        c.downscale = self.downscale;
+        c.precrop_steps = self.precrop_steps.unwrap_or(c.precrop_steps);
         c.seed = self.seed;
-        c.val_every = self.val_every;
+        c.val_every = self.val_every.unwrap_or(c.val_every);
         c.checkpoint_every = self.checkpoint_every;
-        c.chunk_rays = self.chunk;
+        c.chunk_rays = self.chunk.unwrap_or(c.chunk_rays);
         Ok(c)
     }
 }
@@ -178,7 +243,7 @@ pub fn train(a: TrainArgs) -> Result<()> {
     let out = a
         .out
         .clone()
-        .unwrap_or_else(|| crate::default_run(&a.data, &a.preset));
+        .unwrap_or_else(|| crate::default_run(&a.data, &a.label().unwrap_or_default()));
     if a.resume {
         if let Some(steps) = a.steps {
             // A new target for a resumed run: record it so the schedule and later resumes agree.
@@ -218,7 +283,7 @@ fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
     let mut pb = None;
     let mut last = (Instant::now(), 0u64);
     let mut rays_per_s = 0.0;
-    let mut batch = 0usize;
+    let mut rays_since = 0usize;
     let mut last_line = Instant::now();
     let summary = run::train(opts, &mut |event| match event {
         Event::Started {
@@ -229,19 +294,15 @@ fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
             params,
             resumed_from,
         } => {
-            batch = config.batch_rays;
-            let m = &config.model;
             println!(
-                "training {} on {} ({views} views, {width}x{height}): {}x{} MLP, PE L={}/{}, {} coarse + {} fine samples, {params} parameters, {} rays/step",
+                "training {} on {} ({views} views, {width}x{height}): {}{}, {params} parameters",
                 config.preset,
                 config.data.display(),
-                m.net.depth,
-                m.net.width,
-                m.net.position_encoding.frequencies,
-                m.net.direction_encoding.map_or("off".to_string(), |d| d.frequencies.to_string()),
-                m.n_coarse,
-                m.n_fine,
-                config.batch_rays
+                config.model.describe(),
+                match config.model {
+                    ModelConfig::Vanilla(_) => format!(", {} rays/step", config.batch_rays),
+                    ModelConfig::Fast(_) => String::new(),
+                }
             );
             if let Some(step) = resumed_from {
                 println!("resuming from the checkpoint at step {step}");
@@ -255,8 +316,10 @@ fn train_with_progress(opts: &RunOptions) -> Result<run::RunSummary> {
         Event::Step(s) => {
             if let Some(p) = &pb {
                 let dt = last.0.elapsed().as_secs_f64();
+                rays_since += s.rays;
                 if dt > 1.0 || s.step == last.1 + 1 {
-                    rays_per_s = (s.step - last.1) as f64 * batch as f64 / dt.max(1e-9);
+                    rays_per_s = rays_since as f64 / dt.max(1e-9);
+                    rays_since = 0;
                     last = (Instant::now(), s.step);
                 }
                 p.set_position(s.step);

@@ -133,8 +133,11 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
     config.batch_rays = opts.rays;
     config.precrop_steps = 0;
     let mut trainer = Trainer::new(config, data)?;
-    let macs_per_ray = trainer.model.macs_per_ray() as f64;
-    let evals_per_ray = trainer.model.config.evals_per_ray() as f64;
+    let crate::model::Model::Vanilla(vanilla) = &trainer.model else {
+        unreachable!("presets build vanilla models");
+    };
+    let macs_per_ray = vanilla.macs_per_ray() as f64;
+    let evals_per_ray = vanilla.config.evals_per_ray() as f64;
     trainer.step()?;
     let mut times = Vec::new();
     for k in 0..opts.steps {

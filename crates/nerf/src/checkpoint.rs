@@ -1,7 +1,8 @@
 //! Checkpoints: weights, Adam moments, step and random state in one `safetensors` file.
 //!
 //! Tensors are stored under the model's names (`coarse.pts_0.weight`, ...), Adam's moments
-//! under `adam.m.<name>` and `adam.v.<name>`. The header metadata holds the step, the Adam
+//! under `adam.m.<name>` and `adam.v.<name>`, non-trainable buffers (the fast model's
+//! occupancy grid) under their own names. The header metadata holds the step, the Adam
 //! step count, the seed and the training time so far. The random state of a run is fully
 //! determined by `(seed, step)` (see `rng`), so nothing else is needed to resume exactly.
 //! Files are written to a temporary name and renamed, so a crash never leaves a torn file.
@@ -26,21 +27,30 @@ pub struct Checkpoint {
     pub adam_m: Vec<f32>,
     pub adam_v: Vec<f32>,
     pub adam_t: u64,
+    /// Non-trainable model state (see [`crate::model::Buffer`]), in buffer-layout order.
+    pub buffers: Vec<f32>,
 }
 
 fn bytes(v: &[f32]) -> Vec<u8> {
     v.iter().flat_map(|x| x.to_le_bytes()).collect()
 }
 
-/// Writes `ckpt` (laid out by `layout`) to `path` atomically.
-pub fn save(path: &Path, layout: &ParamLayout, ckpt: &Checkpoint) -> Result<()> {
+/// Writes `ckpt` (parameters laid out by `layout`, buffers by `buffer_layout`) to `path`
+/// atomically.
+pub fn save(
+    path: &Path,
+    layout: &ParamLayout,
+    buffer_layout: &ParamLayout,
+    ckpt: &Checkpoint,
+) -> Result<()> {
     let groups = [
-        ("", &ckpt.params),
-        ("adam.m.", &ckpt.adam_m),
-        ("adam.v.", &ckpt.adam_v),
+        ("", &ckpt.params, layout),
+        ("adam.m.", &ckpt.adam_m, layout),
+        ("adam.v.", &ckpt.adam_v, layout),
+        ("", &ckpt.buffers, buffer_layout),
     ];
     let mut owned = Vec::new();
-    for (prefix, values) in groups {
+    for (prefix, values, layout) in groups {
         for t in &layout.tensors {
             owned.push((
                 format!("{prefix}{}", t.name),
@@ -70,8 +80,9 @@ pub fn save(path: &Path, layout: &ParamLayout, ckpt: &Checkpoint) -> Result<()> 
     crate::io::write_atomic(path, &data)
 }
 
-/// Reads a checkpoint and checks that it has every tensor of `layout` with the same shape.
-pub fn load(path: &Path, layout: &ParamLayout) -> Result<Checkpoint> {
+/// Reads a checkpoint and checks that it has every tensor of `layout` and `buffer_layout`
+/// with the same shape.
+pub fn load(path: &Path, layout: &ParamLayout, buffer_layout: &ParamLayout) -> Result<Checkpoint> {
     let data = std::fs::read(path).map_err(|e| NerfError::io(path, e))?;
     let st = SafeTensors::deserialize(&data).map_err(|e| problem(path, e))?;
     let (_, header) = SafeTensors::read_metadata(&data).map_err(|e| problem(path, e))?;
@@ -87,7 +98,7 @@ pub fn load(path: &Path, layout: &ParamLayout) -> Result<Checkpoint> {
             .and_then(|v| v.parse::<f64>().ok())
             .ok_or_else(|| problem(path, format!("metadata `{key}` missing or not a number")))
     };
-    let read_group = |prefix: &str| -> Result<Vec<f32>> {
+    let read_group = |prefix: &str, layout: &ParamLayout| -> Result<Vec<f32>> {
         let mut out = vec![0.0f32; layout.total];
         for t in &layout.tensors {
             let name = format!("{prefix}{}", t.name);
@@ -124,9 +135,10 @@ pub fn load(path: &Path, layout: &ParamLayout) -> Result<Checkpoint> {
             .ok_or_else(|| problem(path, "metadata `seed` missing"))?,
         elapsed_seconds: num("elapsed_seconds")?,
         adam_t: num("adam_t")? as u64,
-        params: read_group("")?,
-        adam_m: read_group("adam.m.")?,
-        adam_v: read_group("adam.v.")?,
+        params: read_group("", layout)?,
+        adam_m: read_group("adam.m.", layout)?,
+        adam_v: read_group("adam.v.", layout)?,
+        buffers: read_group("", buffer_layout)?,
     })
 }
 
@@ -148,6 +160,12 @@ mod tests {
         l
     }
 
+    fn buffers() -> ParamLayout {
+        let mut l = ParamLayout::default();
+        l.push("grid", &[2, 2]);
+        l
+    }
+
     #[test]
     fn round_trip_and_errors() {
         let dir = tempfile::tempdir().expect("tempdir");
@@ -160,20 +178,25 @@ mod tests {
             adam_m: vec![0.25; 9],
             adam_v: vec![0.125; 9],
             adam_t: 42,
+            buffers: vec![7.0; 4],
         };
-        save(&path, &layout(), &ckpt).expect("save");
+        save(&path, &layout(), &buffers(), &ckpt).expect("save");
         assert!(!crate::io::tmp_path(&path).exists());
-        assert_eq!(load(&path, &layout()).expect("load"), ckpt);
+        assert_eq!(load(&path, &layout(), &buffers()).expect("load"), ckpt);
+        let mut absent = ParamLayout::default();
+        absent.push("occupancy", &[2, 2]);
+        let missing = load(&path, &layout(), &absent).expect_err("buffer missing");
+        assert!(missing.to_string().contains("occupancy"), "{missing}");
 
         let mut other = ParamLayout::default();
         other.push("a.weight", &[3, 3]);
-        let err = load(&path, &other).expect_err("shape mismatch");
+        let err = load(&path, &other, &buffers()).expect_err("shape mismatch");
         assert!(
             err.to_string().contains("a.weight") && err.to_string().contains("ckpt.safetensors"),
             "{err}"
         );
 
         std::fs::write(&path, b"garbage").expect("write");
-        assert!(load(&path, &layout()).is_err());
+        assert!(load(&path, &layout(), &buffers()).is_err());
     }
 }

@@ -4,7 +4,7 @@
 use crate::encoding::FrequencyEncoding;
 use crate::error::{NerfError, Result};
 use crate::field::VanillaConfig;
-use crate::model::ModelConfig;
+use crate::model::VanillaModelConfig;
 
 /// A named configuration of the model and the training views it sees.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -78,8 +78,8 @@ fn frequencies(l: usize) -> FrequencyEncoding {
 }
 
 /// The paper's model: 8 x 256 trunk, skip after layer 4, L = 10 / 4, 64 + 128 samples.
-pub fn paper() -> ModelConfig {
-    ModelConfig {
+pub fn paper() -> VanillaModelConfig {
+    VanillaModelConfig {
         net: VanillaConfig::paper(),
         n_coarse: 64,
         n_fine: 128,
@@ -98,7 +98,7 @@ pub fn find(name: &str) -> Result<&'static Preset> {
 }
 
 /// The model of a preset and how many training views it keeps (`None`: all).
-pub fn build(name: &str) -> Result<(ModelConfig, Option<usize>)> {
+pub fn build(name: &str) -> Result<(VanillaModelConfig, Option<usize>)> {
     let mut m = paper();
     let mut views = None;
     match find(name)?.name {

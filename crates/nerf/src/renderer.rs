@@ -7,6 +7,7 @@ use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::model::Model;
+use crate::render::marched::{self, MarchWorkspace};
 use crate::render::pipeline::{render_chunk, ChunkWorkspace, Rays};
 use crate::render::volume::RayOutput;
 
@@ -22,6 +23,7 @@ pub struct RenderSettings {
 #[derive(Default)]
 struct Scratch {
     ws: ChunkWorkspace,
+    march: MarchWorkspace,
     origins: Vec<f32>,
     dirs: Vec<f32>,
     backgrounds: Vec<f32>,
@@ -82,7 +84,19 @@ pub fn render_view(
             near,
             far,
         };
-        render_chunk(model, params, &rays, &mut s.ws, out);
+        match model {
+            Model::Vanilla(m) => render_chunk(m, params, &rays, &mut s.ws, out),
+            Model::Fast(m) => marched::render_chunk(
+                &m.field,
+                params,
+                &m.grid,
+                &m.marcher(near, far),
+                &rays,
+                m.config.batch_samples,
+                &mut s.march,
+                out,
+            ),
+        }
         if let Ok(mut p) = pool.lock() {
             p.push(s);
         }

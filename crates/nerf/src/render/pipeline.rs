@@ -8,7 +8,7 @@
 
 use crate::field::{VanillaNet, VanillaWorkspace};
 use crate::math::{length, scale};
-use crate::model::Model;
+use crate::model::VanillaModel;
 use crate::render::sampling::{merge_sorted, sample_pdf, stratified};
 use crate::render::volume::{composite, composite_bwd, depth_deltas, RayOutput};
 use crate::rng::Rng;
@@ -208,7 +208,7 @@ pub struct Targets<'a> {
 /// The loss is `loss_scale * sum of squared errors` per pass (so `1 / (3 * batch)` gives the
 /// batch MSE); gradients are accumulated into `grads` (layout of `model.layout`).
 pub fn train_chunk(
-    model: &Model,
+    model: &VanillaModel,
     params: &[f32],
     rays: &Rays,
     targets: Targets,
@@ -265,7 +265,7 @@ pub fn train_chunk(
 /// Renders a chunk for evaluation: bin-midpoint coarse samples, evenly spaced importance
 /// samples, the fine network's result (the coarse one without a fine network).
 pub fn render_chunk(
-    model: &Model,
+    model: &VanillaModel,
     params: &[f32],
     rays: &Rays,
     ws: &mut ChunkWorkspace,
@@ -291,15 +291,14 @@ pub fn render_chunk(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::model::ModelConfig;
 
-    fn tiny_model() -> Model {
+    fn tiny_model() -> VanillaModel {
         let (mut config, _) = crate::presets::build("demo").expect("preset");
         config.net.width = 16;
         config.net.view_width = 8;
         config.n_coarse = 8;
         config.n_fine = 8;
-        Model::new(ModelConfig { ..config })
+        VanillaModel::new(config)
     }
 
     fn rays(n: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>) {

@@ -1,12 +1,15 @@
-//! The optimisation loop of the paper: random rays from all training pixels, coarse + fine
-//! photometric MSE, Adam with an exponentially decaying learning rate, and a central-crop
-//! warm-up on the first steps.
+//! The optimisation loop: random rays from all training pixels, photometric MSE, Adam with
+//! an exponentially decaying learning rate. The vanilla model follows the paper (coarse +
+//! fine loss, a fixed number of rays, a central-crop warm-up); the fast model follows
+//! Instant-NGP (a fixed number of field samples, random backgrounds, lazy updates of the
+//! hash tables, occupancy-grid refreshes every few steps).
 //!
-//! Work mapping: a step's rays are cut into chunks of `chunk_rays`; chunk `k` goes to worker
-//! `k mod W` (W = rayon threads), which runs it forward and backward in its own workspace and
-//! accumulates into its own gradient buffer. Buffers are summed in worker order, so a run is
-//! reproducible for a given seed and thread count. Nothing is allocated per step once the
-//! workspaces have grown.
+//! Work mapping: each rayon thread owns a worker with its own workspaces and gradient
+//! buffer. Vanilla: a step's rays are cut into chunks of `chunk_rays`, chunk `k` on worker
+//! `k mod W`. Fast: worker `w` draws rays from its own streams until it holds its share of
+//! the step's samples. Buffers are summed in worker order, so a run is reproducible for a
+//! given seed and thread count. Nothing is allocated per step once the workspaces have
+//! grown.
 
 pub mod run;
 
@@ -17,8 +20,11 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{Background, Dataset};
 use crate::error::{NerfError, Result};
-use crate::model::{Model, ModelConfig};
-use crate::nn::adam::{Adam, AdamConfig};
+use crate::field::FastWorkspace;
+use crate::model::{FastModel, FastModelConfig, Model, ModelConfig, VanillaModel};
+use crate::nn::adam::{Adam, AdamConfig, Rule};
+use crate::nn::GradBuffer;
+use crate::render::marched::{train_batch, MarchBatch, MarchWorkspace};
 use crate::render::pipeline::{train_chunk, ChunkLoss, ChunkWorkspace, Rays, Targets};
 use crate::rng::Rng;
 
@@ -27,10 +33,11 @@ use crate::rng::Rng;
 pub struct TrainConfig {
     /// Scene folder (Blender format).
     pub data: PathBuf,
-    /// Preset the model came from (see `presets`).
+    /// Preset the model came from (see `presets`; "fast" for the fast model).
     pub preset: String,
     pub model: ModelConfig,
-    /// Rays per step (paper: 4096; 1024 is the common smaller setting and our default).
+    /// Vanilla model: rays per step (paper: 4096; 1024 is the common smaller setting and
+    /// our default). The fast model sets samples per step instead.
     pub batch_rays: usize,
     /// Steps to train; the learning rate decays from `lr_init` to `lr_final` over them.
     pub steps: u64,
@@ -63,7 +70,7 @@ impl TrainConfig {
         Ok(TrainConfig {
             data,
             preset: preset.to_string(),
-            model,
+            model: ModelConfig::Vanilla(model),
             batch_rays: 1024,
             steps: 200_000,
             lr_init: 5e-4,
@@ -82,17 +89,61 @@ impl TrainConfig {
         })
     }
 
+    /// Defaults of the fast model, after Instant-NGP: Adam (0.9, 0.99, 1e-15) at 1e-2
+    /// decaying to 1e-3, random backgrounds, no crop warm-up.
+    pub fn fast(data: PathBuf) -> Self {
+        TrainConfig {
+            data,
+            preset: "fast".into(),
+            model: ModelConfig::Fast(FastModelConfig::default()),
+            batch_rays: 0,
+            steps: 5000,
+            lr_init: 1e-2,
+            lr_final: 1e-3,
+            adam: AdamConfig {
+                beta1: 0.9,
+                beta2: 0.99,
+                eps: 1e-15,
+            },
+            precrop_steps: 0,
+            precrop_fraction: 1.0,
+            background: Background::Random,
+            downscale: 1,
+            train_views: None,
+            seed: 0,
+            chunk_rays: 1024,
+            val_every: 500,
+            val_downscale: 4,
+            checkpoint_every: 500,
+        }
+    }
+
     /// Rejects settings that cannot run, naming the field.
     pub fn validate(&self) -> Result<()> {
         let bad = |m: &str| Err(NerfError::Config(m.to_string()));
-        if self.batch_rays == 0 {
-            return bad("batch_rays must be positive");
-        }
         if self.chunk_rays == 0 {
             return bad("chunk_rays must be positive");
         }
-        if self.model.n_coarse < 3 {
-            return bad("at least 3 coarse samples per ray are needed");
+        match &self.model {
+            ModelConfig::Vanilla(m) => {
+                if self.batch_rays == 0 {
+                    return bad("batch_rays must be positive");
+                }
+                if m.n_coarse < 3 {
+                    return bad("at least 3 coarse samples per ray are needed");
+                }
+            }
+            ModelConfig::Fast(m) => {
+                if m.samples_per_step == 0 || m.batch_samples == 0 {
+                    return bad("samples_per_step and batch_samples must be positive");
+                }
+                if !(m.field.bound > 0.0) || m.occupancy.resolution == 0 {
+                    return bad("the scene box and occupancy grid must not be empty");
+                }
+                if !(m.steps_per_diagonal >= 1.0) || m.max_samples_per_ray == 0 {
+                    return bad("steps_per_diagonal must be >= 1 and max_samples_per_ray positive");
+                }
+            }
         }
         if !(self.lr_init > 0.0 && self.lr_final > 0.0) {
             return bad("learning rates must be positive");
@@ -123,17 +174,24 @@ pub struct StepStats {
     /// PSNR of the final (fine, else coarse) pass on this batch.
     pub psnr: f32,
     pub lr: f32,
+    /// Rays and field samples in the step.
+    pub rays: usize,
+    pub samples: usize,
 }
 
 struct Worker {
-    ws: ChunkWorkspace,
-    grads: Vec<f32>,
+    vanilla: ChunkWorkspace,
+    march: MarchWorkspace,
+    batch: MarchBatch,
+    grads: GradBuffer,
     origins: Vec<f32>,
     dirs: Vec<f32>,
     backgrounds: Vec<f32>,
     targets: Vec<f32>,
     rngs: Vec<Rng>,
     loss: ChunkLoss,
+    rays: usize,
+    samples: usize,
 }
 
 /// Model, optimiser and data of a run in memory.
@@ -148,6 +206,55 @@ pub struct Trainer {
     workers: Vec<Worker>,
 }
 
+/// A training ray: a random pixel, its colour over the ray's background, and the ray's
+/// random stream (which also draws its sample positions).
+struct DrawnRay {
+    origin: [f32; 3],
+    dir: [f32; 3],
+    background: [f32; 3],
+    target: [f32; 3],
+    rng: Rng,
+}
+
+/// Ray `stream` of step `step`: a uniformly random training pixel (inside the central
+/// `crop` fraction while warming up).
+fn draw_ray(data: &Dataset, cfg: &TrainConfig, step: u64, stream: u64, crop: f32) -> DrawnRay {
+    let mut rng = Rng::for_stream(cfg.seed, step, stream);
+    let view = &data.views[rng.below(data.views.len())];
+    let (w, h) = (view.image.width, view.image.height);
+    let (cw, ch) = (
+        ((w as f32 * crop) as usize).max(1),
+        ((h as f32 * crop) as usize).max(1),
+    );
+    let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
+    let (i, j) = (x0 + rng.below(cw), y0 + rng.below(ch));
+    let ray = view.camera.ray(i, j);
+    let background = match cfg.background {
+        Background::White => [1.0; 3],
+        Background::Black => [0.0; 3],
+        Background::Random => [rng.uniform(), rng.uniform(), rng.uniform()],
+    };
+    DrawnRay {
+        origin: ray.origin,
+        dir: ray.dir,
+        background,
+        target: view.image.composite_pixel(j * w + i, background),
+        rng,
+    }
+}
+
+/// What the workers of one step produced, before the optimiser runs.
+struct PassTotals {
+    /// The loss of the step.
+    loss: f64,
+    /// MSE of the final rendering (fine pass for the vanilla model).
+    final_mse: f64,
+    /// Factor that turns the workers' summed gradients into the gradient of `loss`.
+    grad_scale: f32,
+    rays: usize,
+    samples: usize,
+}
+
 impl Trainer {
     /// A fresh run on `data` (its training split).
     pub fn new(config: TrainConfig, data: Dataset) -> Result<Self> {
@@ -160,14 +267,18 @@ impl Trainer {
         let adam = Adam::new(config.adam, params.len());
         let workers = (0..rayon::current_num_threads().max(1))
             .map(|_| Worker {
-                ws: ChunkWorkspace::default(),
-                grads: vec![0.0; params.len()],
+                vanilla: ChunkWorkspace::default(),
+                march: MarchWorkspace::default(),
+                batch: MarchBatch::default(),
+                grads: GradBuffer::new(params.len()),
                 origins: Vec::new(),
                 dirs: Vec::new(),
                 backgrounds: Vec::new(),
                 targets: Vec::new(),
                 rngs: Vec::new(),
                 loss: ChunkLoss::default(),
+                rays: 0,
+                samples: 0,
             })
             .collect();
         Ok(Trainer {
@@ -183,28 +294,114 @@ impl Trainer {
 
     /// One optimisation step. Fails (leaving the parameters untouched) if the loss is not finite.
     pub fn step(&mut self) -> Result<StepStats> {
-        let cfg = &self.config;
         let step = self.step;
+        for w in &mut self.workers {
+            w.grads.clear();
+            w.loss = ChunkLoss::default();
+            w.rays = 0;
+            w.samples = 0;
+        }
+        let ctx = PassContext {
+            cfg: &self.config,
+            data: &self.data,
+            params: &self.params,
+            step,
+            crop: if step < self.config.precrop_steps {
+                self.config.precrop_fraction
+            } else {
+                1.0
+            },
+        };
+        let totals = match &self.model {
+            Model::Vanilla(m) => vanilla_pass(m, &ctx, &mut self.workers),
+            Model::Fast(m) => fast_pass(m, &ctx, &mut self.workers),
+        };
+        let (first, rest) = self.workers.split_at_mut(1);
+        let grads = &mut first[0].grads;
+        for w in rest.iter() {
+            grads.add_from(&w.grads);
+        }
+        let loss = totals.loss as f32;
+        if !loss.is_finite() || !grads.all_finite() {
+            return Err(NerfError::Diverged {
+                step: step + 1,
+                loss,
+            });
+        }
+        let lr = self.config.learning_rate(step);
+        let adam_step = self.adam.begin_step(lr);
+        let (lazy_end, weight_decay) = match &self.model {
+            Model::Vanilla(_) => (0, 0.0),
+            Model::Fast(m) => (m.field.mlp_range().start, m.config.weight_decay),
+        };
+        let s = totals.grad_scale;
+        let ranges: Vec<_> = grads.dirty_ranges().collect();
+        for r in ranges {
+            grads.values[r.clone()].iter_mut().for_each(|g| *g *= s);
+            // Hash-table entries update lazily; the MLP weights densely, with weight decay.
+            let split = r.end.min(lazy_end).max(r.start);
+            let lazy = Rule {
+                lazy: true,
+                weight_decay: 0.0,
+            };
+            let dense = Rule {
+                lazy: false,
+                weight_decay,
+            };
+            self.adam
+                .update(&mut self.params, &grads.values, r.start..split, adam_step, lazy);
+            self.adam
+                .update(&mut self.params, &grads.values, split..r.end, adam_step, dense);
+        }
+        self.step += 1;
+        if let Model::Fast(m) = &mut self.model {
+            let every = m.config.occupancy.update_every.max(1);
+            if self.step % every == 0 {
+                refresh_occupancy(m, &self.params, self.step, self.config.seed);
+            }
+        }
+        Ok(StepStats {
+            step: self.step,
+            loss,
+            psnr: crate::eval::psnr_from_mse(totals.final_mse),
+            lr,
+            rays: totals.rays,
+            samples: totals.samples,
+        })
+    }
+
+    /// Rays and field samples of the last step (the fast model's batch adapts its rays).
+    pub fn last_batch(&self) -> (usize, usize) {
+        self.workers
+            .iter()
+            .fold((0, 0), |(r, s), w| (r + w.rays, s + w.samples))
+    }
+}
+
+/// What every worker of a step reads.
+struct PassContext<'a> {
+    cfg: &'a TrainConfig,
+    data: &'a Dataset,
+    params: &'a [f32],
+    step: u64,
+    crop: f32,
+}
+
+/// The paper's step: `batch_rays` rays in chunks, chunk `k` on worker `k mod W`.
+fn vanilla_pass(model: &VanillaModel, ctx: &PassContext, workers: &mut [Worker]) -> PassTotals {
+        let PassContext { cfg, data, params, step, crop } = *ctx;
         let batch = cfg.batch_rays;
         let chunk = cfg.chunk_rays.min(batch);
         let n_chunks = batch.div_ceil(chunk);
-        let n_workers = self.workers.len();
+        let n_workers = workers.len();
         let loss_scale = 1.0 / (3 * batch) as f32;
-        let crop = if step < cfg.precrop_steps {
-            cfg.precrop_fraction
-        } else {
-            1.0
-        };
-        let (model, params, data) = (&self.model, &self.params, &self.data);
-        self.workers
+        workers
             .par_iter_mut()
             .enumerate()
             .for_each(|(w, worker)| {
-                worker.grads.fill(0.0);
-                worker.loss = ChunkLoss::default();
                 for c in (w..n_chunks).step_by(n_workers) {
                     let rays = (c * chunk)..((c + 1) * chunk).min(batch);
-                    worker.sample_rays(data, cfg, step, rays, crop);
+                    worker.draw_rays(data, cfg, step, rays, crop);
                     let r = Rays {
                         origins: &worker.origins,
                         dirs: &worker.dirs,
@@ -221,54 +418,115 @@ impl Trainer {
                             loss_scale,
                         },
                         &mut worker.rngs,
-                        &mut worker.ws,
-                        &mut worker.grads,
+                        &mut worker.vanilla,
+                        &mut worker.grads.values,
                     );
                     worker.loss.coarse_sse += l.coarse_sse;
                     worker.loss.fine_sse += l.fine_sse;
                 }
+                worker.grads.mark(0..worker.grads.len());
             });
-        let (first, rest) = self.workers.split_at_mut(1);
-        let grads = &mut first[0].grads;
-        let mut total = first[0].loss;
-        for w in rest.iter() {
-            for (a, b) in grads.iter_mut().zip(&w.grads) {
-                *a += b;
-            }
-            total.coarse_sse += w.loss.coarse_sse;
-            total.fine_sse += w.loss.fine_sse;
-        }
+        let (c, f) = workers.iter().fold((0.0, 0.0), |(c, f), w| {
+            (c + w.loss.coarse_sse, f + w.loss.fine_sse)
+        });
         let denom = (3 * batch) as f64;
-        let (mse_c, mse_f) = (total.coarse_sse / denom, total.fine_sse / denom);
-        let loss = (mse_c + mse_f) as f32;
-        if !loss.is_finite() || grads.iter().any(|g| !g.is_finite()) {
-            return Err(NerfError::Diverged {
-                step: step + 1,
-                loss,
-            });
+        let (mse_c, mse_f) = (c / denom, f / denom);
+        PassTotals {
+            loss: mse_c + mse_f,
+            final_mse: if model.fine.is_some() { mse_f } else { mse_c },
+            grad_scale: 1.0,
+            rays: batch,
+            samples: batch * model.config.evals_per_ray(),
         }
-        let lr = cfg.learning_rate(step);
-        self.adam.step(&mut self.params, grads, lr);
-        self.step += 1;
-        let final_mse = if self.model.fine.is_some() {
-            mse_f
-        } else {
-            mse_c
-        };
-        Ok(StepStats {
-            step: self.step,
-            loss,
-            psnr: crate::eval::psnr_from_mse(final_mse),
-            lr,
-        })
     }
+
+    /// The fast model's step: each worker draws rays from its own streams and marches them
+    /// until it holds its share of `samples_per_step`, evaluating the field every
+    /// `batch_samples`. Gradients are of the summed squared error, scaled to the mean once
+    /// the number of rays is known.
+fn fast_pass(model: &FastModel, ctx: &PassContext, workers: &mut [Worker]) -> PassTotals {
+        let PassContext { cfg, data, params, step, crop } = *ctx;
+        let n_workers = workers.len();
+        let budget = model.config.samples_per_step.div_ceil(n_workers);
+        let max_rays = budget.max(64);
+        let marcher = model.marcher(data.near, data.far);
+        workers
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(w, worker)| {
+                let mut sse = 0.0;
+                worker.batch.clear();
+                let mut flush = |worker: &mut Worker| {
+                    sse += train_batch(
+                        &model.field,
+                        params,
+                        &marcher,
+                        &worker.batch,
+                        1.0,
+                        &mut worker.march,
+                        &mut worker.grads,
+                    );
+                    worker.batch.clear();
+                };
+                while worker.samples < budget && worker.rays < max_rays {
+                    let stream = ((w as u64) << 32) | worker.rays as u64;
+                    let mut ray = draw_ray(data, cfg, step, stream, crop);
+                    let jitter = ray.rng.uniform();
+                    worker.samples += worker.batch.push(
+                        &model.grid,
+                        &marcher,
+                        ray.origin,
+                        ray.dir,
+                        ray.background,
+                        ray.target,
+                        jitter,
+                    );
+                    worker.rays += 1;
+                    if worker.batch.samples() >= model.config.batch_samples {
+                        flush(worker);
+                    }
+                }
+                if worker.batch.rays() > 0 {
+                    flush(worker);
+                }
+                worker.loss.coarse_sse = sse;
+            });
+        let rays: usize = workers.iter().map(|w| w.rays).sum();
+        let sse: f64 = workers.iter().map(|w| w.loss.coarse_sse).sum();
+        let mse = sse / (3 * rays.max(1)) as f64;
+        PassTotals {
+            loss: mse,
+            final_mse: mse,
+            grad_scale: 1.0 / (3 * rays.max(1)) as f32,
+            rays,
+            samples: workers.iter().map(|w| w.samples).sum(),
+        }
+}
+
+/// Re-evaluates the occupancy grid with the current weights.
+fn refresh_occupancy(model: &mut FastModel, params: &[f32], step: u64, seed: u64) {
+    thread_local! {
+        static WS: std::cell::RefCell<FastWorkspace> = std::cell::RefCell::default();
+    }
+    let dt = model.config.step_length();
+    let FastModel {
+        config,
+        field,
+        grid,
+    } = model;
+    let density = |points: &[f32], out: &mut [f32]| {
+        WS.with(|ws| {
+            let ws = &mut ws.borrow_mut();
+            field.density(params, points, ws);
+            out.copy_from_slice(&ws.sigma[..out.len()]);
+        })
+    };
+    grid.update(&config.occupancy, step, seed, dt, &density);
 }
 
 impl Worker {
-    /// Picks the rays `range` of this step: a uniformly random training pixel each (inside
-    /// the central crop while warming up), its target colour over the ray's background, and
-    /// the ray's random stream, which later also draws its sample positions.
-    fn sample_rays(
+    /// Draws the rays `range` of this step for the vanilla model, packed.
+    fn draw_rays(
         &mut self,
         data: &Dataset,
         cfg: &TrainConfig,
@@ -286,27 +544,12 @@ impl Worker {
         }
         self.rngs.clear();
         for g in range {
-            let mut rng = Rng::for_stream(cfg.seed, step, g as u64);
-            let view = &data.views[rng.below(data.views.len())];
-            let (w, h) = (view.image.width, view.image.height);
-            let (cw, ch) = (
-                ((w as f32 * crop) as usize).max(1),
-                ((h as f32 * crop) as usize).max(1),
-            );
-            let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
-            let (i, j) = (x0 + rng.below(cw), y0 + rng.below(ch));
-            let ray = view.camera.ray(i, j);
-            let bg = match cfg.background {
-                Background::White => [1.0; 3],
-                Background::Black => [0.0; 3],
-                Background::Random => [rng.uniform(), rng.uniform(), rng.uniform()],
-            };
+            let ray = draw_ray(data, cfg, step, g as u64, crop);
             self.origins.extend_from_slice(&ray.origin);
             self.dirs.extend_from_slice(&ray.dir);
-            self.backgrounds.extend_from_slice(&bg);
-            self.targets
-                .extend_from_slice(&view.image.composite_pixel(j * w + i, bg));
-            self.rngs.push(rng);
+            self.backgrounds.extend_from_slice(&ray.background);
+            self.targets.extend_from_slice(&ray.target);
+            self.rngs.push(ray.rng);
         }
     }
 }

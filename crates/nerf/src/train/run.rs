@@ -84,8 +84,13 @@ pub struct LoadedRun {
 impl LoadedRun {
     pub fn open(dir: &Path) -> Result<LoadedRun> {
         let config: TrainConfig = crate::io::read_json(&dir.join(CONFIG_FILE))?;
-        let model = Model::new(config.model.clone());
-        let ckpt = checkpoint::load(&dir.join(CHECKPOINT_FILE), &model.layout)?;
+        let mut model = Model::new(config.model.clone());
+        let ckpt = checkpoint::load(
+            &dir.join(CHECKPOINT_FILE),
+            model.layout(),
+            &model.buffer_layout(),
+        )?;
+        model.load_buffers(ckpt.buffers);
         Ok(LoadedRun {
             config,
             model,
@@ -148,7 +153,12 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let mut elapsed_before = 0.0;
     let mut resumed_from = None;
     if opts.resume {
-        let ckpt = checkpoint::load(&ckpt_path, &trainer.model.layout)?;
+        let ckpt = checkpoint::load(
+            &ckpt_path,
+            trainer.model.layout(),
+            &trainer.model.buffer_layout(),
+        )?;
+        trainer.model.load_buffers(ckpt.buffers);
         trainer.params = ckpt.params;
         trainer.adam.m = ckpt.adam_m;
         trainer.adam.v = ckpt.adam_v;
@@ -179,7 +189,8 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let save = |trainer: &Trainer, elapsed: f64| -> Result<()> {
         checkpoint::save(
             &ckpt_path,
-            &trainer.model.layout,
+            trainer.model.layout(),
+            &trainer.model.buffer_layout(),
             &Checkpoint {
                 step: trainer.step,
                 seed: trainer.config.seed,
@@ -188,6 +199,12 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
                 adam_m: trainer.adam.m.clone(),
                 adam_v: trainer.adam.v.clone(),
                 adam_t: trainer.adam.t,
+                buffers: trainer
+                    .model
+                    .buffers()
+                    .into_iter()
+                    .flat_map(|b| b.values)
+                    .collect(),
             },
         )
     };

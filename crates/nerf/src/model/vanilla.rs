@@ -9,7 +9,7 @@ use crate::rng::Rng;
 
 /// Network shape and samples per ray.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ModelConfig {
+pub struct VanillaModelConfig {
     pub net: VanillaConfig,
     /// Stratified samples per ray for the coarse network (paper: 64).
     pub n_coarse: usize,
@@ -18,7 +18,7 @@ pub struct ModelConfig {
     pub n_fine: usize,
 }
 
-impl ModelConfig {
+impl VanillaModelConfig {
     pub fn hierarchical(&self) -> bool {
         self.n_fine > 0
     }
@@ -33,16 +33,16 @@ impl ModelConfig {
 }
 
 #[derive(Clone, Debug)]
-pub struct Model {
-    pub config: ModelConfig,
+pub struct VanillaModel {
+    pub config: VanillaModelConfig,
     pub coarse: VanillaNet,
     pub fine: Option<VanillaNet>,
     /// Names of all tensors, with offsets into the flat vector.
     pub layout: ParamLayout,
 }
 
-impl Model {
-    pub fn new(config: ModelConfig) -> Self {
+impl VanillaModel {
+    pub fn new(config: VanillaModelConfig) -> Self {
         let coarse = VanillaNet::new(config.net.clone(), "coarse.");
         let fine = config
             .hierarchical()
@@ -53,7 +53,7 @@ impl Model {
                 layout.push(t.name.clone(), &t.shape);
             }
         }
-        Model {
+        VanillaModel {
             config,
             coarse,
             fine,

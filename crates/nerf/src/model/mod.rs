@@ -1,0 +1,139 @@
+//! The two models a run can train: the paper's coarse + fine MLPs ([`VanillaModel`]) and the
+//! hash-grid field with an occupancy grid ([`FastModel`]). Both keep every trainable value in
+//! one flat vector described by a [`ParamLayout`], so the optimiser, checkpoints, evaluation
+//! and rendering treat them alike; only how a batch of rays is sampled and differentiated
+//! differs.
+
+pub mod fast;
+pub mod vanilla;
+
+use serde::{Deserialize, Serialize};
+
+pub use fast::{FastModel, FastModelConfig};
+pub use vanilla::{VanillaModel, VanillaModelConfig};
+
+use crate::nn::ParamLayout;
+
+/// Which model, with its shape; saved in a run's `config.json` under `"kind"`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+pub enum ModelConfig {
+    Vanilla(VanillaModelConfig),
+    Fast(FastModelConfig),
+}
+
+impl ModelConfig {
+    pub fn kind(&self) -> &'static str {
+        match self {
+            ModelConfig::Vanilla(_) => "vanilla",
+            ModelConfig::Fast(_) => "fast",
+        }
+    }
+
+    /// One line for logs: the model's shape.
+    pub fn describe(&self) -> String {
+        match self {
+            ModelConfig::Vanilla(m) => format!(
+                "{}x{} MLP, PE L={}/{}, {} coarse + {} fine samples",
+                m.net.depth,
+                m.net.width,
+                m.net.position_encoding.frequencies,
+                m.net
+                    .direction_encoding
+                    .map_or("off".to_string(), |d| d.frequencies.to_string()),
+                m.n_coarse,
+                m.n_fine,
+            ),
+            ModelConfig::Fast(m) => {
+                let g = &m.field.grid;
+                format!(
+                    "hash grid {} levels x 2^{} entries ({}..{} cells), {}-wide MLPs, {}^3 occupancy grid, {} samples/step",
+                    g.levels,
+                    g.log2_table_size,
+                    g.base_resolution,
+                    g.max_resolution,
+                    m.field.hidden,
+                    m.occupancy.resolution,
+                    m.samples_per_step
+                )
+            }
+        }
+    }
+}
+
+#[derive(Clone, Debug)]
+pub enum Model {
+    Vanilla(VanillaModel),
+    Fast(FastModel),
+}
+
+/// A non-trainable tensor a model keeps in its checkpoint (the occupancy grid).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Buffer {
+    pub name: String,
+    pub shape: Vec<usize>,
+    pub values: Vec<f32>,
+}
+
+const OCCUPANCY: &str = "occupancy.thickness";
+
+impl Model {
+    pub fn new(config: ModelConfig) -> Self {
+        match config {
+            ModelConfig::Vanilla(c) => Model::Vanilla(VanillaModel::new(c)),
+            ModelConfig::Fast(c) => Model::Fast(FastModel::new(c)),
+        }
+    }
+
+    pub fn layout(&self) -> &ParamLayout {
+        match self {
+            Model::Vanilla(m) => &m.layout,
+            Model::Fast(m) => &m.field.layout,
+        }
+    }
+
+    /// Fresh weights, deterministic in `seed`.
+    pub fn init_params(&self, seed: u64) -> Vec<f32> {
+        match self {
+            Model::Vanilla(m) => m.init_params(seed),
+            Model::Fast(m) => m.field.init_params(seed),
+        }
+    }
+
+    /// Non-trainable state to checkpoint.
+    pub fn buffers(&self) -> Vec<Buffer> {
+        match self {
+            Model::Vanilla(_) => Vec::new(),
+            Model::Fast(m) => {
+                let r = m.grid.resolution;
+                vec![Buffer {
+                    name: OCCUPANCY.into(),
+                    shape: vec![r, r, r],
+                    values: m.grid.thickness.clone(),
+                }]
+            }
+        }
+    }
+
+    /// Names and shapes of [`buffers`](Self::buffers), for reading a checkpoint.
+    pub fn buffer_layout(&self) -> ParamLayout {
+        let mut l = ParamLayout::default();
+        for b in self.buffers() {
+            l.push(b.name, &b.shape);
+        }
+        l
+    }
+
+    /// Restores state saved by [`buffers`](Self::buffers) (values in layout order).
+    pub fn load_buffers(&mut self, values: Vec<f32>) {
+        if let Model::Fast(m) = self {
+            let (r, b) = (m.grid.resolution, m.grid.bound);
+            m.grid = crate::render::occupancy::OccupancyGrid::from_thickness(
+                r,
+                b,
+                values,
+                m.config.occupancy.threshold,
+            );
+        }
+    }
+}

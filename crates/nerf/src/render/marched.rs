@@ -1,0 +1,285 @@
+//! The fast field's renderer: rays march through the occupancy grid with a fixed step, the
+//! samples of many rays are packed into one batch for the field, and each ray is
+//! composited by the shared quadrature of [`volume`](crate::render::volume).
+//!
+//! Training packs whole rays ([`MarchBatch`]) and differentiates through compositing.
+//! Rendering marches in rounds: every live ray takes a few more steps, the batch is
+//! evaluated, and rays stop once their transmittance falls below [`MIN_TRANSMITTANCE`]
+//! (early termination), so samples behind opaque surfaces are never evaluated.
+//!
+//! Depths are reported along the camera's (unnormalised) ray direction, like the paper's
+//! renderer, although marching itself works in metric units along unit directions.
+
+use crate::field::{FastField, FastWorkspace};
+use crate::math::{length, scale};
+use crate::nn::GradBuffer;
+use crate::render::occupancy::{ray_box, OccupancyGrid};
+use crate::render::pipeline::Rays;
+use crate::render::volume::{composite, composite_bwd, Accumulator, RayOutput};
+
+/// Rendering stops a ray once less than this much light gets through.
+pub const MIN_TRANSMITTANCE: f32 = 1e-4;
+
+/// Where and how finely rays are marched.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Marcher {
+    /// Step length (metric).
+    pub dt: f32,
+    /// Samples per ray at most.
+    pub max_samples: usize,
+    pub near: f32,
+    pub far: f32,
+}
+
+/// Rays and their marched samples, packed for one evaluation of the field.
+#[derive(Default, Debug)]
+pub struct MarchBatch {
+    /// Per ray: origin, unit direction, |d| of the camera ray, background, target colour.
+    origins: Vec<[f32; 3]>,
+    dirs: Vec<[f32; 3]>,
+    dir_norms: Vec<f32>,
+    backgrounds: Vec<[f32; 3]>,
+    targets: Vec<[f32; 3]>,
+    /// Samples of ray `k` are `starts[k]..starts[k + 1]`.
+    starts: Vec<usize>,
+    t: Vec<f32>,
+}
+
+impl MarchBatch {
+    pub fn clear(&mut self) {
+        self.origins.clear();
+        self.dirs.clear();
+        self.dir_norms.clear();
+        self.backgrounds.clear();
+        self.targets.clear();
+        self.t.clear();
+        self.starts.clear();
+    }
+
+    pub fn rays(&self) -> usize {
+        self.origins.len()
+    }
+    pub fn samples(&self) -> usize {
+        self.t.len()
+    }
+
+    /// Marches a camera ray (`dir` unnormalised) from a random offset `jitter` in [0, 1) of
+    /// the first step and packs it with its target colour. Returns the samples it added.
+    #[allow(clippy::too_many_arguments)]
+    pub fn push(
+        &mut self,
+        grid: &OccupancyGrid,
+        marcher: &Marcher,
+        origin: [f32; 3],
+        dir: [f32; 3],
+        background: [f32; 3],
+        target: [f32; 3],
+        jitter: f32,
+    ) -> usize {
+        if self.starts.is_empty() {
+            self.starts.push(0);
+        }
+        let norm = length(dir);
+        let d = scale(dir, 1.0 / norm);
+        let before = self.t.len();
+        if let Some((t0, t1)) = ray_box(origin, d, grid.bound, marcher.near, marcher.far) {
+            let t = t0 + jitter * marcher.dt;
+            grid.march(origin, d, t, t1, marcher.dt, marcher.max_samples, &mut self.t);
+        }
+        self.origins.push(origin);
+        self.dirs.push(d);
+        self.dir_norms.push(norm);
+        self.backgrounds.push(background);
+        self.targets.push(target);
+        self.starts.push(self.t.len());
+        self.t.len() - before
+    }
+}
+
+/// Reused buffers of one thread.
+#[derive(Default, Debug)]
+pub struct MarchWorkspace {
+    pub field: FastWorkspace,
+    positions: Vec<f32>,
+    dirs: Vec<f32>,
+    deltas: Vec<f32>,
+    weights: Vec<f32>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+    /// Rendering: per-ray state and which rays are still marching.
+    acc: Vec<Accumulator>,
+    next_t: Vec<f32>,
+    end_t: Vec<f32>,
+    live: Vec<usize>,
+    round_rays: Vec<(usize, usize, usize)>,
+    t: Vec<f32>,
+}
+
+/// Lays out sample positions and directions of `t` for the field.
+fn pack_samples(ws: &mut MarchWorkspace, t: &[f32], rays: impl Iterator<Item = ([f32; 3], [f32; 3], std::ops::Range<usize>)>) {
+    ws.positions.clear();
+    ws.dirs.clear();
+    for (o, d, range) in rays {
+        for &tt in &t[range] {
+            ws.positions
+                .extend_from_slice(&[o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
+            ws.dirs.extend_from_slice(&d);
+        }
+    }
+}
+
+/// Forward and backward of a packed batch against its targets. The loss is the sum of
+/// squared errors times `loss_scale`; gradients go into `grads`. Returns the batch's sum of
+/// squared errors (unscaled).
+pub fn train_batch(
+    field: &FastField,
+    params: &[f32],
+    marcher: &Marcher,
+    batch: &MarchBatch,
+    loss_scale: f32,
+    ws: &mut MarchWorkspace,
+    grads: &mut GradBuffer,
+) -> f64 {
+    let n = batch.samples();
+    let rays = batch.rays();
+    pack_samples(
+        ws,
+        &batch.t,
+        (0..rays).map(|k| (batch.origins[k], batch.dirs[k], batch.starts[k]..batch.starts[k + 1])),
+    );
+    ws.deltas.clear();
+    ws.deltas.resize(n, marcher.dt);
+    ws.weights.resize(n, 0.0);
+    ws.d_sigma.resize(n, 0.0);
+    ws.d_rgb.resize(n * 3, 0.0);
+    if n > 0 {
+        field.forward(params, &ws.positions, &ws.dirs, &mut ws.field);
+    }
+    let mut sse = 0.0f64;
+    for k in 0..rays {
+        let r = batch.starts[k]..batch.starts[k + 1];
+        let (sigma, rgb) = (&ws.field.sigma[r.clone()], &ws.field.rgb[r.start * 3..r.end * 3]);
+        let out = composite(
+            &batch.t[r.clone()],
+            &ws.deltas[r.clone()],
+            sigma,
+            rgb,
+            batch.backgrounds[k],
+            &mut ws.weights[r.clone()],
+        );
+        let mut d_out = [0.0f32; 3];
+        for c in 0..3 {
+            let e = out.rgb[c] - batch.targets[k][c];
+            sse += (e * e) as f64;
+            d_out[c] = 2.0 * e * loss_scale;
+        }
+        composite_bwd(
+            &ws.deltas[r.clone()],
+            sigma,
+            rgb,
+            batch.backgrounds[k],
+            out.rgb,
+            d_out,
+            &mut ws.d_sigma[r.clone()],
+            &mut ws.d_rgb[r.start * 3..r.end * 3],
+        );
+    }
+    if n > 0 {
+        field.backward(params, &mut ws.field, &ws.d_sigma[..n], &ws.d_rgb[..n * 3], grads);
+    }
+    sse
+}
+
+/// Renders a chunk of rays with early termination. `samples_per_round` bounds the batch
+/// the field sees at once.
+pub fn render_chunk(
+    field: &FastField,
+    params: &[f32],
+    grid: &OccupancyGrid,
+    marcher: &Marcher,
+    rays: &Rays,
+    samples_per_round: usize,
+    ws: &mut MarchWorkspace,
+    out: &mut [RayOutput],
+) {
+    let r = rays.len();
+    ws.acc.clear();
+    ws.acc.resize(r, Accumulator::default());
+    ws.next_t.clear();
+    ws.end_t.clear();
+    ws.live.clear();
+    let mut unit = Vec::with_capacity(r);
+    for k in 0..r {
+        let o = [rays.origins[3 * k], rays.origins[3 * k + 1], rays.origins[3 * k + 2]];
+        let dir = [rays.dirs[3 * k], rays.dirs[3 * k + 1], rays.dirs[3 * k + 2]];
+        let d = scale(dir, 1.0 / length(dir));
+        unit.push((o, d, length(dir)));
+        match ray_box(o, d, grid.bound, marcher.near, marcher.far) {
+            Some((t0, t1)) => {
+                ws.next_t.push(t0 + 0.5 * marcher.dt);
+                ws.end_t.push(t1);
+                ws.live.push(k);
+            }
+            None => {
+                ws.next_t.push(0.0);
+                ws.end_t.push(0.0);
+            }
+        }
+    }
+    let mut taken = vec![0usize; r];
+    while !ws.live.is_empty() {
+        let per_ray = (samples_per_round / ws.live.len()).clamp(1, 64);
+        ws.t.clear();
+        ws.round_rays.clear();
+        let mut still = Vec::with_capacity(ws.live.len());
+        for &k in &ws.live {
+            let (o, d, _) = unit[k];
+            let start = ws.t.len();
+            let budget = per_ray.min(marcher.max_samples - taken[k]);
+            ws.next_t[k] = grid.march(o, d, ws.next_t[k], ws.end_t[k], marcher.dt, budget, &mut ws.t);
+            taken[k] += ws.t.len() - start;
+            if ws.t.len() > start {
+                ws.round_rays.push((k, start, ws.t.len()));
+            }
+        }
+        if ws.t.is_empty() {
+            break;
+        }
+        let t = std::mem::take(&mut ws.t);
+        let round = std::mem::take(&mut ws.round_rays);
+        pack_samples(
+            ws,
+            &t,
+            round.iter().map(|&(k, s, e)| (unit[k].0, unit[k].1, s..e)),
+        );
+        field.forward(params, &ws.positions, &ws.dirs, &mut ws.field);
+        for &(k, s, e) in &round {
+            let acc = &mut ws.acc[k];
+            for i in s..e {
+                acc.add(
+                    t[i] / unit[k].2,
+                    marcher.dt,
+                    ws.field.sigma[i],
+                    &ws.field.rgb[i * 3..][..3],
+                );
+            }
+            let done = acc.transmittance() < MIN_TRANSMITTANCE
+                || ws.next_t[k] >= ws.end_t[k]
+                || taken[k] >= marcher.max_samples;
+            if !done {
+                still.push(k);
+            }
+        }
+        ws.t = t;
+        ws.round_rays = round;
+        ws.live = still;
+    }
+    for k in 0..r {
+        let bg = [
+            rays.backgrounds[3 * k],
+            rays.backgrounds[3 * k + 1],
+            rays.backgrounds[3 * k + 2],
+        ];
+        out[k] = ws.acc[k].finish(bg);
+    }
+}

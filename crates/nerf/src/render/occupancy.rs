@@ -1,0 +1,303 @@
+//! The occupancy grid and the ray marcher that uses it to skip empty space.
+//!
+//! The scene box `[-bound, bound]^3` is cut into `resolution^3` cells. Each cell keeps a
+//! decaying maximum of the optical thickness `sigma * dt` seen at random points inside it;
+//! a cell is occupied while that value exceeds `min(threshold, mean over cells)` (the mean
+//! keeps a young, uniformly thin field from being switched off entirely). Until the first
+//! refresh every cell is occupied.
+//!
+//! Rays march with a fixed step `dt` on a lattice `t0 + (k + jitter) dt`: a sample is
+//! taken in occupied cells, and an empty cell is crossed in whole steps, so skipping changes
+//! only which lattice points are visited, never where they are.
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use crate::rng::Rng;
+
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OccupancyConfig {
+    /// Cells per axis (128).
+    pub resolution: usize,
+    /// Refresh every this many steps (16).
+    pub update_every: u64,
+    /// Per-refresh decay of a cell's remembered thickness (0.95).
+    pub decay: f32,
+    /// Optical thickness `sigma * dt` above which a cell is occupied (0.01).
+    pub threshold: f32,
+    /// During the first steps every cell is re-evaluated at each refresh (256).
+    pub warmup_steps: u64,
+    /// After warm-up, this fraction of cells chosen at random is re-evaluated, plus every
+    /// occupied cell (0.25).
+    pub update_fraction: f32,
+}
+
+impl Default for OccupancyConfig {
+    fn default() -> Self {
+        OccupancyConfig {
+            resolution: 128,
+            update_every: 16,
+            decay: 0.95,
+            threshold: 0.01,
+            warmup_steps: 256,
+            update_fraction: 0.25,
+        }
+    }
+}
+
+#[derive(Clone, Debug, PartialEq)]
+pub struct OccupancyGrid {
+    pub resolution: usize,
+    pub bound: f32,
+    /// Remembered optical thickness per cell, x fastest.
+    pub thickness: Vec<f32>,
+    occupied: Vec<bool>,
+}
+
+/// Entry and exit distances of a ray (unit direction) through `[-bound, bound]^3`,
+/// clipped to `[near, far]`; `None` when it misses.
+pub fn ray_box(o: [f32; 3], d: [f32; 3], bound: f32, near: f32, far: f32) -> Option<(f32, f32)> {
+    let (mut t0, mut t1) = (near, far);
+    for a in 0..3 {
+        let inv = 1.0 / d[a];
+        let (mut ta, mut tb) = ((-bound - o[a]) * inv, (bound - o[a]) * inv);
+        if ta > tb {
+            std::mem::swap(&mut ta, &mut tb);
+        }
+        // NaN (ray parallel to a slab, starting on its plane) compares false: keep bounds.
+        if ta > t0 {
+            t0 = ta;
+        }
+        if tb < t1 {
+            t1 = tb;
+        }
+    }
+    (t0 < t1).then_some((t0, t1))
+}
+
+impl OccupancyGrid {
+    /// A grid with every cell occupied.
+    pub fn new(resolution: usize, bound: f32) -> Self {
+        let n = resolution.pow(3);
+        OccupancyGrid {
+            resolution,
+            bound,
+            thickness: vec![0.0; n],
+            occupied: vec![true; n],
+        }
+    }
+
+    /// A grid with the given per-cell thickness, occupancy derived from it.
+    pub fn from_thickness(resolution: usize, bound: f32, thickness: Vec<f32>, threshold: f32) -> Self {
+        let mut g = OccupancyGrid::new(resolution, bound);
+        g.thickness = thickness;
+        g.refresh(threshold);
+        g
+    }
+
+    fn cell_size(&self) -> f32 {
+        2.0 * self.bound / self.resolution as f32
+    }
+
+    /// Cell coordinates of a point (clamped into the grid).
+    #[inline]
+    fn cell(&self, p: [f32; 3]) -> [usize; 3] {
+        let inv = 1.0 / self.cell_size();
+        let max = self.resolution - 1;
+        p.map(|x| (((x + self.bound) * inv).max(0.0) as usize).min(max))
+    }
+
+    #[inline]
+    fn index(&self, c: [usize; 3]) -> usize {
+        c[0] + self.resolution * (c[1] + self.resolution * c[2])
+    }
+
+    pub fn is_occupied(&self, p: [f32; 3]) -> bool {
+        self.occupied[self.index(self.cell(p))]
+    }
+
+    /// Fraction of cells occupied.
+    pub fn occupancy(&self) -> f64 {
+        self.occupied.iter().filter(|&&o| o).count() as f64 / self.occupied.len() as f64
+    }
+
+    /// Re-derives occupancy from the remembered thickness.
+    pub fn refresh(&mut self, threshold: f32) {
+        let mean = self.thickness.iter().map(|&v| v as f64).sum::<f64>()
+            / self.thickness.len().max(1) as f64;
+        let cut = threshold.min(mean as f32);
+        for (o, &v) in self.occupied.iter_mut().zip(&self.thickness) {
+            *o = v >= cut;
+        }
+    }
+
+    /// Marches a ray (unit direction `d`) from lattice depth `t` towards `t_end`, appending
+    /// sample depths in occupied cells to `out` until `max` samples were added. Returns the
+    /// depth to continue from (`>= t_end` when the ray is done).
+    pub fn march(
+        &self,
+        o: [f32; 3],
+        d: [f32; 3],
+        mut t: f32,
+        t_end: f32,
+        dt: f32,
+        max: usize,
+        out: &mut Vec<f32>,
+    ) -> f32 {
+        let cs = self.cell_size();
+        let mut added = 0;
+        while t < t_end && added < max {
+            let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+            let c = self.cell(p);
+            if self.occupied[self.index(c)] {
+                out.push(t);
+                added += 1;
+                t += dt;
+                continue;
+            }
+            // Distance to the cell's far wall along the ray, then whole steps past it.
+            let mut exit = f32::INFINITY;
+            for a in 0..3 {
+                if d[a] != 0.0 {
+                    let wall = if d[a] > 0.0 { c[a] + 1 } else { c[a] } as f32 * cs - self.bound;
+                    exit = exit.min((wall - p[a]) / d[a]);
+                }
+            }
+            t += ((exit.max(0.0) / dt).floor() + 1.0) * dt;
+        }
+        t
+    }
+
+    /// One refresh at training step `step`: decays every cell, re-evaluates the chosen ones
+    /// at a random point inside each (`density` maps packed positions to sigmas and is
+    /// called from several threads), and re-derives occupancy.
+    pub fn update(
+        &mut self,
+        config: &OccupancyConfig,
+        step: u64,
+        seed: u64,
+        dt: f32,
+        density: &(dyn Fn(&[f32], &mut [f32]) + Sync),
+    ) {
+        const CELLS_PER_TASK: usize = 4096;
+        let warm = step < config.warmup_steps;
+        let (res, cs, bound) = (self.resolution, self.cell_size(), self.bound);
+        let occupied = &self.occupied;
+        self.thickness
+            .par_chunks_mut(CELLS_PER_TASK)
+            .enumerate()
+            .for_each(|(task, cells)| {
+                let mut rng = Rng::for_stream(seed ^ 0x0cc, step, task as u64);
+                let first = task * CELLS_PER_TASK;
+                let mut chosen = Vec::with_capacity(cells.len());
+                let mut points = Vec::with_capacity(cells.len() * 3);
+                for i in 0..cells.len() {
+                    let idx = first + i;
+                    let pick = rng.uniform() < config.update_fraction;
+                    if !(warm || occupied[idx] || pick) {
+                        continue;
+                    }
+                    let c = [idx % res, (idx / res) % res, idx / (res * res)];
+                    chosen.push(i);
+                    for a in 0..3 {
+                        points.push((c[a] as f32 + rng.uniform()) * cs - bound);
+                    }
+                }
+                let mut sigma = vec![0.0; chosen.len()];
+                if !chosen.is_empty() {
+                    density(&points, &mut sigma);
+                }
+                for v in cells.iter_mut() {
+                    *v *= config.decay;
+                }
+                for (&i, &s) in chosen.iter().zip(&sigma) {
+                    cells[i] = cells[i].max(s * dt);
+                }
+            });
+        self.refresh(config.threshold);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ray_box_clips_to_the_box_and_misses_outside() {
+        let (t0, t1) = ray_box([0.0, -4.0, 0.0], [0.0, 1.0, 0.0], 1.5, 2.0, 6.0).expect("hit");
+        assert!((t0 - 2.5).abs() < 1e-6 && (t1 - 5.5).abs() < 1e-6);
+        assert!(ray_box([3.0, -4.0, 0.0], [0.0, 1.0, 0.0], 1.5, 2.0, 6.0).is_none());
+        // Near/far clip inside the box.
+        let (t0, t1) = ray_box([0.0, -4.0, 0.0], [0.0, 1.0, 0.0], 1.5, 3.0, 4.0).expect("hit");
+        assert_eq!((t0, t1), (3.0, 4.0));
+    }
+
+    #[test]
+    fn march_samples_only_occupied_cells_on_the_step_lattice() {
+        // Only the cells around the origin are occupied.
+        let res = 16;
+        let mut thickness = vec![0.0; res * res * res];
+        let mut g = OccupancyGrid::new(res, 1.0);
+        for z in 7..9 {
+            for y in 7..9 {
+                for x in 7..9 {
+                    thickness[g.index([x, y, z])] = 1.0;
+                }
+            }
+        }
+        g.thickness = thickness;
+        g.refresh(0.01);
+        assert!((g.occupancy() - 8.0 / 4096.0).abs() < 1e-9);
+        let (o, d) = ([-3.0, 0.01, 0.02], [1.0, 0.0, 0.0]);
+        let (t0, t1) = ray_box(o, d, 1.0, 0.0, 10.0).expect("hit");
+        let dt = 0.01;
+        let start = t0 + 0.3 * dt;
+        let mut ts = Vec::new();
+        let end = g.march(o, d, start, t1, dt, usize::MAX, &mut ts);
+        assert!(end >= t1);
+        // Occupied x range is [-0.125, 0.125): 25 lattice points.
+        assert!((24..=26).contains(&ts.len()), "{} samples", ts.len());
+        for &t in &ts {
+            let x = o[0] + t * d[0];
+            assert!((-0.126..0.126).contains(&x), "sample at x = {x}");
+            let k = (t - start) / dt;
+            assert!((k - k.round()).abs() < 1e-2, "sample off the lattice: k = {k}");
+        }
+        // Resuming in pieces gives the same samples.
+        let mut pieces = Vec::new();
+        let mut t = start;
+        while t < t1 {
+            t = g.march(o, d, t, t1, dt, 4, &mut pieces);
+        }
+        assert_eq!(pieces, ts);
+    }
+
+    #[test]
+    fn update_keeps_dense_cells_and_drops_empty_ones() {
+        let mut g = OccupancyGrid::new(8, 1.0);
+        let config = OccupancyConfig {
+            resolution: 8,
+            warmup_steps: 0,
+            update_fraction: 1.0,
+            ..OccupancyConfig::default()
+        };
+        // A ball of density 100 of radius 0.5 in empty space.
+        let ball = |p: &[f32], s: &mut [f32]| {
+            for (k, v) in s.iter_mut().enumerate() {
+                let r2: f32 = p[3 * k..3 * k + 3].iter().map(|x| x * x).sum();
+                *v = if r2 < 0.25 { 100.0 } else { 0.0 };
+            }
+        };
+        g.update(&config, 0, 1, 0.01, &ball);
+        assert!(g.is_occupied([0.0, 0.0, 0.0]));
+        assert!(!g.is_occupied([0.9, 0.9, 0.9]));
+        let occ = g.occupancy();
+        assert!(occ > 0.0 && occ < 0.3, "{occ}");
+        // The remembered thickness decays when the density goes away.
+        let empty = |_: &[f32], s: &mut [f32]| s.fill(0.0);
+        let before = g.thickness.iter().cloned().fold(0.0, f32::max);
+        g.update(&config, 16, 1, 0.01, &empty);
+        let after = g.thickness.iter().cloned().fold(0.0, f32::max);
+        assert!((after - before * 0.95).abs() < 1e-6);
+    }
+}
