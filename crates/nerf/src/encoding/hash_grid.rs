@@ -162,18 +162,22 @@ impl HashGrid {
         let d = self.dims();
         let n = points.len() / 3;
         assert!(out.len() >= n * d);
+        let mut corners = Corners::default();
         for (l, level) in self.levels.iter().enumerate() {
             let table = &params[level.offset..][..level.entries * FEATURES];
-            for s in 0..n {
-                let u = [points[3 * s], points[3 * s + 1], points[3 * s + 2]];
-                let (idx, w) = level.corners(u);
-                let mut f = [0f32; FEATURES];
-                for k in 0..8 {
-                    let e = &table[idx[k] * FEATURES..][..FEATURES];
-                    f[0] += w[k] * e[0];
-                    f[1] += w[k] * e[1];
+            for first in (0..n).step_by(GROUP) {
+                let len = GROUP.min(n - first);
+                corners.compute(level, table, &points[first * 3..(first + len) * 3]);
+                for j in 0..len {
+                    let (idx, w) = (&corners.idx[j], &corners.w[j]);
+                    let mut f = [0f32; FEATURES];
+                    for k in 0..8 {
+                        let e = &table[idx[k] as usize * FEATURES..][..FEATURES];
+                        f[0] += w[k] * e[0];
+                        f[1] += w[k] * e[1];
+                    }
+                    out[(first + j) * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
                 }
-                out[s * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
             }
         }
     }
@@ -183,20 +187,72 @@ impl HashGrid {
     pub fn backward(&self, points: &[f32], d_out: &[f32], grads: &mut GradBuffer) {
         let d = self.dims();
         let n = points.len() / 3;
+        let mut corners = Corners::default();
         for (l, level) in self.levels.iter().enumerate() {
-            for s in 0..n {
-                let g = &d_out[s * d + l * FEATURES..][..FEATURES];
-                if g[0] == 0.0 && g[1] == 0.0 {
-                    continue;
-                }
-                let u = [points[3 * s], points[3 * s + 1], points[3 * s + 2]];
-                let (idx, w) = level.corners(u);
-                for k in 0..8 {
-                    let at = level.offset + idx[k] * FEATURES;
-                    grads.add_pair(at, [w[k] * g[0], w[k] * g[1]]);
+            for first in (0..n).step_by(GROUP) {
+                let len = GROUP.min(n - first);
+                let table = &grads.values[level.offset..][..level.entries * FEATURES];
+                corners.compute(level, table, &points[first * 3..(first + len) * 3]);
+                for j in 0..len {
+                    let g = &d_out[(first + j) * d + l * FEATURES..][..FEATURES];
+                    if g[0] == 0.0 && g[1] == 0.0 {
+                        continue;
+                    }
+                    for k in 0..8 {
+                        let at = level.offset + corners.idx[j][k] as usize * FEATURES;
+                        let w = corners.w[j][k];
+                        grads.add_pair(at, [w * g[0], w * g[1]]);
+                    }
                 }
             }
         }
+    }
+}
+
+/// Samples whose corners are computed (and their table lines prefetched) before any is
+/// read: the tables of fine levels are far larger than the caches, so the gathers are
+/// memory-bound, and issuing a group's loads early lets them overlap.
+const GROUP: usize = 32;
+
+struct Corners {
+    idx: [[u32; 8]; GROUP],
+    w: [[f32; 8]; GROUP],
+}
+
+impl Default for Corners {
+    fn default() -> Self {
+        Corners {
+            idx: [[0; 8]; GROUP],
+            w: [[0.0; 8]; GROUP],
+        }
+    }
+}
+
+impl Corners {
+    #[inline(always)]
+    fn compute(&mut self, level: &Level, table: &[f32], points: &[f32]) {
+        for (j, u) in points.chunks_exact(3).enumerate() {
+            let (idx, w) = level.corners([u[0], u[1], u[2]]);
+            for k in 0..8 {
+                self.idx[j][k] = idx[k] as u32;
+                prefetch(table, idx[k] * FEATURES);
+            }
+            self.w[j] = w;
+        }
+    }
+}
+
+/// Hints the cache to fetch `data[at]`; a no-op off x86-64 and out of bounds.
+#[inline(always)]
+fn prefetch(data: &[f32], at: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if let Some(v) = data.get(at) {
+        // SAFETY: prefetching has no architectural effect; the address is inside `data`.
+        unsafe {
+            std::arch::x86_64::_mm_prefetch::<{ std::arch::x86_64::_MM_HINT_T0 }>(
+                (v as *const f32).cast::<i8>(),
+            )
+        };
     }
 }
 

@@ -67,22 +67,48 @@ impl Adam {
         step: AdamStep,
         rule: Rule,
     ) {
-        let AdamConfig { beta1, beta2, eps } = self.config;
         let r = range;
-        for (((p, &g), m), v) in params[r.clone()]
-            .iter_mut()
-            .zip(&grads[r.clone()])
-            .zip(&mut self.m[r.clone()])
-            .zip(&mut self.v[r])
-        {
-            if rule.lazy && g == 0.0 {
-                continue;
-            }
-            let g = g + rule.weight_decay * *p;
-            *m = beta1 * *m + (1.0 - beta1) * g;
-            *v = beta2 * *v + (1.0 - beta2) * g * g;
-            *p -= step.lr_over_bc1 * *m / ((*v * step.inv_bc2).sqrt() + eps);
-        }
+        update_slices(
+            &self.config,
+            step,
+            Slices {
+                params: &mut params[r.clone()],
+                grads: &grads[r.clone()],
+                m: &mut self.m[r.clone()],
+                v: &mut self.v[r],
+            },
+            rule,
+        );
+    }
+}
+
+/// Matching pieces of parameters, gradients and both moments.
+pub struct Slices<'a> {
+    pub params: &'a mut [f32],
+    pub grads: &'a [f32],
+    pub m: &'a mut [f32],
+    pub v: &'a mut [f32],
+}
+
+/// The update of [`Adam::update`] on slices, so disjoint pieces can be updated in parallel.
+/// Branch-free (a lazy skip is a select), so it vectorises.
+pub fn update_slices(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule) {
+    let AdamConfig { beta1, beta2, eps } = *config;
+    for (((p, &g), m), v) in s
+        .params
+        .iter_mut()
+        .zip(s.grads)
+        .zip(s.m.iter_mut())
+        .zip(s.v.iter_mut())
+    {
+        let keep = rule.lazy && g == 0.0;
+        let g = g + rule.weight_decay * *p;
+        let m_new = beta1 * *m + (1.0 - beta1) * g;
+        let v_new = beta2 * *v + (1.0 - beta2) * g * g;
+        let p_new = *p - step.lr_over_bc1 * m_new / ((v_new * step.inv_bc2).sqrt() + eps);
+        *m = if keep { *m } else { m_new };
+        *v = if keep { *v } else { v_new };
+        *p = if keep { *p } else { p_new };
     }
 }
 

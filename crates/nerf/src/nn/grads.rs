@@ -5,8 +5,32 @@
 //! fed to Adam and zeroed in full every step. Writes mark their 64-value block dirty, and
 //! reduction, the optimiser and clearing visit only dirty blocks.
 
+use rayon::prelude::*;
+
 /// Values per dirty flag.
 pub const BLOCK: usize = 64;
+
+/// Values per unit of parallel work in [`GradBuffer::reduce_into_first`].
+pub const SEGMENT: usize = 1 << 16;
+
+/// A piece of a gradient buffer: its values and the dirty flags of their blocks.
+pub struct Segment<'a> {
+    pub values: &'a mut [f32],
+    pub dirty: &'a mut [bool],
+}
+
+impl Segment<'_> {
+    /// Calls `f` with the in-segment range of each dirty block, then zeroes and forgets it.
+    pub fn drain_dirty(&mut self, mut f: impl FnMut(std::ops::Range<usize>, &[f32])) {
+        for b in 0..self.dirty.len() {
+            if std::mem::take(&mut self.dirty[b]) {
+                let r = b * BLOCK..((b + 1) * BLOCK).min(self.values.len());
+                f(r.clone(), &self.values[r.clone()]);
+                self.values[r].fill(0.0);
+            }
+        }
+    }
+}
 
 #[derive(Clone, Debug)]
 pub struct GradBuffer {
@@ -67,15 +91,50 @@ impl GradBuffer {
         d as f64 / self.dirty.len().max(1) as f64
     }
 
-    /// `self += other` over `other`'s dirty blocks.
-    pub fn add_from(&mut self, other: &GradBuffer) {
-        assert_eq!(self.values.len(), other.values.len());
-        for r in other.dirty_ranges() {
-            for (a, b) in self.values[r.clone()].iter_mut().zip(&other.values[r.clone()]) {
-                *a += b;
+    /// Consecutive pieces of `seg` values (a multiple of [`BLOCK`]) with their dirty flags.
+    pub fn segments_mut(&mut self, seg: usize) -> impl Iterator<Item = Segment<'_>> {
+        assert!(seg % BLOCK == 0 && seg > 0);
+        self.values
+            .chunks_mut(seg)
+            .zip(self.dirty.chunks_mut(seg / BLOCK))
+            .map(|(values, dirty)| Segment { values, dirty })
+    }
+
+    /// Sums all buffers into the first over the union of their dirty blocks, zeroing and
+    /// forgetting the others', in parallel over segments. Returns whether every summed
+    /// value is finite.
+    pub fn reduce_into_first(buffers: &mut [GradBuffer]) -> bool {
+        let Some(n) = buffers.first().map(|b| b.len()) else {
+            return true;
+        };
+        let segments = n.div_ceil(SEGMENT);
+        let mut by_segment: Vec<Vec<Segment>> = (0..segments).map(|_| Vec::new()).collect();
+        for b in buffers.iter_mut() {
+            assert_eq!(b.len(), n, "gradient buffers differ in size");
+            for (k, s) in b.segments_mut(SEGMENT).enumerate() {
+                by_segment[k].push(s);
             }
-            self.dirty[r.start / BLOCK] = true;
         }
+        by_segment.into_par_iter().all(|mut parts| {
+            let (first, rest) = parts.split_at_mut(1);
+            let first = &mut first[0];
+            let mut finite = true;
+            for b in 0..first.dirty.len() {
+                let r = b * BLOCK..((b + 1) * BLOCK).min(first.values.len());
+                for other in rest.iter_mut() {
+                    if std::mem::take(&mut other.dirty[b]) {
+                        for (a, o) in first.values[r.clone()].iter_mut().zip(&mut other.values[r.clone()]) {
+                            *a += std::mem::take(o);
+                        }
+                        first.dirty[b] = true;
+                    }
+                }
+                if first.dirty[b] {
+                    finite &= first.values[r].iter().all(|g| g.is_finite());
+                }
+            }
+            finite
+        })
     }
 
     /// Zeroes the dirty blocks and forgets them.
@@ -88,11 +147,6 @@ impl GradBuffer {
         }
     }
 
-    /// Whether every value in a dirty block is finite.
-    pub fn all_finite(&self) -> bool {
-        self.dirty_ranges()
-            .all(|r| self.values[r].iter().all(|g| g.is_finite()))
-    }
 }
 
 #[cfg(test)]
@@ -107,16 +161,24 @@ mod tests {
         b.add_pair(130, [3.0, 4.0]);
         b.mark(250..300);
         b.values[299] = 5.0;
-        a.add_from(&b);
+        a.add_pair(4, [0.5, 0.5]);
+        let mut both = [a, b];
+        assert!(GradBuffer::reduce_into_first(&mut both));
+        let [mut a, b] = both;
+        assert!(b.values.iter().all(|&v| v == 0.0) && b.dirty_fraction() == 0.0);
         assert_eq!(
             a.dirty_ranges().collect::<Vec<_>>(),
             vec![0..64, 128..192, 192..256, 256..300]
         );
         assert_eq!((a.values[2], a.values[3], a.values[130], a.values[299]), (1.0, 2.0, 3.0, 5.0));
-        assert!(a.all_finite());
-        a.values[131] = f32::NAN;
-        assert!(!a.all_finite());
-        a.clear();
+        let mut seen = Vec::new();
+        for mut s in a.segments_mut(128) {
+            s.drain_dirty(|r, v| seen.push((r, v.iter().sum::<f32>())));
+        }
+        assert_eq!(seen, vec![(0..64, 4.0), (0..64, 7.0), (64..128, 0.0), (0..44, 5.0)]);
         assert!(a.values.iter().all(|&v| v == 0.0) && a.dirty_fraction() == 0.0);
+        let mut nan = [GradBuffer::new(10), GradBuffer::new(10)];
+        nan[1].add_pair(0, [f32::NAN, 0.0]);
+        assert!(!GradBuffer::reduce_into_first(&mut nan));
     }
 }

@@ -22,8 +22,8 @@ use crate::data::{Background, Dataset};
 use crate::error::{NerfError, Result};
 use crate::field::FastWorkspace;
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig, VanillaModel};
-use crate::nn::adam::{Adam, AdamConfig, Rule};
-use crate::nn::GradBuffer;
+use crate::nn::adam::{update_slices, Adam, AdamConfig, Rule, Slices};
+use crate::nn::grads::{GradBuffer, BLOCK, SEGMENT};
 use crate::render::marched::{train_batch, MarchBatch, MarchWorkspace};
 use crate::render::pipeline::{train_chunk, ChunkLoss, ChunkWorkspace, Rays, Targets};
 use crate::rng::Rng;
@@ -316,43 +316,24 @@ impl Trainer {
             Model::Vanilla(m) => vanilla_pass(m, &ctx, &mut self.workers),
             Model::Fast(m) => fast_pass(m, &ctx, &mut self.workers),
         };
-        let (first, rest) = self.workers.split_at_mut(1);
-        let grads = &mut first[0].grads;
-        for w in rest.iter() {
-            grads.add_from(&w.grads);
+        let mut buffers: Vec<GradBuffer> = self
+            .workers
+            .iter_mut()
+            .map(|w| std::mem::replace(&mut w.grads, GradBuffer::new(0)))
+            .collect();
+        let finite = GradBuffer::reduce_into_first(&mut buffers);
+        for (w, b) in self.workers.iter_mut().zip(buffers) {
+            w.grads = b;
         }
         let loss = totals.loss as f32;
-        if !loss.is_finite() || !grads.all_finite() {
+        if !loss.is_finite() || !finite {
             return Err(NerfError::Diverged {
                 step: step + 1,
                 loss,
             });
         }
         let lr = self.config.learning_rate(step);
-        let adam_step = self.adam.begin_step(lr);
-        let (lazy_end, weight_decay) = match &self.model {
-            Model::Vanilla(_) => (0, 0.0),
-            Model::Fast(m) => (m.field.mlp_range().start, m.config.weight_decay),
-        };
-        let s = totals.grad_scale;
-        let ranges: Vec<_> = grads.dirty_ranges().collect();
-        for r in ranges {
-            grads.values[r.clone()].iter_mut().for_each(|g| *g *= s);
-            // Hash-table entries update lazily; the MLP weights densely, with weight decay.
-            let split = r.end.min(lazy_end).max(r.start);
-            let lazy = Rule {
-                lazy: true,
-                weight_decay: 0.0,
-            };
-            let dense = Rule {
-                lazy: false,
-                weight_decay,
-            };
-            self.adam
-                .update(&mut self.params, &grads.values, r.start..split, adam_step, lazy);
-            self.adam
-                .update(&mut self.params, &grads.values, split..r.end, adam_step, dense);
-        }
+        self.apply_gradients(lr, totals.grad_scale);
         self.step += 1;
         if let Model::Fast(m) = &mut self.model {
             let every = m.config.occupancy.update_every.max(1);
@@ -368,6 +349,51 @@ impl Trainer {
             rays: totals.rays,
             samples: totals.samples,
         })
+    }
+
+    /// Adam on the parameters the reduced gradient (in worker 0) touched, after scaling it by
+    /// `scale`; clears the gradient. Hash-table entries update lazily, MLP weights densely
+    /// with weight decay. Runs in parallel over segments of the parameter vector.
+    fn apply_gradients(&mut self, lr: f32, scale: f32) {
+        let step = self.adam.begin_step(lr);
+        let (lazy_end, weight_decay) = match &self.model {
+            Model::Vanilla(_) => (0, 0.0),
+            Model::Fast(m) => (m.field.mlp_range().start, m.config.weight_decay),
+        };
+        let config = self.adam.config;
+        let Adam { m, v, .. } = &mut self.adam;
+        self.params
+            .par_chunks_mut(SEGMENT)
+            .zip(m.par_chunks_mut(SEGMENT))
+            .zip(v.par_chunks_mut(SEGMENT))
+            .zip(self.workers[0].grads.segments_mut(SEGMENT).collect::<Vec<_>>())
+            .enumerate()
+            .for_each(|(k, (((p, m), v), mut g))| {
+                let base = k * SEGMENT;
+                g.drain_dirty(|r, grads| {
+                    let scaled: [f32; BLOCK] =
+                        std::array::from_fn(|i| grads.get(i).map_or(0.0, |g| g * scale));
+                    // Split the block where the hash tables end and the MLP begins.
+                    let split = (lazy_end.clamp(base + r.start, base + r.end)) - base;
+                    for (part, rule) in [
+                        (r.start..split, Rule { lazy: true, weight_decay: 0.0 }),
+                        (split..r.end, Rule { lazy: false, weight_decay }),
+                    ] {
+                        let o = part.start - r.start;
+                        update_slices(
+                            &config,
+                            step,
+                            Slices {
+                                params: &mut p[part.clone()],
+                                grads: &scaled[o..o + part.len()],
+                                m: &mut m[part.clone()],
+                                v: &mut v[part],
+                            },
+                            rule,
+                        );
+                    }
+                });
+            });
     }
 
     /// Rays and field samples of the last step (the fast model's batch adapts its rays).

@@ -106,6 +106,8 @@ struct MetricLine {
     loss: f32,
     psnr: f32,
     lr: f32,
+    rays: usize,
+    samples: usize,
     elapsed_s: f64,
 }
 
@@ -226,6 +228,8 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
             loss: stats.loss,
             psnr: stats.psnr,
             lr: stats.lr,
+            rays: stats.rays,
+            samples: stats.samples,
             elapsed_s: elapsed,
         };
         append_line(&mut metrics, &metrics_path, &line)?;
