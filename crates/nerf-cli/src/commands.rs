@@ -567,11 +567,11 @@ pub struct DemoArgs {
     /// Folder for the scene and the run.
     #[arg(long, default_value = "demo")]
     out: PathBuf,
-    /// Training steps of the reduced model.
-    #[arg(long, default_value_t = 2000)]
+    /// Training steps of the fast model.
+    #[arg(long, default_value_t = 1500)]
     steps: u64,
     /// Image size of the built-in scene.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = 128)]
     size: usize,
 }
 
@@ -582,7 +582,7 @@ pub fn demo(a: DemoArgs) -> Result<()> {
         let opts = SynthOptions {
             scene: SceneKind::Chair,
             size: a.size,
-            train_views: 60,
+            train_views: 100,
             val_views: 4,
             test_views: 20,
             supersample: 2,
@@ -600,16 +600,15 @@ pub fn demo(a: DemoArgs) -> Result<()> {
             run_dir.display()
         );
     }
-    println!("training the reduced `demo` model (4x64 MLP, 32+32 samples per ray, 512 rays/step), not the paper's 8x256: the paper's takes hours on a CPU");
-    let mut config = TrainConfig::from_preset(data.clone(), "demo")?;
+    let mut config = TrainConfig::fast(data.clone());
     config.steps = a.steps;
-    config.batch_rays = 512;
-    config.lr_init = 2e-3;
-    config.lr_final = 2e-4;
-    config.precrop_steps = 100;
     config.val_every = 500;
     config.val_downscale = 1;
     config.checkpoint_every = 500;
+    println!(
+        "training the fast model (hash grid + occupancy grid, after Instant-NGP) for {} steps",
+        config.steps
+    );
     let opts = RunOptions {
         out: run_dir.clone(),
         config,
@@ -649,30 +648,48 @@ pub fn demo(a: DemoArgs) -> Result<()> {
 
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Rays per training step.
-    #[arg(long, default_value_t = 1024)]
-    rays: usize,
-    /// Timed training steps (the median is reported).
-    #[arg(long, default_value_t = 3)]
-    steps: usize,
-    /// Size of the rendered view (square).
+    /// Which model to measure.
+    #[arg(long, value_enum, default_value = "fast")]
+    model: ModelArg,
+    /// Timed training steps (the median is reported). Default: 32 fast, 3 vanilla.
+    #[arg(long)]
+    steps: Option<usize>,
+    /// Size of the rendered view (square; fast: unless --data has a test camera).
     #[arg(long, default_value_t = 400)]
     render_size: usize,
-    /// Rows of that view actually rendered; the full-view time is extrapolated from them.
-    #[arg(long, default_value_t = 8)]
-    render_rows: usize,
-    /// Model preset to measure.
-    #[arg(long, default_value = "paper", value_parser = crate::preset_values())]
-    preset: String,
     /// Print the figures as JSON.
     #[arg(long)]
     json: bool,
+    /// Fast: a Blender-format scene to train on (default: the built-in chair).
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// Fast: untimed steps first, so the occupancy grid takes shape.
+    #[arg(long, default_value_t = 300)]
+    warmup_steps: u64,
+    /// Fast: field samples per step.
+    #[arg(long)]
+    samples: Option<usize>,
+    /// Fast: log2 of the hash-table entries per level.
+    #[arg(long)]
+    table_log2: Option<u32>,
+    /// Vanilla: rays per training step.
+    #[arg(long, default_value_t = 1024)]
+    rays: usize,
+    /// Vanilla: rows of the view actually rendered; the full-view time is extrapolated.
+    #[arg(long, default_value_t = 8)]
+    render_rows: usize,
+    /// Vanilla: model preset to measure.
+    #[arg(long, default_value = "paper", value_parser = crate::preset_values())]
+    preset: String,
 }
 
 pub fn bench(a: BenchArgs) -> Result<()> {
+    if a.model == ModelArg::Fast {
+        return bench_fast(a);
+    }
     let opts = nerf::bench::BenchOptions {
         rays: a.rays,
-        steps: a.steps.max(1),
+        steps: a.steps.unwrap_or(3).max(1),
         render_size: a.render_size,
         render_rows: a.render_rows,
         preset: a.preset,
@@ -695,6 +712,51 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     println!(
         "rendering {0}x{0} (from {1} rows): {2:.1} s per view, {3:.0} rays/s, {4:.0} samples/s, {5:.1} GFLOP/s = {6:.1}% of the GEMM peak",
         r.render_size, r.render_rows_measured, r.render_seconds_full_view, r.render_rays_per_second, r.render_samples_per_second, r.render_gflops, r.render_percent_of_gemm_peak
+    );
+    println!("peak resident memory: {:.0} MiB", r.peak_resident_mib);
+    Ok(())
+}
+
+fn bench_fast(a: BenchArgs) -> Result<()> {
+    let mut model = nerf::model::FastModelConfig::default();
+    model.samples_per_step = a.samples.unwrap_or(model.samples_per_step);
+    model.field.grid.log2_table_size = a.table_log2.unwrap_or(model.field.grid.log2_table_size);
+    let opts = nerf::bench_fast::FastBenchOptions {
+        data: a.data,
+        warmup_steps: a.warmup_steps,
+        steps: a.steps.unwrap_or(32).max(1),
+        render_size: a.render_size,
+        model,
+    };
+    let r = nerf::bench_fast::run(&opts, &mut |line| println!("{line}"))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+        return Ok(());
+    }
+    println!(
+        "\n{} threads, fast model on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        r.threads,
+        r.scene,
+        r.warmup_steps,
+        100.0 * r.occupied_fraction
+    );
+    println!(
+        "training step, {} samples ({:.0} rays): {:.3} s (median), {:.3} s with an occupancy refresh, {:.3} s amortised",
+        r.samples_per_step, r.rays_per_step_median, r.step_seconds_median, r.refresh_step_seconds_median, r.step_seconds_amortised
+    );
+    println!(
+        "  {:.2} M samples/s, {:.0} rays/s, {:.0} M hash-grid lookups/s (forward + backward)",
+        r.train_samples_per_second / 1e6,
+        r.train_rays_per_second,
+        r.hash_lookups_per_second / 1e6
+    );
+    println!(
+        "  {:.1}% of the gradient blocks touched per step (reduction and Adam skip the rest)",
+        100.0 * r.touched_fraction
+    );
+    println!(
+        "rendering {}x{}: {:.2} s per view, {:.0} rays/s",
+        r.render_width, r.render_height, r.render_seconds, r.render_rays_per_second
     );
     println!("peak resident memory: {:.0} MiB", r.peak_resident_mib);
     Ok(())

@@ -50,9 +50,10 @@ pub struct BenchReport {
     pub peak_resident_mib: f64,
 }
 
-fn median(mut v: Vec<f64>) -> f64 {
+/// The median (NaN for an empty list).
+pub fn median(mut v: Vec<f64>) -> f64 {
     v.sort_by(f64::total_cmp);
-    v[v.len() / 2]
+    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// GFLOP/s of `m x k` by `k x n` products: (one thread, best over all threads).

@@ -6,6 +6,7 @@
 //! [`eval`] measures PSNR / SSIM; [`data::synth`] renders the built-in scenes.
 
 pub mod bench;
+pub mod bench_fast;
 pub mod camera;
 pub mod checkpoint;
 pub mod data;

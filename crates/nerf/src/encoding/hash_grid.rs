@@ -182,6 +182,25 @@ impl HashGrid {
         }
     }
 
+    /// The plain per-sample loop that [`encode`](Self::encode) replaced (no grouping, no
+    /// prefetch); kept as its reference and for `cargo bench --bench kernels`.
+    pub fn encode_reference(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
+        let d = self.dims();
+        for (l, level) in self.levels.iter().enumerate() {
+            let table = &params[level.offset..][..level.entries * FEATURES];
+            for (s, u) in points.chunks_exact(3).enumerate() {
+                let (idx, w) = level.corners([u[0], u[1], u[2]]);
+                let mut f = [0f32; FEATURES];
+                for k in 0..8 {
+                    let e = &table[idx[k] * FEATURES..][..FEATURES];
+                    f[0] += w[k] * e[0];
+                    f[1] += w[k] * e[1];
+                }
+                out[s * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
+            }
+        }
+    }
+
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
     pub fn backward(&self, points: &[f32], d_out: &[f32], grads: &mut GradBuffer) {
@@ -313,6 +332,21 @@ mod tests {
             let f = &out[s * grid.dims()..][..2];
             assert!((f[0] - pts[3 * s]).abs() < 1e-6 && (f[1] - 1.0).abs() < 1e-6, "{f:?}");
         }
+    }
+
+    #[test]
+    fn grouped_encoding_equals_the_reference_loop() {
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(HashGridConfig::default(), "hash.", &mut layout);
+        let mut rng = Rng::new(3);
+        let params: Vec<f32> = (0..layout.total).map(|_| rng.range(-1.0, 1.0)).collect();
+        // Not a multiple of the group size, points on the faces included.
+        let mut pts: Vec<f32> = (0..77 * 3).map(|_| rng.uniform()).collect();
+        pts[..3].copy_from_slice(&[0.0, 1.0, 0.5]);
+        let (mut a, mut b) = (vec![0.0; 77 * 32], vec![1.0; 77 * 32]);
+        grid.encode(&params, &pts, &mut a);
+        grid.encode_reference(&params, &pts, &mut b);
+        assert_eq!(a, b);
     }
 
     #[test]

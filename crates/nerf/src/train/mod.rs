@@ -203,6 +203,8 @@ pub struct Trainer {
     /// Steps completed.
     pub step: u64,
     pub data: Dataset,
+    /// Fraction of gradient blocks the last step wrote (the rest skipped reduction and Adam).
+    pub touched_fraction: f64,
     workers: Vec<Worker>,
 }
 
@@ -288,6 +290,7 @@ impl Trainer {
             adam,
             step: 0,
             data,
+            touched_fraction: 0.0,
             workers,
         })
     }
@@ -325,6 +328,7 @@ impl Trainer {
         for (w, b) in self.workers.iter_mut().zip(buffers) {
             w.grads = b;
         }
+        self.touched_fraction = self.workers[0].grads.dirty_fraction();
         let loss = totals.loss as f32;
         if !loss.is_finite() || !finite {
             return Err(NerfError::Diverged {

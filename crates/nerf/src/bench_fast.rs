@@ -1,0 +1,162 @@
+//! `nerf bench --model fast`: throughput of the fast model's training step (samples, rays
+//! and hash-grid lookups per second), the cost of an occupancy-grid refresh, the time to
+//! render a whole view, and peak memory.
+//!
+//! The model first trains `warmup_steps` so the occupancy grid has carved out empty space:
+//! a fresh grid marks everything occupied, which would time a sampling pattern no real run
+//! spends its time in.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use serde::Serialize;
+
+use crate::bench::{median, peak_resident_mib};
+use crate::camera::Camera;
+use crate::data::synth::{self, SceneKind, SynthOptions};
+use crate::data::{blender, Split};
+use crate::error::Result;
+use crate::model::{FastModelConfig, ModelConfig};
+use crate::renderer::{render_view, RenderSettings};
+use crate::train::{TrainConfig, Trainer};
+
+#[derive(Clone, Debug)]
+pub struct FastBenchOptions {
+    /// A Blender-format scene to train on; the built-in chair when `None`.
+    pub data: Option<PathBuf>,
+    pub warmup_steps: u64,
+    /// Timed steps (at least 16, so that refreshes are among them).
+    pub steps: usize,
+    /// Size of the rendered view (square) when the scene has no test camera of its own.
+    pub render_size: usize,
+    pub model: FastModelConfig,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct FastBenchReport {
+    pub threads: usize,
+    pub scene: String,
+    pub warmup_steps: u64,
+    pub samples_per_step: usize,
+    pub rays_per_step_median: f64,
+    /// A step without an occupancy refresh.
+    pub step_seconds_median: f64,
+    /// A step with a refresh.
+    pub refresh_step_seconds_median: f64,
+    /// Average over a refresh period.
+    pub step_seconds_amortised: f64,
+    pub train_samples_per_second: f64,
+    pub train_rays_per_second: f64,
+    /// Table corners read (forward) and written (backward) per second.
+    pub hash_lookups_per_second: f64,
+    pub occupied_fraction: f64,
+    /// Fraction of gradient blocks a step wrote (reduction and Adam skip the rest).
+    pub touched_fraction: f64,
+    pub render_width: usize,
+    pub render_height: usize,
+    pub render_seconds: f64,
+    pub render_rays_per_second: f64,
+    pub peak_resident_mib: f64,
+}
+
+pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastBenchReport> {
+    let threads = rayon::current_num_threads();
+    let (data, scene, camera) = match &opts.data {
+        Some(dir) => {
+            say(format!("loading {}...", dir.display()));
+            let train = blender::load(dir, Split::Train, 1)?;
+            let test = blender::load_every(dir, Split::Test, 1, usize::MAX)?;
+            let camera = test.views.first().map(|v| v.camera.clone());
+            (train, dir.display().to_string(), camera)
+        }
+        None => {
+            say("rendering the built-in chair to train on (100x100, 40 views)...".into());
+            let synth_opts = SynthOptions {
+                scene: SceneKind::Chair,
+                size: 100,
+                supersample: 1,
+                ..Default::default()
+            };
+            (synth::dataset(&synth_opts, Split::Train, 40), "built-in chair".into(), None)
+        }
+    };
+    let camera = camera.unwrap_or_else(|| {
+        Camera::from_fov_x(
+            opts.render_size,
+            opts.render_size,
+            synth::FOV_X,
+            crate::camera::look_at([0.0, -4.0, 1.5], [0.0; 3], [0.0, 0.0, 1.0]),
+        )
+    });
+    let mut config = TrainConfig::fast("(in memory)".into());
+    config.model = ModelConfig::Fast(opts.model.clone());
+    config.steps = opts.warmup_steps + opts.steps as u64;
+    let (near, far) = (data.near, data.far);
+    let mut trainer = Trainer::new(config, data)?;
+    say(format!(
+        "training {} warm-up steps so the occupancy grid takes shape...",
+        opts.warmup_steps
+    ));
+    for _ in 0..opts.warmup_steps {
+        trainer.step()?;
+    }
+    let every = opts.model.occupancy.update_every.max(1);
+    let (mut plain, mut refresh, mut rays) = (Vec::new(), Vec::new(), Vec::new());
+    for k in 0..opts.steps.max(every as usize) {
+        let t = Instant::now();
+        let s = trainer.step()?;
+        let dt = t.elapsed().as_secs_f64();
+        rays.push(s.rays as f64);
+        if s.step % every == 0 {
+            refresh.push(dt);
+        } else {
+            plain.push(dt);
+        }
+        if k % 8 == 7 {
+            say(format!("  step {}: {:.3} s, {} rays", s.step, dt, s.rays));
+        }
+    }
+    let rays_median = median(rays);
+    let step_s = median(plain);
+    let refresh_s = median(refresh);
+    let amortised = ((every - 1) as f64 * step_s + refresh_s) / every as f64;
+    let samples = opts.model.samples_per_step as f64;
+    let levels = opts.model.field.grid.levels as f64;
+    let occupied = match &trainer.model {
+        crate::model::Model::Fast(m) => m.grid.occupancy(),
+        crate::model::Model::Vanilla(_) => 1.0,
+    };
+    say(format!(
+        "rendering a {}x{} view...",
+        camera.width, camera.height
+    ));
+    let settings = RenderSettings {
+        near,
+        far,
+        background: [1.0; 3],
+        chunk_rays: trainer.config.chunk_rays,
+    };
+    let t = Instant::now();
+    render_view(&trainer.model, &trainer.params, &camera, &settings, &|_| {});
+    let render_s = t.elapsed().as_secs_f64();
+    Ok(FastBenchReport {
+        threads,
+        scene,
+        warmup_steps: opts.warmup_steps,
+        samples_per_step: opts.model.samples_per_step,
+        rays_per_step_median: rays_median,
+        step_seconds_median: step_s,
+        refresh_step_seconds_median: refresh_s,
+        step_seconds_amortised: amortised,
+        train_samples_per_second: samples / step_s,
+        train_rays_per_second: rays_median / step_s,
+        hash_lookups_per_second: 2.0 * 8.0 * levels * samples / step_s,
+        occupied_fraction: occupied,
+        touched_fraction: trainer.touched_fraction,
+        render_width: camera.width,
+        render_height: camera.height,
+        render_seconds: render_s,
+        render_rays_per_second: (camera.width * camera.height) as f64 / render_s,
+        peak_resident_mib: peak_resident_mib(),
+    })
+}
