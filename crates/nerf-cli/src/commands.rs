@@ -7,9 +7,9 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::data::{blender, image::save_rgb_png, Background, Split};
+use nerf::model::ModelConfig;
 use nerf::renderer::RenderSettings;
 use nerf::train::run::{self, Event, LoadedRun, RunOptions, StopReason};
-use nerf::model::ModelConfig;
 use nerf::train::TrainConfig;
 
 use crate::progress::bar;
@@ -171,9 +171,9 @@ pub enum ModelArg {
 impl TrainArgs {
     fn model(&self) -> Result<ModelArg> {
         match (self.model, &self.preset) {
-            (Some(ModelArg::Fast), Some(p)) => bail!(
-                "--preset {p} names a vanilla configuration; drop it or use --model vanilla"
-            ),
+            (Some(ModelArg::Fast), Some(p)) => {
+                bail!("--preset {p} names a vanilla configuration; drop it or use --model vanilla")
+            }
             (Some(m), _) => Ok(m),
             (None, Some(_)) => Ok(ModelArg::Vanilla),
             (None, None) => Ok(ModelArg::Fast),

@@ -151,3 +151,89 @@ fn train_help_lists_every_preset() {
     }
     assert!(help.contains("paper 31.01 dB"));
 }
+
+/// The fast model is the default and goes through the same train, resume, eval and render
+/// commands; vanilla-only options are refused with a reason.
+#[test]
+fn fast_model_through_the_same_commands() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    ok(&nerf(
+        &[
+            "synth",
+            "--scene",
+            "lamp",
+            "--out",
+            "scene",
+            "--size",
+            "16",
+            "--train-views",
+            "8",
+            "--val-views",
+            "1",
+            "--test-views",
+            "2",
+        ],
+        d,
+    ));
+    let fast = [
+        "train",
+        "--data",
+        "scene",
+        "--out",
+        "run",
+        "--steps",
+        "20",
+        "--samples",
+        "2048",
+        "--table-log2",
+        "12",
+        "--val-every",
+        "10",
+    ];
+    let text = ok(&nerf(&fast, d));
+    assert!(
+        text.contains("training fast") && text.contains("stopped after step 20"),
+        "{text}"
+    );
+    let config = std::fs::read_to_string(d.join("run/config.json")).expect("config");
+    assert!(config.contains("\"kind\": \"fast\""), "{config}");
+    assert!(d.join("run/val/step_0000020.png").exists());
+    let text = ok(&nerf(
+        &[
+            "train", "--data", "scene", "--out", "run", "--resume", "--steps", "24",
+        ],
+        d,
+    ));
+    assert!(text.contains("stopped after step 24"), "{text}");
+    let text = ok(&nerf(&["eval", "--run", "run"], d));
+    assert!(text.contains("2 views of test"), "{text}");
+    ok(&nerf(
+        &[
+            "render", "--run", "run", "--path", "orbit", "--frames", "2", "--size", "12",
+        ],
+        d,
+    ));
+    assert!(d.join("run/render_orbit/frame_0001_depth.png").exists());
+
+    let out = nerf(
+        &[
+            "train", "--data", "scene", "--model", "fast", "--preset", "paper",
+        ],
+        d,
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("--preset paper"),
+        "{err}"
+    );
+    let out = nerf(
+        &["train", "--data", "scene", "--out", "r2", "--batch", "64"],
+        d,
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("--model vanilla"),
+        "{err}"
+    );
+}

@@ -126,7 +126,15 @@ fn sparse_update(touched: f64) {
                         m: &mut m[r.clone()],
                         v: &mut v[r],
                     };
-                    update_slices(&config, step, s, Rule { lazy: true, weight_decay: 0.0 });
+                    update_slices(
+                        &config,
+                        step,
+                        s,
+                        Rule {
+                            lazy: true,
+                            weight_decay: 0.0,
+                        },
+                    );
                 });
             });
     });

@@ -77,7 +77,11 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
                 supersample: 1,
                 ..Default::default()
             };
-            (synth::dataset(&synth_opts, Split::Train, 40), "built-in chair".into(), None)
+            (
+                synth::dataset(&synth_opts, Split::Train, 40),
+                "built-in chair".into(),
+                None,
+            )
         }
     };
     let camera = camera.unwrap_or_else(|| {

@@ -86,16 +86,7 @@ pub fn render_view(
         };
         match model {
             Model::Vanilla(m) => render_chunk(m, params, &rays, &mut s.ws, out),
-            Model::Fast(m) => marched::render_chunk(
-                &m.field,
-                params,
-                &m.grid,
-                &m.marcher(near, far),
-                &rays,
-                m.config.batch_samples,
-                &mut s.march,
-                out,
-            ),
+            Model::Fast(m) => marched::render_chunk(m, params, &rays, &mut s.march, out),
         }
         if let Ok(mut p) = pool.lock() {
             p.push(s);

@@ -32,6 +32,8 @@ fn fast_config(data: &Path, steps: u64) -> TrainConfig {
         m.batch_samples = 1 << 12;
         m.occupancy.resolution = 64;
         m.occupancy.warmup_steps = 64;
+        // 48-pixel images need no finer steps than this; more rays per step instead.
+        m.steps_per_diagonal = 256.0;
     }
     c.steps = steps;
     c.val_every = 0;
@@ -56,25 +58,36 @@ fn fast_model_trains_a_small_scene_past_a_psnr_floor() {
     let data = dir.path().join("chair");
     small_scene(&data, 48);
     let out = dir.path().join("run");
-    let summary =
-        run::train(&options(&out, fast_config(&data, 300), false, None), &mut |_| {}).expect("train");
-    assert_eq!((summary.steps, summary.reason), (300, StopReason::Steps));
+    let summary = run::train(
+        &options(&out, fast_config(&data, 500), false, None),
+        &mut |_| {},
+    )
+    .expect("train");
+    assert_eq!((summary.steps, summary.reason), (500, StopReason::Steps));
     let loaded = LoadedRun::open(&out).expect("open run");
     let Model::Fast(model) = &loaded.model else {
         panic!("the run did not reload as a fast model");
     };
     // The chair fills a small part of its box: most cells must have been found empty.
     let occupied = model.grid.occupancy();
-    assert!(occupied < 0.5, "{:.1}% of the grid still occupied", 100.0 * occupied);
+    assert!(
+        occupied < 0.5,
+        "{:.1}% of the grid still occupied",
+        100.0 * occupied
+    );
     let report =
         nerf::eval::evaluate(&loaded, Split::Test, 1, &out.join("eval"), &|_, _| {}).expect("eval");
+    eprintln!(
+        "fast model test PSNR {:.2} dB, SSIM {:.3}",
+        report.mean_psnr, report.mean_ssim
+    );
     // An all-white prediction scores about 11 dB on these views.
     assert!(
         report.mean_psnr > 22.0,
         "test PSNR {:.2} dB is below the 22 dB floor",
         report.mean_psnr
     );
-    assert!(report.mean_ssim > 0.75, "test SSIM {:.3}", report.mean_ssim);
+    assert!(report.mean_ssim > 0.85, "test SSIM {:.3}", report.mean_ssim);
 }
 
 #[test]
@@ -84,11 +97,18 @@ fn fast_run_resumes_exactly_across_an_occupancy_refresh() {
     small_scene(&data, 16);
     let config = fast_config(&data, 20);
     let straight = dir.path().join("straight");
-    run::train(&options(&straight, config.clone(), false, None), &mut |_| {}).expect("train");
+    run::train(
+        &options(&straight, config.clone(), false, None),
+        &mut |_| {},
+    )
+    .expect("train");
     // Paused before the refresh at step 16, resumed past it.
     let split = dir.path().join("split");
-    let first = run::train(&options(&split, config.clone(), false, Some(13)), &mut |_| {})
-        .expect("first part");
+    let first = run::train(
+        &options(&split, config.clone(), false, Some(13)),
+        &mut |_| {},
+    )
+    .expect("first part");
     assert_eq!(first.reason, StopReason::Paused);
     run::train(&options(&split, config, true, None), &mut |_| {}).expect("resume");
     let (a, b) = (

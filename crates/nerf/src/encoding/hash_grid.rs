@@ -330,7 +330,10 @@ mod tests {
         grid.encode(&params, &pts, &mut out);
         for s in 0..2 {
             let f = &out[s * grid.dims()..][..2];
-            assert!((f[0] - pts[3 * s]).abs() < 1e-6 && (f[1] - 1.0).abs() < 1e-6, "{f:?}");
+            assert!(
+                (f[0] - pts[3 * s]).abs() < 1e-6 && (f[1] - 1.0).abs() < 1e-6,
+                "{f:?}"
+            );
         }
     }
 
@@ -370,7 +373,10 @@ mod tests {
             if g == 0.0 {
                 continue;
             }
-            assert!(grads.is_dirty(i), "gradient {i} written without marking its block");
+            assert!(
+                grads.is_dirty(i),
+                "gradient {i} written without marking its block"
+            );
             let h = 1e-2;
             let (mut a, mut b) = (params.clone(), params.clone());
             a[i] += h;
@@ -381,7 +387,9 @@ mod tests {
         }
         assert!(checked > 20, "only {checked} parameters received gradient");
         // Parameters the points never touch get exactly zero gradient.
-        let untouched = (0..layout.total).filter(|&i| grads.values[i] == 0.0).count();
+        let untouched = (0..layout.total)
+            .filter(|&i| grads.values[i] == 0.0)
+            .count();
         assert!(untouched > 0);
     }
 }

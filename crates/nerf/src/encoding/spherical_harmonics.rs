@@ -56,7 +56,11 @@ mod tests {
         for i in 0..SH_DIMS {
             for j in 0..SH_DIMS {
                 let want = if i == j { 1.0 } else { 0.0 };
-                assert!((gram[i][j] - want).abs() < 2e-3, "<Y{i}, Y{j}> = {}", gram[i][j]);
+                assert!(
+                    (gram[i][j] - want).abs() < 2e-3,
+                    "<Y{i}, Y{j}> = {}",
+                    gram[i][j]
+                );
             }
         }
     }

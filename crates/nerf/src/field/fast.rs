@@ -160,7 +160,11 @@ impl FastField {
     /// Density network only: leaves `ws.sigma` (and `ws.geo`) for `n` positions.
     pub fn density(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
         let n = positions.len() / 3;
-        let (w, g, e) = (self.config.hidden, self.config.geo_features, self.grid.dims());
+        let (w, g, e) = (
+            self.config.hidden,
+            self.config.geo_features,
+            self.grid.dims(),
+        );
         grow(&mut ws.unit, n * 3);
         grow(&mut ws.enc, n * e);
         grow(&mut ws.h, n * w);
@@ -215,10 +219,20 @@ impl FastField {
         );
         relu(c1);
         let c2 = &mut ws.c2[..n * w];
-        matmul(c2, MatRef::new(c1, n, w), self.weight(params, 3, w, w), false);
+        matmul(
+            c2,
+            MatRef::new(c1, n, w),
+            self.weight(params, 3, w, w),
+            false,
+        );
         relu(c2);
         let rgb = &mut ws.rgb[..n * 3];
-        matmul(rgb, MatRef::new(c2, n, w), self.weight(params, 4, w, 3), false);
+        matmul(
+            rgb,
+            MatRef::new(c2, n, w),
+            self.weight(params, 4, w, 3),
+            false,
+        );
         rgb.iter_mut().for_each(|v| *v = sigmoid(*v));
     }
 
@@ -239,9 +253,7 @@ impl FastField {
             self.colour_in_dims(),
             self.grid.dims(),
         );
-        for v in [&mut ws.d_logit] {
-            grow(v, n * 3);
-        }
+        grow(&mut ws.d_logit, n * 3);
         grow(&mut ws.d_c2, n * w);
         grow(&mut ws.d_c1, n * w);
         grow(&mut ws.d_h, n * w);
@@ -315,12 +327,7 @@ impl FastField {
             d_h,
             true,
         );
-        matmul(
-            &mut ws.d_enc,
-            d_h,
-            self.weight(params, 0, e, w).t(),
-            false,
-        );
+        matmul(&mut ws.d_enc, d_h, self.weight(params, 0, e, w).t(), false);
         grads.mark(self.mlp_range());
         self.grid
             .backward(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
@@ -357,7 +364,11 @@ mod tests {
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
         let dirs: Vec<f32> = (0..n)
             .flat_map(|_| {
-                let d = [rng.range(-1.0, 1.0), rng.range(-1.0, 1.0), rng.range(-1.0, 1.0)];
+                let d = [
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                ];
                 crate::math::scale(d, 1.0 / crate::math::length(d))
             })
             .collect();
@@ -366,8 +377,16 @@ mod tests {
         let loss = |p: &[f32]| -> f64 {
             let mut ws = FastWorkspace::default();
             field.forward(p, &pos, &dirs, &mut ws);
-            let ls: f64 = ws.sigma[..n].iter().zip(&a).map(|(s, a)| (s * a) as f64).sum();
-            let lc: f64 = ws.rgb[..n * 3].iter().zip(&b).map(|(c, b)| (c * b) as f64).sum();
+            let ls: f64 = ws.sigma[..n]
+                .iter()
+                .zip(&a)
+                .map(|(s, a)| (s * a) as f64)
+                .sum();
+            let lc: f64 = ws.rgb[..n * 3]
+                .iter()
+                .zip(&b)
+                .map(|(c, b)| (c * b) as f64)
+                .sum();
             ls + lc
         };
         let mut ws = FastWorkspace::default();
@@ -393,7 +412,10 @@ mod tests {
         }
         let rel = (err / norm).sqrt();
         assert!(checked > 50, "only {checked} parameters had gradients");
-        assert!(rel < 1e-2, "relative gradient error {rel} over {checked} parameters");
+        assert!(
+            rel < 1e-2,
+            "relative gradient error {rel} over {checked} parameters"
+        );
     }
 
     #[test]

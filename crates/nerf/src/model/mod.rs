@@ -61,6 +61,8 @@ impl ModelConfig {
     }
 }
 
+/// One per run, long-lived: the size difference of the variants costs nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Clone, Debug)]
 pub enum Model {
     Vanilla(VanillaModel),

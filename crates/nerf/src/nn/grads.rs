@@ -123,7 +123,10 @@ impl GradBuffer {
                 let r = b * BLOCK..((b + 1) * BLOCK).min(first.values.len());
                 for other in rest.iter_mut() {
                     if std::mem::take(&mut other.dirty[b]) {
-                        for (a, o) in first.values[r.clone()].iter_mut().zip(&mut other.values[r.clone()]) {
+                        for (a, o) in first.values[r.clone()]
+                            .iter_mut()
+                            .zip(&mut other.values[r.clone()])
+                        {
                             *a += std::mem::take(o);
                         }
                         first.dirty[b] = true;
@@ -146,7 +149,6 @@ impl GradBuffer {
             }
         }
     }
-
 }
 
 #[cfg(test)]
@@ -170,12 +172,18 @@ mod tests {
             a.dirty_ranges().collect::<Vec<_>>(),
             vec![0..64, 128..192, 192..256, 256..300]
         );
-        assert_eq!((a.values[2], a.values[3], a.values[130], a.values[299]), (1.0, 2.0, 3.0, 5.0));
+        assert_eq!(
+            (a.values[2], a.values[3], a.values[130], a.values[299]),
+            (1.0, 2.0, 3.0, 5.0)
+        );
         let mut seen = Vec::new();
         for mut s in a.segments_mut(128) {
             s.drain_dirty(|r, v| seen.push((r, v.iter().sum::<f32>())));
         }
-        assert_eq!(seen, vec![(0..64, 4.0), (0..64, 7.0), (64..128, 0.0), (0..44, 5.0)]);
+        assert_eq!(
+            seen,
+            vec![(0..64, 4.0), (0..64, 7.0), (64..128, 0.0), (0..44, 5.0)]
+        );
         assert!(a.values.iter().all(|&v| v == 0.0) && a.dirty_fraction() == 0.0);
         let mut nan = [GradBuffer::new(10), GradBuffer::new(10)];
         nan[1].add_pair(0, [f32::NAN, 0.0]);

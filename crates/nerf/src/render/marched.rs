@@ -12,6 +12,7 @@
 
 use crate::field::{FastField, FastWorkspace};
 use crate::math::{length, scale};
+use crate::model::FastModel;
 use crate::nn::GradBuffer;
 use crate::render::occupancy::{ray_box, OccupancyGrid};
 use crate::render::pipeline::Rays;
@@ -84,7 +85,14 @@ impl MarchBatch {
         let before = self.t.len();
         if let Some((t0, t1)) = ray_box(origin, d, grid.bound, marcher.near, marcher.far) {
             let t = t0 + jitter * marcher.dt;
-            grid.march(origin, d, t, t1, marcher.dt, marcher.max_samples, &mut self.t);
+            grid.march(
+                origin,
+                d,
+                t..t1,
+                marcher.dt,
+                marcher.max_samples,
+                &mut self.t,
+            );
         }
         self.origins.push(origin);
         self.dirs.push(d);
@@ -116,7 +124,11 @@ pub struct MarchWorkspace {
 }
 
 /// Lays out sample positions and directions of `t` for the field.
-fn pack_samples(ws: &mut MarchWorkspace, t: &[f32], rays: impl Iterator<Item = ([f32; 3], [f32; 3], std::ops::Range<usize>)>) {
+fn pack_samples(
+    ws: &mut MarchWorkspace,
+    t: &[f32],
+    rays: impl Iterator<Item = ([f32; 3], [f32; 3], std::ops::Range<usize>)>,
+) {
     ws.positions.clear();
     ws.dirs.clear();
     for (o, d, range) in rays {
@@ -145,7 +157,13 @@ pub fn train_batch(
     pack_samples(
         ws,
         &batch.t,
-        (0..rays).map(|k| (batch.origins[k], batch.dirs[k], batch.starts[k]..batch.starts[k + 1])),
+        (0..rays).map(|k| {
+            (
+                batch.origins[k],
+                batch.dirs[k],
+                batch.starts[k]..batch.starts[k + 1],
+            )
+        }),
     );
     ws.deltas.clear();
     ws.deltas.resize(n, marcher.dt);
@@ -158,7 +176,10 @@ pub fn train_batch(
     let mut sse = 0.0f64;
     for k in 0..rays {
         let r = batch.starts[k]..batch.starts[k + 1];
-        let (sigma, rgb) = (&ws.field.sigma[r.clone()], &ws.field.rgb[r.start * 3..r.end * 3]);
+        let (sigma, rgb) = (
+            &ws.field.sigma[r.clone()],
+            &ws.field.rgb[r.start * 3..r.end * 3],
+        );
         let out = composite(
             &batch.t[r.clone()],
             &ws.deltas[r.clone()],
@@ -185,23 +206,29 @@ pub fn train_batch(
         );
     }
     if n > 0 {
-        field.backward(params, &mut ws.field, &ws.d_sigma[..n], &ws.d_rgb[..n * 3], grads);
+        field.backward(
+            params,
+            &mut ws.field,
+            &ws.d_sigma[..n],
+            &ws.d_rgb[..n * 3],
+            grads,
+        );
     }
     sse
 }
 
-/// Renders a chunk of rays with early termination. `samples_per_round` bounds the batch
-/// the field sees at once.
+/// Renders a chunk of rays with early termination; a round evaluates at most the model's
+/// `batch_samples` samples.
 pub fn render_chunk(
-    field: &FastField,
+    model: &FastModel,
     params: &[f32],
-    grid: &OccupancyGrid,
-    marcher: &Marcher,
     rays: &Rays,
-    samples_per_round: usize,
     ws: &mut MarchWorkspace,
     out: &mut [RayOutput],
 ) {
+    let (field, grid) = (&model.field, &model.grid);
+    let marcher = &model.marcher(rays.near, rays.far);
+    let samples_per_round = model.config.batch_samples;
     let r = rays.len();
     ws.acc.clear();
     ws.acc.resize(r, Accumulator::default());
@@ -210,7 +237,11 @@ pub fn render_chunk(
     ws.live.clear();
     let mut unit = Vec::with_capacity(r);
     for k in 0..r {
-        let o = [rays.origins[3 * k], rays.origins[3 * k + 1], rays.origins[3 * k + 2]];
+        let o = [
+            rays.origins[3 * k],
+            rays.origins[3 * k + 1],
+            rays.origins[3 * k + 2],
+        ];
         let dir = [rays.dirs[3 * k], rays.dirs[3 * k + 1], rays.dirs[3 * k + 2]];
         let d = scale(dir, 1.0 / length(dir));
         unit.push((o, d, length(dir)));
@@ -236,7 +267,14 @@ pub fn render_chunk(
             let (o, d, _) = unit[k];
             let start = ws.t.len();
             let budget = per_ray.min(marcher.max_samples - taken[k]);
-            ws.next_t[k] = grid.march(o, d, ws.next_t[k], ws.end_t[k], marcher.dt, budget, &mut ws.t);
+            ws.next_t[k] = grid.march(
+                o,
+                d,
+                ws.next_t[k]..ws.end_t[k],
+                marcher.dt,
+                budget,
+                &mut ws.t,
+            );
             taken[k] += ws.t.len() - start;
             if ws.t.len() > start {
                 ws.round_rays.push((k, start, ws.t.len()));

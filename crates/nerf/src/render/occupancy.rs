@@ -88,7 +88,12 @@ impl OccupancyGrid {
     }
 
     /// A grid with the given per-cell thickness, occupancy derived from it.
-    pub fn from_thickness(resolution: usize, bound: f32, thickness: Vec<f32>, threshold: f32) -> Self {
+    pub fn from_thickness(
+        resolution: usize,
+        bound: f32,
+        thickness: Vec<f32>,
+        threshold: f32,
+    ) -> Self {
         let mut g = OccupancyGrid::new(resolution, bound);
         g.thickness = thickness;
         g.refresh(threshold);
@@ -131,19 +136,19 @@ impl OccupancyGrid {
         }
     }
 
-    /// Marches a ray (unit direction `d`) from lattice depth `t` towards `t_end`, appending
-    /// sample depths in occupied cells to `out` until `max` samples were added. Returns the
-    /// depth to continue from (`>= t_end` when the ray is done).
+    /// Marches a ray (unit direction `d`) over `span` (from a lattice depth to the exit),
+    /// appending sample depths in occupied cells to `out` until `max` samples were added.
+    /// Returns the depth to continue from (`>= span.end` when the ray is done).
     pub fn march(
         &self,
         o: [f32; 3],
         d: [f32; 3],
-        mut t: f32,
-        t_end: f32,
+        span: std::ops::Range<f32>,
         dt: f32,
         max: usize,
         out: &mut Vec<f32>,
     ) -> f32 {
+        let (mut t, t_end) = (span.start, span.end);
         let cs = self.cell_size();
         let mut added = 0;
         while t < t_end && added < max {
@@ -253,7 +258,7 @@ mod tests {
         let dt = 0.01;
         let start = t0 + 0.3 * dt;
         let mut ts = Vec::new();
-        let end = g.march(o, d, start, t1, dt, usize::MAX, &mut ts);
+        let end = g.march(o, d, start..t1, dt, usize::MAX, &mut ts);
         assert!(end >= t1);
         // Occupied x range is [-0.125, 0.125): 25 lattice points.
         assert!((24..=26).contains(&ts.len()), "{} samples", ts.len());
@@ -261,13 +266,16 @@ mod tests {
             let x = o[0] + t * d[0];
             assert!((-0.126..0.126).contains(&x), "sample at x = {x}");
             let k = (t - start) / dt;
-            assert!((k - k.round()).abs() < 1e-2, "sample off the lattice: k = {k}");
+            assert!(
+                (k - k.round()).abs() < 1e-2,
+                "sample off the lattice: k = {k}"
+            );
         }
         // Resuming in pieces gives the same samples.
         let mut pieces = Vec::new();
         let mut t = start;
         while t < t1 {
-            t = g.march(o, d, t, t1, dt, 4, &mut pieces);
+            t = g.march(o, d, t..t1, dt, 4, &mut pieces);
         }
         assert_eq!(pieces, ts);
     }

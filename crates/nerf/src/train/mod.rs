@@ -137,10 +137,13 @@ impl TrainConfig {
                 if m.samples_per_step == 0 || m.batch_samples == 0 {
                     return bad("samples_per_step and batch_samples must be positive");
                 }
-                if !(m.field.bound > 0.0) || m.occupancy.resolution == 0 {
+                if m.field.bound.is_nan() || m.field.bound <= 0.0 || m.occupancy.resolution == 0 {
                     return bad("the scene box and occupancy grid must not be empty");
                 }
-                if !(m.steps_per_diagonal >= 1.0) || m.max_samples_per_ray == 0 {
+                if m.steps_per_diagonal.is_nan()
+                    || m.steps_per_diagonal < 1.0
+                    || m.max_samples_per_ray == 0
+                {
                     return bad("steps_per_diagonal must be >= 1 and max_samples_per_ray positive");
                 }
             }
@@ -370,7 +373,12 @@ impl Trainer {
             .par_chunks_mut(SEGMENT)
             .zip(m.par_chunks_mut(SEGMENT))
             .zip(v.par_chunks_mut(SEGMENT))
-            .zip(self.workers[0].grads.segments_mut(SEGMENT).collect::<Vec<_>>())
+            .zip(
+                self.workers[0]
+                    .grads
+                    .segments_mut(SEGMENT)
+                    .collect::<Vec<_>>(),
+            )
             .enumerate()
             .for_each(|(k, (((p, m), v), mut g))| {
                 let base = k * SEGMENT;
@@ -380,8 +388,20 @@ impl Trainer {
                     // Split the block where the hash tables end and the MLP begins.
                     let split = (lazy_end.clamp(base + r.start, base + r.end)) - base;
                     for (part, rule) in [
-                        (r.start..split, Rule { lazy: true, weight_decay: 0.0 }),
-                        (split..r.end, Rule { lazy: false, weight_decay }),
+                        (
+                            r.start..split,
+                            Rule {
+                                lazy: true,
+                                weight_decay: 0.0,
+                            },
+                        ),
+                        (
+                            split..r.end,
+                            Rule {
+                                lazy: false,
+                                weight_decay,
+                            },
+                        ),
                     ] {
                         let o = part.start - r.start;
                         update_slices(
@@ -419,118 +439,124 @@ struct PassContext<'a> {
 
 /// The paper's step: `batch_rays` rays in chunks, chunk `k` on worker `k mod W`.
 fn vanilla_pass(model: &VanillaModel, ctx: &PassContext, workers: &mut [Worker]) -> PassTotals {
-        let PassContext { cfg, data, params, step, crop } = *ctx;
-        let batch = cfg.batch_rays;
-        let chunk = cfg.chunk_rays.min(batch);
-        let n_chunks = batch.div_ceil(chunk);
-        let n_workers = workers.len();
-        let loss_scale = 1.0 / (3 * batch) as f32;
-        workers
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(w, worker)| {
-                for c in (w..n_chunks).step_by(n_workers) {
-                    let rays = (c * chunk)..((c + 1) * chunk).min(batch);
-                    worker.draw_rays(data, cfg, step, rays, crop);
-                    let r = Rays {
-                        origins: &worker.origins,
-                        dirs: &worker.dirs,
-                        backgrounds: &worker.backgrounds,
-                        near: data.near,
-                        far: data.far,
-                    };
-                    let l = train_chunk(
-                        model,
-                        params,
-                        &r,
-                        Targets {
-                            rgb: &worker.targets,
-                            loss_scale,
-                        },
-                        &mut worker.rngs,
-                        &mut worker.vanilla,
-                        &mut worker.grads.values,
-                    );
-                    worker.loss.coarse_sse += l.coarse_sse;
-                    worker.loss.fine_sse += l.fine_sse;
-                }
-                worker.grads.mark(0..worker.grads.len());
-            });
-        let (c, f) = workers.iter().fold((0.0, 0.0), |(c, f), w| {
-            (c + w.loss.coarse_sse, f + w.loss.fine_sse)
-        });
-        let denom = (3 * batch) as f64;
-        let (mse_c, mse_f) = (c / denom, f / denom);
-        PassTotals {
-            loss: mse_c + mse_f,
-            final_mse: if model.fine.is_some() { mse_f } else { mse_c },
-            grad_scale: 1.0,
-            rays: batch,
-            samples: batch * model.config.evals_per_ray(),
+    let PassContext {
+        cfg,
+        data,
+        params,
+        step,
+        crop,
+    } = *ctx;
+    let batch = cfg.batch_rays;
+    let chunk = cfg.chunk_rays.min(batch);
+    let n_chunks = batch.div_ceil(chunk);
+    let n_workers = workers.len();
+    let loss_scale = 1.0 / (3 * batch) as f32;
+    workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
+        for c in (w..n_chunks).step_by(n_workers) {
+            let rays = (c * chunk)..((c + 1) * chunk).min(batch);
+            worker.draw_rays(data, cfg, step, rays, crop);
+            let r = Rays {
+                origins: &worker.origins,
+                dirs: &worker.dirs,
+                backgrounds: &worker.backgrounds,
+                near: data.near,
+                far: data.far,
+            };
+            let l = train_chunk(
+                model,
+                params,
+                &r,
+                Targets {
+                    rgb: &worker.targets,
+                    loss_scale,
+                },
+                &mut worker.rngs,
+                &mut worker.vanilla,
+                &mut worker.grads.values,
+            );
+            worker.loss.coarse_sse += l.coarse_sse;
+            worker.loss.fine_sse += l.fine_sse;
         }
+        worker.grads.mark(0..worker.grads.len());
+    });
+    let (c, f) = workers.iter().fold((0.0, 0.0), |(c, f), w| {
+        (c + w.loss.coarse_sse, f + w.loss.fine_sse)
+    });
+    let denom = (3 * batch) as f64;
+    let (mse_c, mse_f) = (c / denom, f / denom);
+    PassTotals {
+        loss: mse_c + mse_f,
+        final_mse: if model.fine.is_some() { mse_f } else { mse_c },
+        grad_scale: 1.0,
+        rays: batch,
+        samples: batch * model.config.evals_per_ray(),
     }
+}
 
-    /// The fast model's step: each worker draws rays from its own streams and marches them
-    /// until it holds its share of `samples_per_step`, evaluating the field every
-    /// `batch_samples`. Gradients are of the summed squared error, scaled to the mean once
-    /// the number of rays is known.
+/// The fast model's step: each worker draws rays from its own streams and marches them
+/// until it holds its share of `samples_per_step`, evaluating the field every
+/// `batch_samples`. Gradients are of the summed squared error, scaled to the mean once
+/// the number of rays is known.
 fn fast_pass(model: &FastModel, ctx: &PassContext, workers: &mut [Worker]) -> PassTotals {
-        let PassContext { cfg, data, params, step, crop } = *ctx;
-        let n_workers = workers.len();
-        let budget = model.config.samples_per_step.div_ceil(n_workers);
-        let max_rays = budget.max(64);
-        let marcher = model.marcher(data.near, data.far);
-        workers
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(w, worker)| {
-                let mut sse = 0.0;
-                worker.batch.clear();
-                let mut flush = |worker: &mut Worker| {
-                    sse += train_batch(
-                        &model.field,
-                        params,
-                        &marcher,
-                        &worker.batch,
-                        1.0,
-                        &mut worker.march,
-                        &mut worker.grads,
-                    );
-                    worker.batch.clear();
-                };
-                while worker.samples < budget && worker.rays < max_rays {
-                    let stream = ((w as u64) << 32) | worker.rays as u64;
-                    let mut ray = draw_ray(data, cfg, step, stream, crop);
-                    let jitter = ray.rng.uniform();
-                    worker.samples += worker.batch.push(
-                        &model.grid,
-                        &marcher,
-                        ray.origin,
-                        ray.dir,
-                        ray.background,
-                        ray.target,
-                        jitter,
-                    );
-                    worker.rays += 1;
-                    if worker.batch.samples() >= model.config.batch_samples {
-                        flush(worker);
-                    }
-                }
-                if worker.batch.rays() > 0 {
-                    flush(worker);
-                }
-                worker.loss.coarse_sse = sse;
-            });
-        let rays: usize = workers.iter().map(|w| w.rays).sum();
-        let sse: f64 = workers.iter().map(|w| w.loss.coarse_sse).sum();
-        let mse = sse / (3 * rays.max(1)) as f64;
-        PassTotals {
-            loss: mse,
-            final_mse: mse,
-            grad_scale: 1.0 / (3 * rays.max(1)) as f32,
-            rays,
-            samples: workers.iter().map(|w| w.samples).sum(),
+    let PassContext {
+        cfg,
+        data,
+        params,
+        step,
+        crop,
+    } = *ctx;
+    let n_workers = workers.len();
+    let budget = model.config.samples_per_step.div_ceil(n_workers);
+    let max_rays = budget.max(64);
+    let marcher = model.marcher(data.near, data.far);
+    workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
+        let mut sse = 0.0;
+        worker.batch.clear();
+        let mut flush = |worker: &mut Worker| {
+            sse += train_batch(
+                &model.field,
+                params,
+                &marcher,
+                &worker.batch,
+                1.0,
+                &mut worker.march,
+                &mut worker.grads,
+            );
+            worker.batch.clear();
+        };
+        while worker.samples < budget && worker.rays < max_rays {
+            let stream = ((w as u64) << 32) | worker.rays as u64;
+            let mut ray = draw_ray(data, cfg, step, stream, crop);
+            let jitter = ray.rng.uniform();
+            worker.samples += worker.batch.push(
+                &model.grid,
+                &marcher,
+                ray.origin,
+                ray.dir,
+                ray.background,
+                ray.target,
+                jitter,
+            );
+            worker.rays += 1;
+            if worker.batch.samples() >= model.config.batch_samples {
+                flush(worker);
+            }
         }
+        if worker.batch.rays() > 0 {
+            flush(worker);
+        }
+        worker.loss.coarse_sse = sse;
+    });
+    let rays: usize = workers.iter().map(|w| w.rays).sum();
+    let sse: f64 = workers.iter().map(|w| w.loss.coarse_sse).sum();
+    let mse = sse / (3 * rays.max(1)) as f64;
+    PassTotals {
+        loss: mse,
+        final_mse: mse,
+        grad_scale: 1.0 / (3 * rays.max(1)) as f32,
+        rays,
+        samples: workers.iter().map(|w| w.samples).sum(),
+    }
 }
 
 /// Re-evaluates the occupancy grid with the current weights.
