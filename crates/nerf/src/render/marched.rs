@@ -35,10 +35,9 @@ pub struct Marcher {
 /// Rays and their marched samples, packed for one evaluation of the field.
 #[derive(Default, Debug)]
 pub struct MarchBatch {
-    /// Per ray: origin, unit direction, |d| of the camera ray, background, target colour.
+    /// Per ray: origin, unit direction, background, target colour.
     origins: Vec<[f32; 3]>,
     dirs: Vec<[f32; 3]>,
-    dir_norms: Vec<f32>,
     backgrounds: Vec<[f32; 3]>,
     targets: Vec<[f32; 3]>,
     /// Samples of ray `k` are `starts[k]..starts[k + 1]`.
@@ -50,7 +49,6 @@ impl MarchBatch {
     pub fn clear(&mut self) {
         self.origins.clear();
         self.dirs.clear();
-        self.dir_norms.clear();
         self.backgrounds.clear();
         self.targets.clear();
         self.t.clear();
@@ -80,8 +78,7 @@ impl MarchBatch {
         if self.starts.is_empty() {
             self.starts.push(0);
         }
-        let norm = length(dir);
-        let d = scale(dir, 1.0 / norm);
+        let d = scale(dir, 1.0 / length(dir));
         let before = self.t.len();
         if let Some((t0, t1)) = ray_box(origin, d, grid.bound, marcher.near, marcher.far) {
             let t = t0 + jitter * marcher.dt;
@@ -96,12 +93,20 @@ impl MarchBatch {
         }
         self.origins.push(origin);
         self.dirs.push(d);
-        self.dir_norms.push(norm);
         self.backgrounds.push(background);
         self.targets.push(target);
         self.starts.push(self.t.len());
         self.t.len() - before
     }
+}
+
+/// A camera ray with its direction normalised; `norm` converts metric depth back to depth
+/// along the camera's direction.
+#[derive(Clone, Copy, Debug)]
+struct UnitRay {
+    origin: [f32; 3],
+    dir: [f32; 3],
+    norm: f32,
 }
 
 /// Reused buffers of one thread.
@@ -115,6 +120,8 @@ pub struct MarchWorkspace {
     d_sigma: Vec<f32>,
     d_rgb: Vec<f32>,
     /// Rendering: per-ray state and which rays are still marching.
+    unit_rays: Vec<UnitRay>,
+    taken: Vec<usize>,
     acc: Vec<Accumulator>,
     next_t: Vec<f32>,
     end_t: Vec<f32>,
@@ -125,17 +132,17 @@ pub struct MarchWorkspace {
 
 /// Lays out sample positions and directions of `t` for the field.
 fn pack_samples(
-    ws: &mut MarchWorkspace,
+    positions: &mut Vec<f32>,
+    dirs: &mut Vec<f32>,
     t: &[f32],
     rays: impl Iterator<Item = ([f32; 3], [f32; 3], std::ops::Range<usize>)>,
 ) {
-    ws.positions.clear();
-    ws.dirs.clear();
+    positions.clear();
+    dirs.clear();
     for (o, d, range) in rays {
         for &tt in &t[range] {
-            ws.positions
-                .extend_from_slice(&[o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
-            ws.dirs.extend_from_slice(&d);
+            positions.extend_from_slice(&[o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
+            dirs.extend_from_slice(&d);
         }
     }
 }
@@ -155,7 +162,8 @@ pub fn train_batch(
     let n = batch.samples();
     let rays = batch.rays();
     pack_samples(
-        ws,
+        &mut ws.positions,
+        &mut ws.dirs,
         &batch.t,
         (0..rays).map(|k| {
             (
@@ -235,7 +243,9 @@ pub fn render_chunk(
     ws.next_t.clear();
     ws.end_t.clear();
     ws.live.clear();
-    let mut unit = Vec::with_capacity(r);
+    ws.unit_rays.clear();
+    ws.taken.clear();
+    ws.taken.resize(r, 0);
     for k in 0..r {
         let o = [
             rays.origins[3 * k],
@@ -244,7 +254,11 @@ pub fn render_chunk(
         ];
         let dir = [rays.dirs[3 * k], rays.dirs[3 * k + 1], rays.dirs[3 * k + 2]];
         let d = scale(dir, 1.0 / length(dir));
-        unit.push((o, d, length(dir)));
+        ws.unit_rays.push(UnitRay {
+            origin: o,
+            dir: d,
+            norm: length(dir),
+        });
         match ray_box(o, d, grid.bound, marcher.near, marcher.far) {
             Some((t0, t1)) => {
                 ws.next_t.push(t0 + 0.5 * marcher.dt);
@@ -257,16 +271,17 @@ pub fn render_chunk(
             }
         }
     }
-    let mut taken = vec![0usize; r];
     while !ws.live.is_empty() {
         let per_ray = (samples_per_round / ws.live.len()).clamp(1, 64);
         ws.t.clear();
         ws.round_rays.clear();
         let mut still = Vec::with_capacity(ws.live.len());
         for &k in &ws.live {
-            let (o, d, _) = unit[k];
+            let UnitRay {
+                origin: o, dir: d, ..
+            } = ws.unit_rays[k];
             let start = ws.t.len();
-            let budget = per_ray.min(marcher.max_samples - taken[k]);
+            let budget = per_ray.min(marcher.max_samples - ws.taken[k]);
             ws.next_t[k] = grid.march(
                 o,
                 d,
@@ -275,7 +290,7 @@ pub fn render_chunk(
                 budget,
                 &mut ws.t,
             );
-            taken[k] += ws.t.len() - start;
+            ws.taken[k] += ws.t.len() - start;
             if ws.t.len() > start {
                 ws.round_rays.push((k, start, ws.t.len()));
             }
@@ -286,16 +301,21 @@ pub fn render_chunk(
         let t = std::mem::take(&mut ws.t);
         let round = std::mem::take(&mut ws.round_rays);
         pack_samples(
-            ws,
+            &mut ws.positions,
+            &mut ws.dirs,
             &t,
-            round.iter().map(|&(k, s, e)| (unit[k].0, unit[k].1, s..e)),
+            round.iter().map(|&(k, s, e)| {
+                let u = ws.unit_rays[k];
+                (u.origin, u.dir, s..e)
+            }),
         );
         field.forward(params, &ws.positions, &ws.dirs, &mut ws.field);
         for &(k, s, e) in &round {
+            let norm = ws.unit_rays[k].norm;
             let acc = &mut ws.acc[k];
             for i in s..e {
                 acc.add(
-                    t[i] / unit[k].2,
+                    t[i] / norm,
                     marcher.dt,
                     ws.field.sigma[i],
                     &ws.field.rgb[i * 3..][..3],
@@ -303,7 +323,7 @@ pub fn render_chunk(
             }
             let done = acc.transmittance() < MIN_TRANSMITTANCE
                 || ws.next_t[k] >= ws.end_t[k]
-                || taken[k] >= marcher.max_samples;
+                || ws.taken[k] >= marcher.max_samples;
             if !done {
                 still.push(k);
             }

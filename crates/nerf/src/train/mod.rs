@@ -507,6 +507,8 @@ fn fast_pass(model: &FastModel, ctx: &PassContext, workers: &mut [Worker]) -> Pa
     } = *ctx;
     let n_workers = workers.len();
     let budget = model.config.samples_per_step.div_ceil(n_workers);
+    // Rays that find no occupied cell add no samples: this bound ends the step when the
+    // grid is (nearly) empty instead of drawing rays forever.
     let max_rays = budget.max(64);
     let marcher = model.marcher(data.near, data.far);
     workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
