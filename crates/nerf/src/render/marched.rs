@@ -341,3 +341,102 @@ pub fn render_chunk(
         out[k] = ws.acc[k].finish(bg);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encoding::HashGridConfig;
+    use crate::field::FastFieldConfig;
+    use crate::model::FastModelConfig;
+
+    fn dense_model() -> (FastModel, Vec<f32>) {
+        let config = FastModelConfig {
+            field: FastFieldConfig {
+                grid: HashGridConfig {
+                    levels: 4,
+                    log2_table_size: 10,
+                    base_resolution: 4,
+                    max_resolution: 32,
+                },
+                ..FastFieldConfig::default()
+            },
+            ..FastModelConfig::default()
+        };
+        let model = FastModel::new(config);
+        let mut params = model.field.init_params(5);
+        // Positive, varying table values and a positive log-density weight: an opaque,
+        // textured fog filling the box.
+        let mut rng = crate::rng::Rng::new(8);
+        for v in &mut params[model.field.grid.param_range()] {
+            *v = rng.range(0.5, 1.5);
+        }
+        for t in &model.field.layout.tensors {
+            if t.name == "density.0.weight" {
+                params[t.range()].iter_mut().for_each(|w| *w = w.abs());
+            }
+            if t.name == "density.1.weight" {
+                for row in params[t.range()].chunks_exact_mut(t.shape[1]) {
+                    row[0] = 0.5;
+                }
+            }
+        }
+        (model, params)
+    }
+
+    /// Rendering (in rounds, stopping opaque rays) and training (all samples, composited at
+    /// once) see the same colour for the same lattice, and rendering stops early.
+    #[test]
+    fn rendering_agrees_with_training_and_terminates_early() {
+        let (model, params) = dense_model();
+        let origins: Vec<f32> = (0..6).flat_map(|_| [0.0, -4.0, 0.3]).collect();
+        let dirs: Vec<f32> = (0..6)
+            .flat_map(|k| [0.05 * k as f32 - 0.1, 1.0, 0.02 * k as f32])
+            .collect();
+        let bgs: Vec<f32> = (0..6).flat_map(|k| [0.1 * k as f32, 0.5, 1.0]).collect();
+        let rays = Rays {
+            origins: &origins,
+            dirs: &dirs,
+            backgrounds: &bgs,
+            near: 2.0,
+            far: 6.0,
+        };
+        let mut ws = MarchWorkspace::default();
+        let mut out = vec![RayOutput::default(); 6];
+        render_chunk(&model, &params, &rays, &mut ws, &mut out);
+        assert!(out.iter().all(|o| o.opacity > 0.999), "{out:?}");
+        // The box is about 590 steps deep; an opaque fog ends each ray within a few rounds.
+        assert!(
+            ws.taken.iter().all(|&n| n > 0 && n <= 128),
+            "{:?}",
+            ws.taken
+        );
+
+        let marcher = model.marcher(2.0, 6.0);
+        let mut batch = MarchBatch::default();
+        for k in 0..6 {
+            let v = |b: &[f32]| [b[3 * k], b[3 * k + 1], b[3 * k + 2]];
+            // Jitter 0.5: the renderer's lattice; the target is the rendered colour.
+            batch.push(
+                &model.grid,
+                &marcher,
+                v(&origins),
+                v(&dirs),
+                v(&bgs),
+                out[k].rgb,
+                0.5,
+            );
+        }
+        assert!(batch.samples() > 6 * 500, "training marches whole rays");
+        let mut grads = GradBuffer::new(model.field.num_params());
+        let sse = train_batch(
+            &model.field,
+            &params,
+            &marcher,
+            &batch,
+            1.0,
+            &mut ws,
+            &mut grads,
+        );
+        assert!(sse < 1e-9, "render and training disagree: sse {sse}");
+    }
+}
