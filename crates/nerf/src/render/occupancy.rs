@@ -301,6 +301,11 @@ mod tests {
         assert!(!g.is_occupied([0.9, 0.9, 0.9]));
         let occ = g.occupancy();
         assert!(occ > 0.0 && occ < 0.3, "{occ}");
+        // A young field that is thin everywhere is not switched off: the threshold drops to
+        // the mean, so the thicker half of the cells stays occupied.
+        let thin: Vec<f32> = (0..512).map(|i| 1e-4 * (i % 2 + 1) as f32).collect();
+        let young = OccupancyGrid::from_thickness(8, 1.0, thin, 0.01);
+        assert!((young.occupancy() - 0.5).abs() < 1e-9);
         // The remembered thickness decays when the density goes away.
         let empty = |_: &[f32], s: &mut [f32]| s.fill(0.0);
         let before = g.thickness.iter().cloned().fold(0.0, f32::max);
