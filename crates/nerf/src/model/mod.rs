@@ -14,12 +14,39 @@ pub use vanilla::{VanillaModel, VanillaModelConfig};
 
 use crate::nn::ParamLayout;
 
-/// Which model, with its shape; saved in a run's `config.json` under `"kind"`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// Which model, with its shape; saved in a run's `config.json` under `"kind"`. Configs
+/// written before there were two models have no `"kind"` and read as vanilla.
+#[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(tag = "kind", rename_all = "lowercase")]
 pub enum ModelConfig {
     Vanilla(VanillaModelConfig),
     Fast(FastModelConfig),
+}
+
+/// The tagged form, for reading.
+#[derive(Deserialize)]
+#[serde(tag = "kind", rename_all = "lowercase")]
+enum Tagged {
+    Vanilla(VanillaModelConfig),
+    Fast(FastModelConfig),
+}
+
+impl<'de> Deserialize<'de> for ModelConfig {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let value = serde_json::Value::deserialize(d)?;
+        if value.get("kind").is_none() {
+            return VanillaModelConfig::deserialize(value)
+                .map(ModelConfig::Vanilla)
+                .map_err(D::Error::custom);
+        }
+        Ok(
+            match Tagged::deserialize(value).map_err(D::Error::custom)? {
+                Tagged::Vanilla(m) => ModelConfig::Vanilla(m),
+                Tagged::Fast(m) => ModelConfig::Fast(m),
+            },
+        )
+    }
 }
 
 impl ModelConfig {
@@ -78,6 +105,32 @@ pub struct Buffer {
 }
 
 const OCCUPANCY: &str = "occupancy.thickness";
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn configs_round_trip_and_untagged_ones_read_as_vanilla() {
+        let fast = ModelConfig::Fast(FastModelConfig::default());
+        let (vanilla, _) = crate::presets::build("demo").expect("preset");
+        for c in [fast, ModelConfig::Vanilla(vanilla.clone())] {
+            let text = serde_json::to_string(&c).expect("json");
+            assert!(
+                text.contains(&format!("\"kind\":\"{}\"", c.kind())),
+                "{text}"
+            );
+            assert_eq!(serde_json::from_str::<ModelConfig>(&text).expect("read"), c);
+        }
+        let old = serde_json::to_string(&vanilla).expect("json");
+        assert_eq!(
+            serde_json::from_str::<ModelConfig>(&old).expect("old config"),
+            ModelConfig::Vanilla(vanilla)
+        );
+        let err = serde_json::from_str::<ModelConfig>(r#"{"kind":"huge"}"#).expect_err("bad kind");
+        assert!(err.to_string().contains("huge"), "{err}");
+    }
+}
 
 impl Model {
     pub fn new(config: ModelConfig) -> Self {
