@@ -52,7 +52,7 @@ fn main() {
     );
     println!("  speed-up: {:.2}x", plain / fused);
     hash_grid_encode();
-    for touched in [0.05, 0.25, 1.0] {
+    for touched in [0.05, 0.25, 0.5, 1.0] {
         sparse_update(touched);
     }
 }
@@ -90,8 +90,8 @@ fn hash_grid_encode() {
 }
 
 /// Reducing two threads' gradients and applying Adam over the dirty blocks only, against
-/// the same over the whole parameter vector, for the default fast model's size and a
-/// given fraction of blocks touched.
+/// the same over the whole parameter vector (both in parallel over segments), for the
+/// default fast model's size and a given fraction of blocks touched.
 fn sparse_update(touched: f64) {
     use nerf::nn::adam::{update_slices, Adam, AdamConfig, Rule, Slices};
     use nerf::nn::grads::{GradBuffer, BLOCK, SEGMENT};
@@ -149,8 +149,32 @@ fn sparse_update(touched: f64) {
             .par_iter_mut()
             .zip(dense_b.par_iter_mut())
             .for_each(|(a, b)| *a += std::mem::take(b));
-        adam.step(&mut params, &dense_a, 1e-3);
-        dense_a.fill(0.0);
+        let step = adam.begin_step(1e-3);
+        let config = adam.config;
+        let Adam { m, v, .. } = &mut adam;
+        params
+            .par_chunks_mut(SEGMENT)
+            .zip(m.par_chunks_mut(SEGMENT))
+            .zip(v.par_chunks_mut(SEGMENT))
+            .zip(dense_a.par_chunks_mut(SEGMENT))
+            .for_each(|(((p, m), v), g)| {
+                let s = Slices {
+                    params: p,
+                    grads: g,
+                    m,
+                    v,
+                };
+                update_slices(
+                    &config,
+                    step,
+                    s,
+                    Rule {
+                        lazy: true,
+                        weight_decay: 0.0,
+                    },
+                );
+                g.fill(0.0);
+            });
     });
     println!(
         "\ngradient reduction (2 threads) + Adam + clearing, {n} parameters, {:.0}% of blocks touched:",

@@ -23,7 +23,7 @@ use crate::error::{NerfError, Result};
 use crate::field::FastWorkspace;
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig, VanillaModel};
 use crate::nn::adam::{update_slices, Adam, AdamConfig, Rule, Slices};
-use crate::nn::grads::{GradBuffer, BLOCK, SEGMENT};
+use crate::nn::grads::{GradBuffer, SEGMENT};
 use crate::render::marched::{train_batch, MarchBatch, MarchWorkspace};
 use crate::render::pipeline::{train_chunk, ChunkLoss, ChunkWorkspace, Rays, Targets};
 use crate::rng::Rng;
@@ -383,9 +383,8 @@ impl Trainer {
             .for_each(|(k, (((p, m), v), mut g))| {
                 let base = k * SEGMENT;
                 g.drain_dirty(|r, grads| {
-                    let scaled: [f32; BLOCK] =
-                        std::array::from_fn(|i| grads.get(i).map_or(0.0, |g| g * scale));
-                    // Split the block where the hash tables end and the MLP begins.
+                    grads.iter_mut().for_each(|g| *g *= scale);
+                    // Split the run where the hash tables end and the MLP begins.
                     let split = (lazy_end.clamp(base + r.start, base + r.end)) - base;
                     for (part, rule) in [
                         (
@@ -409,7 +408,7 @@ impl Trainer {
                             step,
                             Slices {
                                 params: &mut p[part.clone()],
-                                grads: &scaled[o..o + part.len()],
+                                grads: &grads[o..o + part.len()],
                                 m: &mut m[part.clone()],
                                 v: &mut v[part],
                             },
