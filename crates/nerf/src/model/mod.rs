@@ -106,32 +106,6 @@ pub struct Buffer {
 
 const OCCUPANCY: &str = "occupancy.thickness";
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn configs_round_trip_and_untagged_ones_read_as_vanilla() {
-        let fast = ModelConfig::Fast(FastModelConfig::default());
-        let (vanilla, _) = crate::presets::build("demo").expect("preset");
-        for c in [fast, ModelConfig::Vanilla(vanilla.clone())] {
-            let text = serde_json::to_string(&c).expect("json");
-            assert!(
-                text.contains(&format!("\"kind\":\"{}\"", c.kind())),
-                "{text}"
-            );
-            assert_eq!(serde_json::from_str::<ModelConfig>(&text).expect("read"), c);
-        }
-        let old = serde_json::to_string(&vanilla).expect("json");
-        assert_eq!(
-            serde_json::from_str::<ModelConfig>(&old).expect("old config"),
-            ModelConfig::Vanilla(vanilla)
-        );
-        let err = serde_json::from_str::<ModelConfig>(r#"{"kind":"huge"}"#).expect_err("bad kind");
-        assert!(err.to_string().contains("huge"), "{err}");
-    }
-}
-
 impl Model {
     pub fn new(config: ModelConfig) -> Self {
         match config {
@@ -190,5 +164,31 @@ impl Model {
                 m.config.occupancy.threshold,
             );
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn configs_round_trip_and_untagged_ones_read_as_vanilla() {
+        let fast = ModelConfig::Fast(FastModelConfig::default());
+        let (vanilla, _) = crate::presets::build("demo").expect("preset");
+        for c in [fast, ModelConfig::Vanilla(vanilla.clone())] {
+            let text = serde_json::to_string(&c).expect("json");
+            assert!(
+                text.contains(&format!("\"kind\":\"{}\"", c.kind())),
+                "{text}"
+            );
+            assert_eq!(serde_json::from_str::<ModelConfig>(&text).expect("read"), c);
+        }
+        let old = serde_json::to_string(&vanilla).expect("json");
+        assert_eq!(
+            serde_json::from_str::<ModelConfig>(&old).expect("old config"),
+            ModelConfig::Vanilla(vanilla)
+        );
+        let err = serde_json::from_str::<ModelConfig>(r#"{"kind":"huge"}"#).expect_err("bad kind");
+        assert!(err.to_string().contains("huge"), "{err}");
     }
 }
