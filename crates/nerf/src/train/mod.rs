@@ -8,8 +8,8 @@
 //! buffer. Vanilla: a step's rays are cut into chunks of `chunk_rays`, chunk `k` on worker
 //! `k mod W`. Fast: worker `w` draws rays from its own streams until it holds its share of
 //! the step's samples. Buffers are summed in worker order, so a run is reproducible for a
-//! given seed and thread count. Nothing is allocated per step once the workspaces have
-//! grown.
+//! given seed and thread count. Once the workspaces have grown, a step allocates no buffer
+//! that scales with the batch (only a few bookkeeping vectors).
 
 pub mod run;
 
