@@ -16,6 +16,7 @@ pub mod eval;
 pub mod field;
 pub mod io;
 pub mod math;
+pub mod mesh;
 pub mod model;
 pub mod nn;
 pub mod presets;
