@@ -1,6 +1,7 @@
 //! `nerf`: train and render neural radiance fields from the command line.
 
 mod commands;
+mod mesh_cmd;
 mod progress;
 
 use std::path::PathBuf;
@@ -31,6 +32,8 @@ enum Command {
     Eval(commands::EvalArgs),
     /// Render the test views or an orbit around the object to PNGs.
     Render(commands::RenderArgs),
+    /// A coloured triangle mesh of a trained run (.ply, .obj or .glb).
+    Mesh(mesh_cmd::MeshArgs),
     /// Built-in scene -> train -> evaluate -> orbit, no data needed.
     Demo(commands::DemoArgs),
     /// Throughput of the training step and of rendering on this machine.
@@ -69,6 +72,7 @@ fn main() {
         Command::Train(a) => commands::train(a),
         Command::Eval(a) => commands::eval(a),
         Command::Render(a) => commands::render(a),
+        Command::Mesh(a) => mesh_cmd::mesh(a),
         Command::Demo(a) => commands::demo(a),
         Command::Bench(a) => commands::bench(a),
     };

@@ -84,10 +84,7 @@ pub fn render_view(
             near,
             far,
         };
-        match model {
-            Model::Vanilla(m) => render_chunk(m, params, &rays, &mut s.ws, out),
-            Model::Fast(m) => marched::render_chunk(m, params, &rays, &mut s.march, out),
-        }
+        render_any(model, params, &rays, (&mut s.ws, &mut s.march), out);
         if let Ok(mut p) = pool.lock() {
             p.push(s);
         }
@@ -100,6 +97,59 @@ pub fn render_view(
         rgb: out.iter().flat_map(|o| o.rgb).collect(),
         depth: out.iter().map(|o| o.depth).collect(),
         opacity: out.iter().map(|o| o.opacity).collect(),
+    }
+}
+
+/// Renders arbitrary rays (packed `n x 3` origins and directions) between `near` and `far`
+/// over background `bg`: the same per-chunk renderers as whole views.
+pub fn render_rays(
+    model: &Model,
+    params: &[f32],
+    origins: &[f32],
+    dirs: &[f32],
+    settings: &RenderSettings,
+) -> Vec<RayOutput> {
+    let n = origins.len() / 3;
+    let chunk = settings.chunk_rays.max(1);
+    let mut out = vec![RayOutput::default(); n];
+    let pool = std::sync::Mutex::new(Vec::<Scratch>::new());
+    out.par_chunks_mut(chunk).enumerate().for_each(|(c, out)| {
+        let mut s = pool
+            .lock()
+            .ok()
+            .and_then(|mut p| p.pop())
+            .unwrap_or_default();
+        let r = c * chunk * 3..(c * chunk + out.len()) * 3;
+        s.backgrounds.clear();
+        for _ in 0..out.len() {
+            s.backgrounds.extend_from_slice(&settings.background);
+        }
+        let rays = Rays {
+            origins: &origins[r.clone()],
+            dirs: &dirs[r],
+            backgrounds: &s.backgrounds,
+            near: settings.near,
+            far: settings.far,
+        };
+        render_any(model, params, &rays, (&mut s.ws, &mut s.march), out);
+        if let Ok(mut p) = pool.lock() {
+            p.push(s);
+        }
+    });
+    out
+}
+
+/// One chunk through the model's own renderer.
+fn render_any(
+    model: &Model,
+    params: &[f32],
+    rays: &Rays,
+    (vanilla, march): (&mut ChunkWorkspace, &mut MarchWorkspace),
+    out: &mut [RayOutput],
+) {
+    match model {
+        Model::Vanilla(m) => render_chunk(m, params, rays, vanilla, out),
+        Model::Fast(m) => marched::render_chunk(m, params, rays, march, out),
     }
 }
 

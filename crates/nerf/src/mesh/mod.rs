@@ -1,5 +1,8 @@
-//! Triangle meshes extracted from a field: [`marching_cubes`] on a sampled density grid.
+//! Triangle meshes from a trained field: density sampled on a grid ([`extract`]), the
+//! surface by [`marching_cubes`], and files for other tools ([`export`]).
 
+pub mod export;
+pub mod extract;
 pub mod marching_cubes;
 
 use std::collections::HashMap;

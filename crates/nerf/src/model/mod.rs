@@ -5,6 +5,7 @@
 //! differs.
 
 pub mod fast;
+pub mod query;
 pub mod vanilla;
 
 use serde::{Deserialize, Serialize};
