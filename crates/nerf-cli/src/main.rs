@@ -34,6 +34,8 @@ enum Command {
     Render(commands::RenderArgs),
     /// A coloured triangle mesh of a trained run (.ply, .obj or .glb).
     Mesh(mesh_cmd::MeshArgs),
+    /// A coloured point cloud (.ply) from rendered depth of the training views.
+    Points(mesh_cmd::PointsArgs),
     /// Built-in scene -> train -> evaluate -> orbit, no data needed.
     Demo(commands::DemoArgs),
     /// Throughput of the training step and of rendering on this machine.
@@ -73,6 +75,7 @@ fn main() {
         Command::Eval(a) => commands::eval(a),
         Command::Render(a) => commands::render(a),
         Command::Mesh(a) => mesh_cmd::mesh(a),
+        Command::Points(a) => mesh_cmd::points(a),
         Command::Demo(a) => commands::demo(a),
         Command::Bench(a) => commands::bench(a),
     };

@@ -1,4 +1,4 @@
-//! `nerf mesh`: a coloured triangle mesh of a trained run.
+//! `nerf mesh` and `nerf points`: coloured geometry of a trained run.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -39,6 +39,13 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     if a.resolution < 2 || a.resolution > 2048 {
         bail!("--resolution must be between 2 and 2048");
     }
+    let ext = a
+        .out
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    if !matches!(ext.as_deref(), Some("ply" | "obj" | "glb")) {
+        bail!("{}: choose a .ply, .obj or .glb file", a.out.display());
+    }
     let run = LoadedRun::open(&a.run)?;
     let bound = a.bound.unwrap_or(match &run.model {
         Model::Fast(m) => m.config.field.bound,
@@ -78,6 +85,90 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         a.threshold,
         a.keep_largest
             .map_or(String::new(), |n| format!(", largest {n} piece(s)")),
+        a.out.display()
+    );
+    Ok(())
+}
+
+#[derive(Args)]
+pub struct PointsArgs {
+    /// Run folder written by `nerf train`.
+    #[arg(long)]
+    run: PathBuf,
+    /// Output file (.ply, binary, coloured vertices).
+    #[arg(long)]
+    out: PathBuf,
+    /// Use every K-th training view.
+    #[arg(long, default_value_t = 10)]
+    every: usize,
+    /// Render the views at 1/N of the training resolution.
+    #[arg(long, default_value_t = 2)]
+    downscale: usize,
+    /// Keep pixels at least this opaque (drops background and soft edges).
+    #[arg(long, default_value_t = 0.95)]
+    min_opacity: f32,
+}
+
+pub fn points(a: PointsArgs) -> Result<()> {
+    if a.every == 0 || a.downscale == 0 {
+        bail!("--every and --downscale must be at least 1");
+    }
+    if !a
+        .out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("ply"))
+    {
+        bail!("{}: point clouds are written as .ply", a.out.display());
+    }
+    let run = LoadedRun::open(&a.run)?;
+    let config = &run.config;
+    let data = nerf::data::blender::load_every(
+        &config.data,
+        nerf::data::Split::Train,
+        config.downscale * a.downscale,
+        a.every,
+    )?;
+    let cameras: Vec<_> = data.views.iter().map(|v| v.camera.clone()).collect();
+    let settings = nerf::renderer::RenderSettings {
+        near: data.near,
+        far: data.far,
+        background: config.background.eval_colour(),
+        chunk_rays: config.chunk_rays,
+    };
+    let t0 = Instant::now();
+    let pb = bar(cameras.len() as u64, "views");
+    let (points, colours) = nerf::mesh::points::from_views(
+        &run.model,
+        &run.params,
+        &cameras,
+        &settings,
+        a.min_opacity,
+        &mut |done| pb.set_position(done as u64),
+    );
+    pb.finish_and_clear();
+    if points.is_empty() {
+        bail!(
+            "no pixel reached opacity {}; lower --min-opacity",
+            a.min_opacity
+        );
+    }
+    let cloud = nerf::mesh::Mesh {
+        vertices: points,
+        triangles: Vec::new(),
+    };
+    if !a
+        .out
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("ply"))
+    {
+        bail!("{}: point clouds are written as .ply", a.out.display());
+    }
+    write_mesh(&a.out, &cloud, &colours)?;
+    println!(
+        "{} points from {} views in {:.1} s -> {}",
+        cloud.vertices.len(),
+        cameras.len(),
+        t0.elapsed().as_secs_f64(),
         a.out.display()
     );
     Ok(())

@@ -127,6 +127,43 @@ fn synth_train_eval_render() {
         d,
     ));
     assert!(d.join("testviews/frame_0003.png").exists());
+    // Geometry of the same run: a mesh and a point cloud.
+    let text = ok(&nerf(
+        &[
+            "mesh",
+            "--run",
+            "run",
+            "--out",
+            "m.glb",
+            "--resolution",
+            "16",
+            "--threshold",
+            "0.05",
+        ],
+        d,
+    ));
+    assert!(
+        text.contains("triangles") && d.join("m.glb").exists(),
+        "{text}"
+    );
+    let text = ok(&nerf(
+        &[
+            "points",
+            "--run",
+            "run",
+            "--out",
+            "p.ply",
+            "--every",
+            "5",
+            "--min-opacity",
+            "0.01",
+        ],
+        d,
+    ));
+    assert!(
+        text.contains("points from 2 views") && d.join("p.ply").exists(),
+        "{text}"
+    );
 }
 
 #[test]
@@ -215,6 +252,46 @@ fn fast_model_through_the_same_commands() {
         d,
     ));
     assert!(d.join("run/render_orbit/frame_0001_depth.png").exists());
+    let out = nerf(&["mesh", "--run", "run", "--out", "m.stl"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("m.stl"), "{err}");
+    let out = nerf(
+        &[
+            "mesh",
+            "--run",
+            "run",
+            "--out",
+            "e.ply",
+            "--resolution",
+            "8",
+            "--threshold",
+            "1e30",
+        ],
+        d,
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("lower --threshold"),
+        "{err}"
+    );
+    let text = ok(&nerf(
+        &[
+            "points",
+            "--run",
+            "run",
+            "--out",
+            "p.ply",
+            "--every",
+            "4",
+            "--min-opacity",
+            "0.5",
+        ],
+        d,
+    ));
+    assert!(
+        text.contains("points from 2 views") && d.join("p.ply").exists(),
+        "{text}"
+    );
 
     let out = nerf(
         &[

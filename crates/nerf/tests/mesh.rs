@@ -180,6 +180,34 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
             "axis {k}: mesh extent {size:.3} vs the chair's {truth:.3}"
         );
     }
+    // The point cloud from rendered depth lies on the chair too.
+    let data_views =
+        nerf::data::blender::load_every(&data, nerf::data::Split::Train, 2, 15).expect("views");
+    let cameras: Vec<_> = data_views.views.iter().map(|v| v.camera.clone()).collect();
+    let settings = nerf::renderer::RenderSettings {
+        near: 2.0,
+        far: 6.0,
+        background: [1.0; 3],
+        chunk_rays: 256,
+    };
+    let (points, point_colours) = nerf::mesh::points::from_views(
+        &run.model,
+        &run.params,
+        &cameras,
+        &settings,
+        0.95,
+        &mut |_| {},
+    );
+    assert!(points.len() > 500 && points.len() == point_colours.len());
+    let near_chair = points
+        .iter()
+        .filter(|p| (0..3).all(|k| p[k] > tlo[k] - 0.05 && p[k] < thi[k] + 0.05))
+        .count();
+    assert!(
+        near_chair * 100 >= points.len() * 98,
+        "{near_chair} of {} points within 5 cm of the chair's box",
+        points.len()
+    );
     let colours = colour_vertices(&run.model, &run.params, &mesh, 0.05);
     // The chair is wood and fabric, not black or white: most vertices get a real colour.
     let coloured = colours

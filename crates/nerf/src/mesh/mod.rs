@@ -1,9 +1,11 @@
 //! Triangle meshes from a trained field: density sampled on a grid ([`extract`]), the
-//! surface by [`marching_cubes`], and files for other tools ([`export`]).
+//! surface by [`marching_cubes`], point clouds from rendered depth ([`points`]), and files
+//! for other tools ([`export`]).
 
 pub mod export;
 pub mod extract;
 pub mod marching_cubes;
+pub mod points;
 
 use std::collections::HashMap;
 
