@@ -448,9 +448,35 @@ pub struct RenderArgs {
     /// Square output size for the orbit (default: the training resolution).
     #[arg(long)]
     size: Option<usize>,
-    /// Output folder. Default: <run>/render_<path>.
+    /// Output folder for the PNG frames (RGB, turbo depth, opacity). Default:
+    /// <run>/render_<path>.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Also write the RGB frames as a video: .gif (built in) or .mp4 (H.264 through
+    /// ffmpeg, which must be on PATH).
+    #[arg(long)]
+    video: Option<PathBuf>,
+    /// Frames per second of the video.
+    #[arg(long, default_value_t = 24.0)]
+    fps: f32,
+    /// Fixed depth range NEAR,FAR for the colour map (default: the first frame's 2nd-98th
+    /// percentile of opaque pixels, kept for all frames).
+    #[arg(long, value_parser = parse_range)]
+    depth_range: Option<(f32, f32)>,
+}
+
+fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("{s:?}: expected NEAR,FAR such as 2.5,5"))?;
+    let (a, b): (f32, f32) = (
+        a.trim().parse().map_err(|e| format!("{a:?}: {e}"))?,
+        b.trim().parse().map_err(|e| format!("{b:?}: {e}"))?,
+    );
+    if a.is_nan() || b.is_nan() || a >= b {
+        return Err(format!("{s:?}: NEAR must be less than FAR"));
+    }
+    Ok((a, b))
 }
 
 pub fn render(a: RenderArgs) -> Result<()> {
@@ -506,6 +532,22 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
                 .collect()
         }
     };
+    let video = a
+        .video
+        .as_ref()
+        .map(|v| {
+            let ext = v.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
+            match ext.as_deref() {
+                Some("gif") => Ok((v, false)),
+                Some("mp4") if nerf::video::ffmpeg_available() => Ok((v, true)),
+                Some("mp4") => bail!(
+                    "{}: MP4 needs ffmpeg on PATH (Debian: apt-get install ffmpeg); or write a .gif",
+                    v.display()
+                ),
+                _ => bail!("{}: choose a .gif or .mp4 video file", v.display()),
+            }
+        })
+        .transpose()?;
     nerf::io::create_dir(out)?;
     let settings = RenderSettings {
         near: blender::NEAR,
@@ -517,6 +559,8 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
     let pb = bar(rays as u64, "render rays");
     let t0 = Instant::now();
     let mut done = 0;
+    let mut depth_range = a.depth_range;
+    let mut frames = Vec::new();
     for (k, cam) in cameras.iter().enumerate() {
         pb.set_message(format!("frame {}/{}", k + 1, cameras.len()));
         let r = nerf::renderer::render_view(&run.model, &run.params, cam, &settings, &|n| {
@@ -529,14 +573,36 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
             r.height,
             &r.rgb,
         )?;
+        let (near, far) = *depth_range.get_or_insert_with(|| {
+            nerf::video::auto_depth_range(&r.depth, &r.opacity)
+                .unwrap_or((blender::NEAR, blender::FAR))
+        });
         save_rgb_png(
             &out.join(format!("frame_{k:04}_depth.png")),
             r.width,
             r.height,
-            &r.depth_image(blender::NEAR, blender::FAR),
+            &nerf::video::depth_turbo(&r.depth, &r.opacity, near, far),
         )?;
+        let opacity: Vec<f32> = r.opacity.iter().flat_map(|&o| [o; 3]).collect();
+        save_rgb_png(
+            &out.join(format!("frame_{k:04}_opacity.png")),
+            r.width,
+            r.height,
+            &opacity,
+        )?;
+        if matches!(video, Some((_, false))) {
+            frames.push(r.rgb);
+        }
     }
     pb.finish_and_clear();
+    if let Some((path, mp4)) = video {
+        if mp4 {
+            nerf::video::write_mp4(&out.join("frame_%04d.png"), path, a.fps)?;
+        } else if let Some(c) = cameras.first() {
+            nerf::video::write_gif(path, c.width, c.height, &frames, a.fps)?;
+        }
+        println!("video: {}", path.display());
+    }
     let secs = t0.elapsed().as_secs_f64();
     println!(
         "rendered {} frames in {:.1} s ({:.2} frames/s) to {}",
@@ -632,6 +698,9 @@ pub fn demo(a: DemoArgs) -> Result<()> {
         radius: 4.0,
         size: None,
         out: None,
+        video: Some(run_dir.join("orbit.gif")),
+        fps: 24.0,
+        depth_range: None,
     };
     let orbit_dir = run_dir.join("render_orbit");
     render_run(&run, &orbit, &orbit_dir)?;
@@ -642,7 +711,11 @@ pub fn demo(a: DemoArgs) -> Result<()> {
         run_dir.display()
     );
     println!("  test images: {} (metrics.json)", eval_dir.display());
-    println!("  orbit:       {}", orbit_dir.display());
+    println!(
+        "  orbit:       {} (frames), {}",
+        orbit_dir.display(),
+        run_dir.join("orbit.gif").display()
+    );
     Ok(())
 }
 

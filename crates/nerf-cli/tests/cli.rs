@@ -252,6 +252,31 @@ fn fast_model_through_the_same_commands() {
         d,
     ));
     assert!(d.join("run/render_orbit/frame_0001_depth.png").exists());
+    assert!(d.join("run/render_orbit/frame_0001_opacity.png").exists());
+    // Videos: a GIF always, an MP4 when ffmpeg is installed (CI installs it).
+    let text = ok(&nerf(
+        &[
+            "render", "--run", "run", "--frames", "3", "--size", "12", "--video", "o.gif",
+        ],
+        d,
+    ));
+    assert!(text.contains("video: o.gif"), "{text}");
+    let gif = std::fs::read(d.join("o.gif")).expect("gif");
+    assert!(gif.starts_with(b"GIF89a"));
+    if nerf::video::ffmpeg_available() {
+        ok(&nerf(
+            &[
+                "render", "--run", "run", "--frames", "3", "--size", "12", "--video", "o.mp4",
+            ],
+            d,
+        ));
+        let mp4 = std::fs::read(d.join("o.mp4")).expect("mp4");
+        assert!(mp4.len() > 100 && &mp4[4..8] == b"ftyp", "not an MP4 file");
+    } else {
+        eprintln!("ffmpeg is not installed: skipping the MP4 check");
+    }
+    let out = nerf(&["render", "--run", "run", "--video", "o.avi"], d);
+    assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("o.avi"));
     let out = nerf(&["mesh", "--run", "run", "--out", "m.stl"], d);
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success() && err.contains("m.stl"), "{err}");

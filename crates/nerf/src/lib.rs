@@ -24,5 +24,6 @@ pub mod render;
 pub mod renderer;
 pub mod rng;
 pub mod train;
+pub mod video;
 
 pub use error::{NerfError, Result};
