@@ -427,6 +427,12 @@ pub enum PathArg {
     Test,
     /// A circle around the object, like the paper's videos.
     Orbit,
+    /// A spiral in front of the average training camera (forward-facing scenes, LLFF style).
+    Spiral,
+    /// A smooth loop through the training cameras.
+    Interpolate,
+    /// The cameras of a nerfstudio camera_path.json (--camera-path).
+    File,
 }
 
 #[derive(Args)]
@@ -436,16 +442,20 @@ pub struct RenderArgs {
     run: PathBuf,
     #[arg(long, value_enum, default_value = "orbit")]
     path: PathArg,
-    /// Frames of the orbit.
+    /// Frames of an orbit, spiral or interpolated path.
     #[arg(long, default_value_t = 40)]
     frames: usize,
+    /// nerfstudio camera_path.json to render with `--path file`.
+    #[arg(long)]
+    camera_path: Option<PathBuf>,
     /// Orbit elevation in degrees.
     #[arg(long, default_value_t = 30.0)]
     elevation: f32,
     /// Orbit radius (scene units).
     #[arg(long, default_value_t = 4.0)]
     radius: f32,
-    /// Square output size for the orbit (default: the training resolution).
+    /// Output size: square for generated paths, the height for --path file (default: the
+    /// training resolution, or the file's).
     #[arg(long)]
     size: Option<usize>,
     /// Output folder for the PNG frames (RGB, turbo depth, opacity). Default:
@@ -484,6 +494,9 @@ pub fn render(a: RenderArgs) -> Result<()> {
     let name = match a.path {
         PathArg::Test => "test",
         PathArg::Orbit => "orbit",
+        PathArg::Spiral => "spiral",
+        PathArg::Interpolate => "interpolate",
+        PathArg::File => "file",
     };
     let out = a
         .out
@@ -514,12 +527,36 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
                 })
                 .collect::<Result<_>>()?
         }
-        PathArg::Orbit => {
+        PathArg::File => {
+            let file = a
+                .camera_path
+                .as_ref()
+                .context("--path file needs --camera-path FILE")?;
+            nerf::camera_path::load_camera_path(file, a.size)?
+        }
+        PathArg::Orbit | PathArg::Spiral | PathArg::Interpolate => {
             let size = match a.size {
                 Some(s) => (s, s),
                 None => image_size(&cfg.data, &train_json, cfg.downscale)?,
             };
-            nerf::camera::orbit(a.frames.max(1), a.radius, a.elevation.to_radians())
+            let train_poses = || -> Result<Vec<nerf::camera::Pose>> {
+                train_json
+                    .frames
+                    .iter()
+                    .enumerate()
+                    .map(|(k, f)| {
+                        blender::parse_pose(&f.transform_matrix)
+                            .map_err(|m| anyhow::anyhow!("training frame {k}: {m}"))
+                    })
+                    .collect()
+            };
+            let frames = a.frames.max(1);
+            let poses = match a.path {
+                PathArg::Spiral => nerf::camera_path::spiral(&train_poses()?, frames, 2.0),
+                PathArg::Interpolate => nerf::camera_path::interpolate(&train_poses()?, 8, frames),
+                _ => nerf::camera::orbit(frames, a.radius, a.elevation.to_radians()),
+            };
+            poses
                 .into_iter()
                 .map(|pose| {
                     nerf::camera::Camera::from_fov_x(
@@ -696,6 +733,7 @@ pub fn demo(a: DemoArgs) -> Result<()> {
         frames: 36,
         elevation: 30.0,
         radius: 4.0,
+        camera_path: None,
         size: None,
         out: None,
         video: Some(run_dir.join("orbit.gif")),

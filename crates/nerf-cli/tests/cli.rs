@@ -275,6 +275,32 @@ fn fast_model_through_the_same_commands() {
     } else {
         eprintln!("ffmpeg is not installed: skipping the MP4 check");
     }
+    // The other camera paths.
+    for path in ["spiral", "interpolate"] {
+        ok(&nerf(
+            &[
+                "render", "--run", "run", "--path", path, "--frames", "2", "--size", "8",
+            ],
+            d,
+        ));
+        assert!(d.join(format!("run/render_{path}/frame_0001.png")).exists());
+    }
+    let json = r#"{"render_width": 10, "render_height": 6, "camera_path": [
+        {"camera_to_world": [1,0,0,0, 0,0,-1,-4, 0,1,0,0.5, 0,0,0,1], "fov": 40, "aspect": 1.6667}]}"#;
+    std::fs::write(d.join("camera_path.json"), json).expect("write");
+    ok(&nerf(
+        &[
+            "render",
+            "--run",
+            "run",
+            "--path",
+            "file",
+            "--camera-path",
+            "camera_path.json",
+        ],
+        d,
+    ));
+    assert!(d.join("run/render_file/frame_0000.png").exists());
     let out = nerf(&["render", "--run", "run", "--video", "o.avi"], d);
     assert!(!out.status.success() && String::from_utf8_lossy(&out.stderr).contains("o.avi"));
     let out = nerf(&["mesh", "--run", "run", "--out", "m.stl"], d);

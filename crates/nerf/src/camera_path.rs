@@ -1,0 +1,335 @@
+//! Camera paths for videos, besides [`orbit`](crate::camera::orbit): an LLFF-style
+//! `spiral` around the average training camera, a smooth path `interpolate`d through the
+//! training cameras, and nerfstudio's `camera_path.json` files.
+//!
+//! Poses are camera-to-world in OpenGL axes (x right, y up, looking down -z), as in the
+//! Blender format.
+
+use std::path::Path;
+
+use serde::Deserialize;
+
+use crate::camera::{look_at, Camera, Pose};
+use crate::error::{NerfError, Result};
+use crate::math::{add, cross, length, normalize_or_zero, scale, sub, V3};
+
+fn column(p: &Pose, c: usize) -> V3 {
+    [p[0][c], p[1][c], p[2][c]]
+}
+
+fn from_columns(x: V3, y: V3, z: V3, t: V3) -> Pose {
+    std::array::from_fn(|r| [x[r], y[r], z[r], t[r]])
+}
+
+/// A spiral in front of the average training camera (the LLFF videos): `rotations` turns,
+/// radii from the spread of the camera positions, always looking at the point `focus`
+/// distance ahead of the average camera.
+pub fn spiral(poses: &[Pose], frames: usize, rotations: f32) -> Vec<Pose> {
+    let n = poses.len().max(1) as f32;
+    let mean = |c: usize| {
+        poses
+            .iter()
+            .fold([0.0; 3], |acc, p| add(acc, scale(column(p, c), 1.0 / n)))
+    };
+    let (centre, back, up) = (
+        mean(3),
+        normalize_or_zero(mean(2)),
+        normalize_or_zero(mean(1)),
+    );
+    let right = normalize_or_zero(cross(up, back));
+    let up = cross(back, right);
+    // Radii: the 90th percentile of the cameras' offsets along the average axes.
+    let radius = |axis: V3| {
+        let mut d: Vec<f32> = poses
+            .iter()
+            .map(|p| crate::math::dot(sub(column(p, 3), centre), axis).abs())
+            .collect();
+        d.sort_by(f32::total_cmp);
+        d.get((d.len().saturating_sub(1) as f32 * 0.9) as usize)
+            .copied()
+            .unwrap_or(0.0)
+            .max(0.05)
+    };
+    let (rx, ry, rz) = (radius(right), radius(up), radius(back));
+    // Look at the scene centre's depth along the viewing axis (objects sit at the origin).
+    let focus = crate::math::dot(centre, back).abs().max(0.5);
+    let target = sub(centre, scale(back, focus));
+    (0..frames)
+        .map(|k| {
+            let theta = std::f32::consts::TAU * rotations * k as f32 / frames.max(1) as f32;
+            let offset = add(
+                add(scale(right, rx * theta.cos()), scale(up, -ry * theta.sin())),
+                scale(back, -rz * 0.5 * (theta * 0.5).sin()),
+            );
+            look_at(add(centre, offset), target, up)
+        })
+        .collect()
+}
+
+/// Unit quaternion `[w, x, y, z]` of a pose's rotation.
+fn quaternion(p: &Pose) -> [f32; 4] {
+    let m = |r: usize, c: usize| p[r][c];
+    let trace = m(0, 0) + m(1, 1) + m(2, 2);
+    let q = if trace > 0.0 {
+        let s = (trace + 1.0).sqrt() * 2.0;
+        [
+            0.25 * s,
+            (m(2, 1) - m(1, 2)) / s,
+            (m(0, 2) - m(2, 0)) / s,
+            (m(1, 0) - m(0, 1)) / s,
+        ]
+    } else if m(0, 0) > m(1, 1) && m(0, 0) > m(2, 2) {
+        let s = (1.0 + m(0, 0) - m(1, 1) - m(2, 2)).sqrt() * 2.0;
+        [
+            (m(2, 1) - m(1, 2)) / s,
+            0.25 * s,
+            (m(0, 1) + m(1, 0)) / s,
+            (m(0, 2) + m(2, 0)) / s,
+        ]
+    } else if m(1, 1) > m(2, 2) {
+        let s = (1.0 + m(1, 1) - m(0, 0) - m(2, 2)).sqrt() * 2.0;
+        [
+            (m(0, 2) - m(2, 0)) / s,
+            (m(0, 1) + m(1, 0)) / s,
+            0.25 * s,
+            (m(1, 2) + m(2, 1)) / s,
+        ]
+    } else {
+        let s = (1.0 + m(2, 2) - m(0, 0) - m(1, 1)).sqrt() * 2.0;
+        [
+            (m(1, 0) - m(0, 1)) / s,
+            (m(0, 2) + m(2, 0)) / s,
+            (m(1, 2) + m(2, 1)) / s,
+            0.25 * s,
+        ]
+    };
+    let l = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+    q.map(|v| v / l)
+}
+
+fn rotation(q: [f32; 4]) -> [V3; 3] {
+    let [w, x, y, z] = q;
+    let x_axis = [
+        1.0 - 2.0 * (y * y + z * z),
+        2.0 * (x * y + w * z),
+        2.0 * (x * z - w * y),
+    ];
+    let y_axis = [
+        2.0 * (x * y - w * z),
+        1.0 - 2.0 * (x * x + z * z),
+        2.0 * (y * z + w * x),
+    ];
+    let z_axis = [
+        2.0 * (x * z + w * y),
+        2.0 * (y * z - w * x),
+        1.0 - 2.0 * (x * x + y * y),
+    ];
+    [x_axis, y_axis, z_axis]
+}
+
+fn slerp(a: [f32; 4], mut b: [f32; 4], t: f32) -> [f32; 4] {
+    let mut dot: f32 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+    if dot < 0.0 {
+        b = b.map(|v| -v);
+        dot = -dot;
+    }
+    let (wa, wb) = if dot > 0.9995 {
+        (1.0 - t, t)
+    } else {
+        let theta = dot.clamp(-1.0, 1.0).acos();
+        let s = theta.sin();
+        (((1.0 - t) * theta).sin() / s, (t * theta).sin() / s)
+    };
+    let q: [f32; 4] = std::array::from_fn(|i| wa * a[i] + wb * b[i]);
+    let l = q.iter().map(|v| v * v).sum::<f32>().sqrt();
+    q.map(|v| v / l)
+}
+
+/// A closed, smooth path through `keys` training cameras (taken evenly from `poses` and
+/// ordered by azimuth around the up axis so the loop does not zigzag): positions by
+/// Catmull-Rom splines, which pass through every key, rotations by slerp.
+pub fn interpolate(poses: &[Pose], keys: usize, frames: usize) -> Vec<Pose> {
+    if poses.is_empty() || frames == 0 {
+        return Vec::new();
+    }
+    let step = (poses.len() as f32 / keys.clamp(2, poses.len()) as f32).max(1.0);
+    let mut key: Vec<Pose> = (0..keys.clamp(2, poses.len()))
+        .map(|k| poses[((k as f32 * step) as usize).min(poses.len() - 1)])
+        .collect();
+    key.sort_by(|a, b| {
+        let az = |p: &Pose| p[1][3].atan2(p[0][3]);
+        az(a).total_cmp(&az(b))
+    });
+    let n = key.len();
+    (0..frames)
+        .map(|f| {
+            let u = f as f32 / frames as f32 * n as f32;
+            let (i, t) = (u.floor() as usize % n, u.fract());
+            let p = |k: usize| column(&key[(i + k + n - 1) % n], 3);
+            let (p0, p1, p2, p3) = (p(0), p(1), p(2), p(3));
+            let pos: V3 = std::array::from_fn(|c| {
+                0.5 * (2.0 * p1[c]
+                    + (p2[c] - p0[c]) * t
+                    + (2.0 * p0[c] - 5.0 * p1[c] + 4.0 * p2[c] - p3[c]) * t * t
+                    + (3.0 * p1[c] - p0[c] - 3.0 * p2[c] + p3[c]) * t * t * t)
+            });
+            let q = slerp(quaternion(&key[i]), quaternion(&key[(i + 1) % n]), t);
+            let [x, y, z] = rotation(q);
+            from_columns(x, y, z, pos)
+        })
+        .collect()
+}
+
+#[derive(Deserialize)]
+struct PathFile {
+    render_width: Option<usize>,
+    render_height: Option<usize>,
+    camera_path: Option<Vec<PathFrame>>,
+}
+
+#[derive(Deserialize)]
+struct PathFrame {
+    /// Row-major 4x4 camera-to-world.
+    camera_to_world: Vec<f32>,
+    /// Vertical field of view in degrees.
+    fov: f32,
+    aspect: Option<f32>,
+}
+
+/// The cameras of a nerfstudio `camera_path.json` (its per-frame `camera_path` list: a
+/// row-major 4x4 `camera_to_world`, vertical `fov` in degrees, `aspect`), at the file's
+/// `render_width` x `render_height` unless `size` overrides the height.
+pub fn load_camera_path(path: &Path, size: Option<usize>) -> Result<Vec<Camera>> {
+    let file: PathFile = crate::io::read_json(path)?;
+    let bad = |m: String| NerfError::Format {
+        path: path.to_path_buf(),
+        message: m,
+    };
+    let frames = file.camera_path.ok_or_else(|| {
+        bad("no `camera_path` list (export the path from the viewer first)".into())
+    })?;
+    let height = size.or(file.render_height).unwrap_or(400).max(1);
+    frames
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            if f.camera_to_world.len() != 16 {
+                return Err(bad(format!(
+                    "camera_path[{k}].camera_to_world has {} values, expected 16",
+                    f.camera_to_world.len()
+                )));
+            }
+            if !(f.fov > 0.0 && f.fov < 180.0) {
+                return Err(bad(format!(
+                    "camera_path[{k}].fov {} is not in (0, 180)",
+                    f.fov
+                )));
+            }
+            let aspect = f
+                .aspect
+                .or_else(|| Some(file.render_width? as f32 / file.render_height? as f32))
+                .unwrap_or(1.0);
+            let width = ((height as f32 * aspect).round() as usize).max(1);
+            let fov_x = 2.0 * (aspect * (f.fov.to_radians() / 2.0).tan()).atan();
+            let m = &f.camera_to_world;
+            let pose: Pose = std::array::from_fn(|r| std::array::from_fn(|c| m[4 * r + c]));
+            Ok(Camera::from_fov_x(width, height, fov_x, pose))
+        })
+        .collect()
+}
+
+/// Distance between consecutive positions of a path, at most (for tests and sanity checks).
+pub fn largest_step(poses: &[Pose]) -> f32 {
+    poses
+        .windows(2)
+        .map(|w| length(sub(column(&w[1], 3), column(&w[0], 3))))
+        .fold(0.0, f32::max)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::orbit;
+
+    #[test]
+    fn quaternions_round_trip_rotations() {
+        for p in orbit(7, 4.0, 0.5) {
+            let [x, y, z] = rotation(quaternion(&p));
+            for (a, c) in [x, y, z].iter().zip(0..3) {
+                let want = column(&p, c);
+                assert!(length(sub(*a, want)) < 1e-4, "{a:?} vs {want:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn interpolation_passes_through_its_keys_smoothly() {
+        let poses = orbit(12, 4.0, 0.4);
+        let path = interpolate(&poses, 6, 60);
+        assert_eq!(path.len(), 60);
+        // Every 10th frame is a key camera (pose and position).
+        let keys: Vec<V3> = (0..6).map(|k| column(&poses[2 * k], 3)).collect();
+        for f in (0..60).step_by(10) {
+            let p = column(&path[f], 3);
+            assert!(
+                keys.iter().any(|k| length(sub(*k, p)) < 1e-4),
+                "frame {f} at {p:?}"
+            );
+        }
+        // Small steps: about the circumference over 60 frames.
+        let circumference = std::f32::consts::TAU * 4.0 * 0.4f32.cos();
+        assert!(largest_step(&path) < 2.0 * circumference / 60.0);
+    }
+
+    #[test]
+    fn spiral_stays_near_the_cameras_and_faces_the_scene() {
+        let poses: Vec<Pose> = (0..9)
+            .map(|k| {
+                let x = (k % 3) as f32 * 0.3 - 0.3;
+                let y = (k / 3) as f32 * 0.2 - 0.2;
+                look_at([x, -4.0, y], [0.0; 3], [0.0, 0.0, 1.0])
+            })
+            .collect();
+        let path = spiral(&poses, 40, 2.0);
+        for p in &path {
+            let pos = column(p, 3);
+            assert!(length(sub(pos, [0.0, -4.0, 0.0])) < 1.0, "{pos:?}");
+            // Looking along -z of the camera: towards +y, where the scene is.
+            assert!(column(p, 2)[1] < -0.9);
+        }
+        assert!(largest_step(&path) < 0.2);
+    }
+
+    #[test]
+    fn nerfstudio_camera_path_loads_and_bad_files_name_the_problem() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("camera_path.json");
+        let pose = look_at([0.0, -4.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]);
+        let flat: Vec<f32> = pose
+            .iter()
+            .flat_map(|r| r.iter().copied())
+            .chain([0.0, 0.0, 0.0, 1.0])
+            .collect();
+        let json = serde_json::json!({
+            "render_width": 64, "render_height": 48, "fps": 24,
+            "camera_path": [{"camera_to_world": flat, "fov": 50.0, "aspect": 4.0 / 3.0}]
+        });
+        std::fs::write(&path, json.to_string()).expect("write");
+        let cams = load_camera_path(&path, None).expect("load");
+        assert_eq!((cams.len(), cams[0].width, cams[0].height), (1, 64, 48));
+        assert_eq!(cams[0].c2w, pose);
+        // Vertical fov 50 degrees: fy = 24 / tan(25 deg).
+        assert!((cams[0].fy - 24.0 / 25f32.to_radians().tan()).abs() < 1e-2);
+        std::fs::write(
+            &path,
+            r#"{"camera_path": [{"camera_to_world": [1, 2], "fov": 50}]}"#,
+        )
+        .expect("write");
+        let err = load_camera_path(&path, None).expect_err("short matrix");
+        assert!(
+            err.to_string().contains("camera_to_world has 2 values"),
+            "{err}"
+        );
+        assert!(err.to_string().contains("camera_path.json"), "{err}");
+    }
+}
