@@ -575,12 +575,17 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
         .map(|v| {
             let ext = v.extension().map(|e| e.to_string_lossy().to_ascii_lowercase());
             match ext.as_deref() {
-                Some("gif") => Ok((v, false)),
-                Some("mp4") if nerf::video::ffmpeg_available() => Ok((v, true)),
-                Some("mp4") => bail!(
-                    "{}: MP4 needs ffmpeg on PATH (Debian: apt-get install ffmpeg); or write a .gif",
-                    v.display()
-                ),
+                Some("gif") => Ok((v.clone(), false)),
+                Some("mp4") if nerf::video::ffmpeg_available() => Ok((v.clone(), true)),
+                Some("mp4") => {
+                    let gif = v.with_extension("gif");
+                    eprintln!(
+                        "ffmpeg is not on PATH (Debian: apt-get install ffmpeg): writing {} instead of {}",
+                        gif.display(),
+                        v.display()
+                    );
+                    Ok((gif, false))
+                }
                 _ => bail!("{}: choose a .gif or .mp4 video file", v.display()),
             }
         })
@@ -599,7 +604,12 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
     let mut depth_range = a.depth_range;
     let mut frames = Vec::new();
     for (k, cam) in cameras.iter().enumerate() {
-        pb.set_message(format!("frame {}/{}", k + 1, cameras.len()));
+        pb.set_message(format!(
+            "frame {}/{}, {:.2} frames/s",
+            k + 1,
+            cameras.len(),
+            k as f64 / t0.elapsed().as_secs_f64().max(1e-9)
+        ));
         let r = nerf::renderer::render_view(&run.model, &run.params, cam, &settings, &|n| {
             pb.set_position((done + n) as u64)
         });
@@ -634,9 +644,9 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
     pb.finish_and_clear();
     if let Some((path, mp4)) = video {
         if mp4 {
-            nerf::video::write_mp4(&out.join("frame_%04d.png"), path, a.fps)?;
+            nerf::video::write_mp4(&out.join("frame_%04d.png"), &path, a.fps)?;
         } else if let Some(c) = cameras.first() {
-            nerf::video::write_gif(path, c.width, c.height, &frames, a.fps)?;
+            nerf::video::write_gif(&path, c.width, c.height, &frames, a.fps)?;
         }
         println!("video: {}", path.display());
     }
