@@ -93,7 +93,7 @@ fn hash_grid_encode() {
 /// the same over the whole parameter vector (both in parallel over segments), for the
 /// default fast model's size and a given fraction of blocks touched.
 fn sparse_update(touched: f64) {
-    use nerf::nn::adam::{update_slices, Adam, AdamConfig, Rule, Slices};
+    use nerf::nn::adam::{update_slices, Adam, AdamConfig, DirtyStep, Rule, Slices};
     use nerf::nn::grads::{GradBuffer, BLOCK, SEGMENT};
     use rayon::prelude::*;
     let n = 12_213_148;
@@ -110,33 +110,12 @@ fn sparse_update(touched: f64) {
     let sparse = median_seconds(7, || {
         bufs.iter_mut().for_each(fill);
         GradBuffer::reduce_into_first(&mut bufs);
-        let step = adam.begin_step(1e-3);
-        let config = adam.config;
-        let Adam { m, v, .. } = &mut adam;
-        params
-            .par_chunks_mut(SEGMENT)
-            .zip(m.par_chunks_mut(SEGMENT))
-            .zip(v.par_chunks_mut(SEGMENT))
-            .zip(bufs[0].segments_mut(SEGMENT).collect::<Vec<_>>())
-            .for_each(|(((p, m), v), mut g)| {
-                g.drain_dirty(|r, grads| {
-                    let s = Slices {
-                        params: &mut p[r.clone()],
-                        grads,
-                        m: &mut m[r.clone()],
-                        v: &mut v[r],
-                    };
-                    update_slices(
-                        &config,
-                        step,
-                        s,
-                        Rule {
-                            lazy: true,
-                            weight_decay: 0.0,
-                        },
-                    );
-                });
-            });
+        let how = DirtyStep {
+            scale: 1.0,
+            lazy_end: n,
+            weight_decay: 0.0,
+        };
+        adam.step_dirty(&mut params, &mut bufs[0], 1e-3, how);
     });
     let mut dense_a = vec![0.0f32; n];
     let mut dense_b = vec![0.0f32; n];

@@ -41,7 +41,7 @@ pub struct RenderedView {
     pub opacity: Vec<f32>,
 }
 
-/// Renders `camera`'s view; `on_rows` is called with the number of rays finished so far.
+/// Renders `camera`'s view; `on_progress` is called with the number of rays finished so far.
 pub fn render_view(
     model: &Model,
     params: &[f32],
@@ -49,15 +49,68 @@ pub fn render_view(
     settings: &RenderSettings,
     on_progress: &(dyn Fn(usize) + Sync),
 ) -> RenderedView {
-    let RenderSettings {
-        near,
-        far,
-        background: bg,
-        chunk_rays,
-    } = *settings;
     let (w, h) = (camera.width, camera.height);
-    let mut out = vec![RayOutput::default(); w * h];
-    let chunk = chunk_rays.max(1);
+    let out = render_in_chunks(
+        model,
+        params,
+        settings,
+        w * h,
+        &|pixels, origins, dirs| {
+            for p in pixels {
+                let ray = camera.ray(p % w, p / w);
+                origins.extend_from_slice(&ray.origin);
+                dirs.extend_from_slice(&ray.dir);
+            }
+        },
+        on_progress,
+    );
+    RenderedView {
+        width: w,
+        height: h,
+        rgb: out.iter().flat_map(|o| o.rgb).collect(),
+        depth: out.iter().map(|o| o.depth).collect(),
+        opacity: out.iter().map(|o| o.opacity).collect(),
+    }
+}
+
+/// Renders arbitrary rays (packed `n x 3` origins and directions) with `settings`: the
+/// same per-chunk renderers as whole views.
+pub fn render_rays(
+    model: &Model,
+    params: &[f32],
+    origins: &[f32],
+    dirs: &[f32],
+    settings: &RenderSettings,
+) -> Vec<RayOutput> {
+    render_in_chunks(
+        model,
+        params,
+        settings,
+        origins.len() / 3,
+        &|r, o, d| {
+            o.extend_from_slice(&origins[r.start * 3..r.end * 3]);
+            d.extend_from_slice(&dirs[r.start * 3..r.end * 3]);
+        },
+        &|_| {},
+    )
+}
+
+/// Appends the packed origins and directions of a range of rays.
+type RaysOf<'a> = dyn Fn(std::ops::Range<usize>, &mut Vec<f32>, &mut Vec<f32>) + Sync + 'a;
+
+/// Renders `n` rays in chunks of `settings.chunk_rays` on the rayon threads. `rays_of`
+/// appends the origins and directions of a range of rays; `on_progress` gets the number of
+/// rays finished so far.
+fn render_in_chunks(
+    model: &Model,
+    params: &[f32],
+    settings: &RenderSettings,
+    n: usize,
+    rays_of: &RaysOf<'_>,
+    on_progress: &(dyn Fn(usize) + Sync),
+) -> Vec<RayOutput> {
+    let mut out = vec![RayOutput::default(); n];
+    let chunk = settings.chunk_rays.max(1);
     let done = std::sync::atomic::AtomicUsize::new(0);
     // Workspaces grow to ~100 MB for the paper's model; a small pool hands the same few to
     // whichever thread takes the next chunk instead of building one per rayon job.
@@ -71,62 +124,17 @@ pub fn render_view(
         s.origins.clear();
         s.dirs.clear();
         s.backgrounds.clear();
-        for p in c * chunk..c * chunk + out.len() {
-            let ray = camera.ray(p % w, p / w);
-            s.origins.extend_from_slice(&ray.origin);
-            s.dirs.extend_from_slice(&ray.dir);
-            s.backgrounds.extend_from_slice(&bg);
-        }
-        let rays = Rays {
-            origins: &s.origins,
-            dirs: &s.dirs,
-            backgrounds: &s.backgrounds,
-            near,
-            far,
-        };
-        render_any(model, params, &rays, (&mut s.ws, &mut s.march), out);
-        if let Ok(mut p) = pool.lock() {
-            p.push(s);
-        }
-        let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
-        on_progress(n);
-    });
-    RenderedView {
-        width: w,
-        height: h,
-        rgb: out.iter().flat_map(|o| o.rgb).collect(),
-        depth: out.iter().map(|o| o.depth).collect(),
-        opacity: out.iter().map(|o| o.opacity).collect(),
-    }
-}
-
-/// Renders arbitrary rays (packed `n x 3` origins and directions) between `near` and `far`
-/// over background `bg`: the same per-chunk renderers as whole views.
-pub fn render_rays(
-    model: &Model,
-    params: &[f32],
-    origins: &[f32],
-    dirs: &[f32],
-    settings: &RenderSettings,
-) -> Vec<RayOutput> {
-    let n = origins.len() / 3;
-    let chunk = settings.chunk_rays.max(1);
-    let mut out = vec![RayOutput::default(); n];
-    let pool = std::sync::Mutex::new(Vec::<Scratch>::new());
-    out.par_chunks_mut(chunk).enumerate().for_each(|(c, out)| {
-        let mut s = pool
-            .lock()
-            .ok()
-            .and_then(|mut p| p.pop())
-            .unwrap_or_default();
-        let r = c * chunk * 3..(c * chunk + out.len()) * 3;
-        s.backgrounds.clear();
+        rays_of(
+            c * chunk..c * chunk + out.len(),
+            &mut s.origins,
+            &mut s.dirs,
+        );
         for _ in 0..out.len() {
             s.backgrounds.extend_from_slice(&settings.background);
         }
         let rays = Rays {
-            origins: &origins[r.clone()],
-            dirs: &dirs[r],
+            origins: &s.origins,
+            dirs: &s.dirs,
             backgrounds: &s.backgrounds,
             near: settings.near,
             far: settings.far,
@@ -135,6 +143,8 @@ pub fn render_rays(
         if let Ok(mut p) = pool.lock() {
             p.push(s);
         }
+        let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
+        on_progress(n);
     });
     out
 }

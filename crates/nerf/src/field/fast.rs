@@ -191,6 +191,19 @@ impl FastField {
         }
     }
 
+    /// Densities at `positions` into `out`, in a workspace of the calling thread's own: for
+    /// callers that evaluate from many threads (occupancy refreshes, mesh grids).
+    pub fn density_into(&self, params: &[f32], positions: &[f32], out: &mut [f32]) {
+        thread_local! {
+            static WS: std::cell::RefCell<FastWorkspace> = std::cell::RefCell::default();
+        }
+        WS.with(|ws| {
+            let ws = &mut ws.borrow_mut();
+            self.density(params, positions, ws);
+            out.copy_from_slice(&ws.sigma[..out.len()]);
+        })
+    }
+
     /// Density and colour of `n` samples at `positions` seen along unit `dirs` (both packed
     /// `n x 3`), into `ws.sigma` and `ws.rgb`.
     pub fn forward(&self, params: &[f32], positions: &[f32], dirs: &[f32], ws: &mut FastWorkspace) {

@@ -130,28 +130,30 @@ impl Model {
         }
     }
 
-    /// Non-trainable state to checkpoint.
-    pub fn buffers(&self) -> Vec<Buffer> {
-        match self {
-            Model::Vanilla(_) => Vec::new(),
-            Model::Fast(m) => {
-                let r = m.grid.resolution;
-                vec![Buffer {
-                    name: OCCUPANCY.into(),
-                    shape: vec![r, r, r],
-                    values: m.grid.thickness.clone(),
-                }]
-            }
-        }
-    }
-
-    /// Names and shapes of [`buffers`](Self::buffers), for reading a checkpoint.
+    /// Names and shapes of the non-trainable state, in checkpoint order.
     pub fn buffer_layout(&self) -> ParamLayout {
         let mut l = ParamLayout::default();
-        for b in self.buffers() {
-            l.push(b.name, &b.shape);
+        if let Model::Fast(m) = self {
+            let r = m.grid.resolution;
+            l.push(OCCUPANCY, &[r, r, r]);
         }
         l
+    }
+
+    /// Non-trainable state to checkpoint, laid out by [`buffer_layout`](Self::buffer_layout).
+    pub fn buffers(&self) -> Vec<Buffer> {
+        self.buffer_layout()
+            .tensors
+            .into_iter()
+            .map(|t| Buffer {
+                values: match self {
+                    Model::Fast(m) => m.grid.thickness.clone(),
+                    Model::Vanilla(_) => Vec::new(),
+                },
+                name: t.name,
+                shape: t.shape,
+            })
+            .collect()
     }
 
     /// Restores state saved by [`buffers`](Self::buffers) (values in layout order).

@@ -5,7 +5,7 @@
 use rayon::prelude::*;
 
 use super::Model;
-use crate::field::{FastWorkspace, VanillaWorkspace};
+use crate::field::VanillaWorkspace;
 
 /// Points per work unit.
 const CHUNK: usize = 4096;
@@ -15,18 +15,13 @@ impl Model {
     pub fn density(&self, params: &[f32], positions: &[f32], out: &mut [f32]) {
         assert_eq!(positions.len(), out.len() * 3);
         thread_local! {
-            static FAST: std::cell::RefCell<FastWorkspace> = std::cell::RefCell::default();
             static VANILLA: std::cell::RefCell<VanillaWorkspace> =
                 std::cell::RefCell::default();
         }
         out.par_chunks_mut(CHUNK)
             .zip(positions.par_chunks(CHUNK * 3))
             .for_each(|(out, pos)| match self {
-                Model::Fast(m) => FAST.with(|ws| {
-                    let ws = &mut ws.borrow_mut();
-                    m.field.density(params, pos, ws);
-                    out.copy_from_slice(&ws.sigma[..out.len()]);
-                }),
+                Model::Fast(m) => m.field.density_into(params, pos, out),
                 Model::Vanilla(m) => VANILLA.with(|ws| {
                     let ws = &mut ws.borrow_mut();
                     let (coarse, fine) = m.split(params);

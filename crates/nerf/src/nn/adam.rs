@@ -1,6 +1,9 @@
 //! Adam (Kingma & Ba 2015) over a flat parameter vector.
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+
+use super::grads::{GradBuffer, SEGMENT};
 
 /// Adam hyper-parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -109,6 +112,69 @@ pub fn update_slices(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule)
         *m = if keep { *m } else { m_new };
         *v = if keep { *v } else { v_new };
         *p = if keep { *p } else { p_new };
+    }
+}
+
+/// How [`Adam::step_dirty`] treats the gradient it is given.
+#[derive(Clone, Copy, Debug)]
+pub struct DirtyStep {
+    /// Factor applied to every gradient value first.
+    pub scale: f32,
+    /// Parameters before this index update lazily (hash tables), the rest densely with
+    /// `weight_decay` (MLP weights).
+    pub lazy_end: usize,
+    pub weight_decay: f32,
+}
+
+impl Adam {
+    /// One update of the parameters whose blocks `grads` marks dirty, in parallel over
+    /// segments of the parameter vector; leaves `grads` zeroed and clean.
+    pub fn step_dirty(
+        &mut self,
+        params: &mut [f32],
+        grads: &mut GradBuffer,
+        lr: f32,
+        how: DirtyStep,
+    ) {
+        let step = self.begin_step(lr);
+        let config = self.config;
+        let DirtyStep {
+            scale,
+            lazy_end,
+            weight_decay,
+        } = how;
+        params
+            .par_chunks_mut(SEGMENT)
+            .zip(self.m.par_chunks_mut(SEGMENT))
+            .zip(self.v.par_chunks_mut(SEGMENT))
+            .zip(grads.segments_mut(SEGMENT).collect::<Vec<_>>())
+            .enumerate()
+            .for_each(|(k, (((p, m), v), mut g))| {
+                let base = k * SEGMENT;
+                g.drain_dirty(|r, grads| {
+                    grads.iter_mut().for_each(|g| *g *= scale);
+                    // Split the run where the lazy part ends.
+                    let split = lazy_end.clamp(base + r.start, base + r.end) - base;
+                    let lazy = Rule {
+                        lazy: true,
+                        weight_decay: 0.0,
+                    };
+                    let dense = Rule {
+                        lazy: false,
+                        weight_decay,
+                    };
+                    for (part, rule) in [(r.start..split, lazy), (split..r.end, dense)] {
+                        let o = part.start - r.start;
+                        let s = Slices {
+                            params: &mut p[part.clone()],
+                            grads: &grads[o..o + part.len()],
+                            m: &mut m[part.clone()],
+                            v: &mut v[part],
+                        };
+                        update_slices(&config, step, s, rule);
+                    }
+                });
+            });
     }
 }
 

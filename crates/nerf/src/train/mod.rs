@@ -20,10 +20,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{Background, Dataset};
 use crate::error::{NerfError, Result};
-use crate::field::FastWorkspace;
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig, VanillaModel};
-use crate::nn::adam::{update_slices, Adam, AdamConfig, Rule, Slices};
-use crate::nn::grads::{GradBuffer, SEGMENT};
+use crate::nn::adam::{Adam, AdamConfig, DirtyStep};
+use crate::nn::grads::GradBuffer;
 use crate::render::marched::{train_batch, MarchBatch, MarchWorkspace};
 use crate::render::pipeline::{train_chunk, ChunkLoss, ChunkWorkspace, Rays, Targets};
 use crate::rng::Rng;
@@ -358,72 +357,24 @@ impl Trainer {
         })
     }
 
-    /// Adam on the parameters the reduced gradient (in worker 0) touched, after scaling it by
+    /// Adam on the parameters the reduced gradient (in worker 0) touched, scaled by
     /// `scale`; clears the gradient. Hash-table entries update lazily, MLP weights densely
-    /// with weight decay. Runs in parallel over segments of the parameter vector.
+    /// with weight decay.
     fn apply_gradients(&mut self, lr: f32, scale: f32) {
-        let step = self.adam.begin_step(lr);
         let (lazy_end, weight_decay) = match &self.model {
             Model::Vanilla(_) => (0, 0.0),
             Model::Fast(m) => (m.field.mlp_range().start, m.config.weight_decay),
         };
-        let config = self.adam.config;
-        let Adam { m, v, .. } = &mut self.adam;
-        self.params
-            .par_chunks_mut(SEGMENT)
-            .zip(m.par_chunks_mut(SEGMENT))
-            .zip(v.par_chunks_mut(SEGMENT))
-            .zip(
-                self.workers[0]
-                    .grads
-                    .segments_mut(SEGMENT)
-                    .collect::<Vec<_>>(),
-            )
-            .enumerate()
-            .for_each(|(k, (((p, m), v), mut g))| {
-                let base = k * SEGMENT;
-                g.drain_dirty(|r, grads| {
-                    grads.iter_mut().for_each(|g| *g *= scale);
-                    // Split the run where the hash tables end and the MLP begins.
-                    let split = (lazy_end.clamp(base + r.start, base + r.end)) - base;
-                    for (part, rule) in [
-                        (
-                            r.start..split,
-                            Rule {
-                                lazy: true,
-                                weight_decay: 0.0,
-                            },
-                        ),
-                        (
-                            split..r.end,
-                            Rule {
-                                lazy: false,
-                                weight_decay,
-                            },
-                        ),
-                    ] {
-                        let o = part.start - r.start;
-                        update_slices(
-                            &config,
-                            step,
-                            Slices {
-                                params: &mut p[part.clone()],
-                                grads: &grads[o..o + part.len()],
-                                m: &mut m[part.clone()],
-                                v: &mut v[part],
-                            },
-                            rule,
-                        );
-                    }
-                });
-            });
-    }
-
-    /// Rays and field samples of the last step (the fast model's batch adapts its rays).
-    pub fn last_batch(&self) -> (usize, usize) {
-        self.workers
-            .iter()
-            .fold((0, 0), |(r, s), w| (r + w.rays, s + w.samples))
+        self.adam.step_dirty(
+            &mut self.params,
+            &mut self.workers[0].grads,
+            lr,
+            DirtyStep {
+                scale,
+                lazy_end,
+                weight_decay,
+            },
+        );
     }
 }
 
@@ -562,22 +513,13 @@ fn fast_pass(model: &FastModel, ctx: &PassContext, workers: &mut [Worker]) -> Pa
 
 /// Re-evaluates the occupancy grid with the current weights.
 fn refresh_occupancy(model: &mut FastModel, params: &[f32], step: u64, seed: u64) {
-    thread_local! {
-        static WS: std::cell::RefCell<FastWorkspace> = std::cell::RefCell::default();
-    }
     let dt = model.config.step_length();
     let FastModel {
         config,
         field,
         grid,
     } = model;
-    let density = |points: &[f32], out: &mut [f32]| {
-        WS.with(|ws| {
-            let ws = &mut ws.borrow_mut();
-            field.density(params, points, ws);
-            out.copy_from_slice(&ws.sigma[..out.len()]);
-        })
-    };
+    let density = |points: &[f32], out: &mut [f32]| field.density_into(params, points, out);
     grid.update(&config.occupancy, step, seed, dt, &density);
 }
 
