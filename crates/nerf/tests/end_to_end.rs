@@ -3,23 +3,13 @@
 
 use std::path::Path;
 
-use nerf::data::synth::{self, SceneKind, SynthOptions};
+mod common;
+use common::small_scene;
+
+use nerf::data::synth::{self, SynthOptions};
 use nerf::data::Split;
 use nerf::train::run::{self, LoadedRun, RunOptions, StopReason};
 use nerf::train::{TrainConfig, Trainer};
-
-fn small_scene(dir: &Path, size: usize) {
-    let opts = SynthOptions {
-        scene: SceneKind::Chair,
-        size,
-        train_views: 40,
-        val_views: 1,
-        test_views: 4,
-        supersample: 2,
-        seed: 1,
-    };
-    synth::generate(&opts, dir, &mut |_, _| {}).expect("synth");
-}
 
 fn demo_config(data: &Path, steps: u64) -> TrainConfig {
     let mut c = TrainConfig::from_preset(data.to_path_buf(), "demo").expect("preset");

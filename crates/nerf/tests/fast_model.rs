@@ -4,43 +4,13 @@
 
 use std::path::Path;
 
-use nerf::data::synth::{self, SceneKind, SynthOptions};
+mod common;
+use common::{fast_config, small_scene};
+
 use nerf::data::Split;
-use nerf::model::{Model, ModelConfig};
+use nerf::model::Model;
 use nerf::train::run::{self, LoadedRun, RunOptions, StopReason};
 use nerf::train::TrainConfig;
-
-fn small_scene(dir: &Path, size: usize) {
-    let opts = SynthOptions {
-        scene: SceneKind::Chair,
-        size,
-        train_views: 40,
-        val_views: 1,
-        test_views: 4,
-        supersample: 2,
-        seed: 1,
-    };
-    synth::generate(&opts, dir, &mut |_, _| {}).expect("synth");
-}
-
-/// The fast defaults, shrunk for a test: smaller tables and batches.
-fn fast_config(data: &Path, steps: u64) -> TrainConfig {
-    let mut c = TrainConfig::fast(data.to_path_buf());
-    if let ModelConfig::Fast(m) = &mut c.model {
-        m.field.grid.log2_table_size = 15;
-        m.samples_per_step = 1 << 13;
-        m.batch_samples = 1 << 12;
-        m.occupancy.resolution = 64;
-        m.occupancy.warmup_steps = 64;
-        // 48-pixel images need no finer steps than this; more rays per step instead.
-        m.steps_per_diagonal = 256.0;
-    }
-    c.steps = steps;
-    c.val_every = 0;
-    c.checkpoint_every = 0;
-    c.chunk_rays = 256;
-    c
-}
 
 fn options(out: &Path, config: TrainConfig, resume: bool, pause_at: Option<u64>) -> RunOptions {
     RunOptions {

@@ -1,16 +1,14 @@
 //! Meshes users take away: files other tools can read, and a trained chair whose mesh has
 //! the chair's real size.
 
-use std::path::Path;
+mod common;
 
-use nerf::data::synth::{self, SceneKind, SynthOptions};
+use nerf::data::synth::{self, SceneKind};
 use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
 use nerf::mesh::marching_cubes::{marching_cubes, Grid};
 use nerf::mesh::Mesh;
-use nerf::model::ModelConfig;
 use nerf::train::run::{self, LoadedRun, RunOptions};
-use nerf::train::TrainConfig;
 
 fn sphere_mesh() -> Mesh {
     let n = 24;
@@ -113,35 +111,12 @@ fn written_meshes_read_back_with_independent_readers() {
     assert!(err.to_string().contains("m.stl"), "{err}");
 }
 
-fn chair(dir: &Path, size: usize) {
-    let opts = SynthOptions {
-        scene: SceneKind::Chair,
-        size,
-        train_views: 60,
-        val_views: 1,
-        test_views: 1,
-        supersample: 2,
-        seed: 3,
-    };
-    synth::generate(&opts, dir, &mut |_, _| {}).expect("synth");
-}
-
 #[test]
 fn mesh_of_a_trained_chair_has_the_chairs_size() {
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("chair");
-    chair(&data, 64);
-    let mut config = TrainConfig::fast(data.clone());
-    if let ModelConfig::Fast(m) = &mut config.model {
-        m.field.grid.log2_table_size = 15;
-        m.samples_per_step = 1 << 13;
-        m.occupancy.resolution = 64;
-        m.occupancy.warmup_steps = 64;
-        m.steps_per_diagonal = 256.0;
-    }
-    config.steps = 600;
-    config.val_every = 0;
-    config.checkpoint_every = 0;
+    common::chair_scene(&data, 64, 60, 1, 3);
+    let config = common::fast_config(&data, 600);
     let out = dir.path().join("run");
     let opts = RunOptions {
         out: out.clone(),

@@ -1,0 +1,47 @@
+//! Scenes and configurations the integration tests share.
+#![allow(dead_code)] // each test crate uses its own subset
+
+use std::path::Path;
+
+use nerf::data::synth::{self, SceneKind, SynthOptions};
+use nerf::model::ModelConfig;
+use nerf::train::TrainConfig;
+
+/// The built-in chair (`size` pixels, one val view), rendered into `dir`.
+pub fn chair_scene(dir: &Path, size: usize, train_views: usize, test_views: usize, seed: u64) {
+    let opts = SynthOptions {
+        scene: SceneKind::Chair,
+        size,
+        train_views,
+        val_views: 1,
+        test_views,
+        supersample: 2,
+        seed,
+    };
+    synth::generate(&opts, dir, &mut |_, _| {}).expect("synth");
+}
+
+/// The small chair most tests train on: 40 training views, 4 test views.
+pub fn small_scene(dir: &Path, size: usize) {
+    chair_scene(dir, size, 40, 4, 1);
+}
+
+/// The fast defaults, shrunk for a test: smaller tables and batches, no validation or
+/// intermediate checkpoints.
+pub fn fast_config(data: &Path, steps: u64) -> TrainConfig {
+    let mut c = TrainConfig::fast(data.to_path_buf());
+    if let ModelConfig::Fast(m) = &mut c.model {
+        m.field.grid.log2_table_size = 15;
+        m.samples_per_step = 1 << 13;
+        m.batch_samples = 1 << 12;
+        m.occupancy.resolution = 64;
+        m.occupancy.warmup_steps = 64;
+        // Images of a few dozen pixels need no finer steps than this; more rays instead.
+        m.steps_per_diagonal = 256.0;
+    }
+    c.steps = steps;
+    c.val_every = 0;
+    c.checkpoint_every = 0;
+    c.chunk_rays = 256;
+    c
+}
