@@ -21,6 +21,27 @@ fn ok(out: &Output) -> String {
     text
 }
 
+/// `nerf points` on the run in `d/run`, using every `every`-th of its training views, which
+/// must make two views.
+fn points_from_two_views(d: &Path, every: &str, min_opacity: &str) {
+    let args = [
+        "points",
+        "--run",
+        "run",
+        "--out",
+        "p.ply",
+        "--every",
+        every,
+        "--min-opacity",
+        min_opacity,
+    ];
+    let text = ok(&nerf(&args, d));
+    assert!(
+        text.contains("points from 2 views") && d.join("p.ply").exists(),
+        "{text}"
+    );
+}
+
 #[test]
 fn synth_train_eval_render() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -146,24 +167,7 @@ fn synth_train_eval_render() {
         text.contains("triangles") && d.join("m.glb").exists(),
         "{text}"
     );
-    let text = ok(&nerf(
-        &[
-            "points",
-            "--run",
-            "run",
-            "--out",
-            "p.ply",
-            "--every",
-            "5",
-            "--min-opacity",
-            "0.01",
-        ],
-        d,
-    ));
-    assert!(
-        text.contains("points from 2 views") && d.join("p.ply").exists(),
-        "{text}"
-    );
+    points_from_two_views(d, "5", "0.01");
 }
 
 #[test]
@@ -325,24 +329,7 @@ fn fast_model_through_the_same_commands() {
         !out.status.success() && err.contains("lower --threshold"),
         "{err}"
     );
-    let text = ok(&nerf(
-        &[
-            "points",
-            "--run",
-            "run",
-            "--out",
-            "p.ply",
-            "--every",
-            "4",
-            "--min-opacity",
-            "0.5",
-        ],
-        d,
-    ));
-    assert!(
-        text.contains("points from 2 views") && d.join("p.ply").exists(),
-        "{text}"
-    );
+    points_from_two_views(d, "4", "0.5");
 
     let out = nerf(
         &[
