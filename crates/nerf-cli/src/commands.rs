@@ -5,6 +5,7 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
+use nerf::camera::{Camera, Pose};
 use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::data::{blender, image::save_rgb_png, Background, Split};
 use nerf::model::ModelConfig;
@@ -507,25 +508,11 @@ pub fn render(a: RenderArgs) -> Result<()> {
 
 fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
     let cfg = &run.config;
-    let train_json = blender::load_transforms(&cfg.data, Split::Train)?;
-    let cameras: Vec<nerf::camera::Camera> = match a.path {
+    let cameras: Vec<Camera> = match a.path {
         PathArg::Test => {
             let t = blender::load_transforms(&cfg.data, Split::Test)?;
             let size = image_size(&cfg.data, &t, cfg.downscale)?;
-            t.frames
-                .iter()
-                .enumerate()
-                .map(|(k, f)| {
-                    let pose = blender::parse_pose(&f.transform_matrix)
-                        .map_err(|m| anyhow::anyhow!("test frame {k}: {m}"))?;
-                    Ok(nerf::camera::Camera::from_fov_x(
-                        size.0,
-                        size.1,
-                        t.camera_angle_x,
-                        pose,
-                    ))
-                })
-                .collect::<Result<_>>()?
+            cameras_at(size, &t, poses(&t, "test")?)
         }
         PathArg::File => {
             let file = a
@@ -535,38 +522,20 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
             nerf::camera_path::load_camera_path(file, a.size)?
         }
         PathArg::Orbit | PathArg::Spiral | PathArg::Interpolate => {
+            let t = blender::load_transforms(&cfg.data, Split::Train)?;
             let size = match a.size {
                 Some(s) => (s, s),
-                None => image_size(&cfg.data, &train_json, cfg.downscale)?,
-            };
-            let train_poses = || -> Result<Vec<nerf::camera::Pose>> {
-                train_json
-                    .frames
-                    .iter()
-                    .enumerate()
-                    .map(|(k, f)| {
-                        blender::parse_pose(&f.transform_matrix)
-                            .map_err(|m| anyhow::anyhow!("training frame {k}: {m}"))
-                    })
-                    .collect()
+                None => image_size(&cfg.data, &t, cfg.downscale)?,
             };
             let frames = a.frames.max(1);
-            let poses = match a.path {
-                PathArg::Spiral => nerf::camera_path::spiral(&train_poses()?, frames, 2.0),
-                PathArg::Interpolate => nerf::camera_path::interpolate(&train_poses()?, 8, frames),
+            let path = match a.path {
+                PathArg::Spiral => nerf::camera_path::spiral(&poses(&t, "training")?, frames, 2.0),
+                PathArg::Interpolate => {
+                    nerf::camera_path::interpolate(&poses(&t, "training")?, 8, frames)
+                }
                 _ => nerf::camera::orbit(frames, a.radius, a.elevation.to_radians()),
             };
-            poses
-                .into_iter()
-                .map(|pose| {
-                    nerf::camera::Camera::from_fov_x(
-                        size.0,
-                        size.1,
-                        train_json.camera_angle_x,
-                        pose,
-                    )
-                })
-                .collect()
+            cameras_at(size, &t, path)
         }
     };
     let video = a
@@ -659,6 +628,26 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
         out.display()
     );
     Ok(())
+}
+
+/// The camera-to-world poses of a split's frames; errors name the frame.
+fn poses(t: &blender::Transforms, split: &str) -> Result<Vec<Pose>> {
+    t.frames
+        .iter()
+        .enumerate()
+        .map(|(k, f)| {
+            blender::parse_pose(&f.transform_matrix)
+                .map_err(|m| anyhow::anyhow!("{split} frame {k}: {m}"))
+        })
+        .collect()
+}
+
+/// Cameras of `size` with the scene's field of view at `poses`.
+fn cameras_at(size: (usize, usize), t: &blender::Transforms, poses: Vec<Pose>) -> Vec<Camera> {
+    poses
+        .into_iter()
+        .map(|pose| Camera::from_fov_x(size.0, size.1, t.camera_angle_x, pose))
+        .collect()
 }
 
 /// Size of the scene's images after downscaling, read from the first training image header.
