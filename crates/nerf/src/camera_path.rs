@@ -11,7 +11,7 @@ use serde::Deserialize;
 
 use crate::camera::{look_at, Camera, Pose};
 use crate::error::{NerfError, Result};
-use crate::math::{add, cross, length, normalize_or_zero, scale, sub, V3};
+use crate::math::{add, cross, normalize_or_zero, scale, sub, V3};
 
 fn column(p: &Pose, c: usize) -> V3 {
     [p[0][c], p[1][c], p[2][c]]
@@ -238,18 +238,19 @@ pub fn load_camera_path(path: &Path, size: Option<usize>) -> Result<Vec<Camera>>
         .collect()
 }
 
-/// Distance between consecutive positions of a path, at most (for tests and sanity checks).
-pub fn largest_step(poses: &[Pose]) -> f32 {
-    poses
-        .windows(2)
-        .map(|w| length(sub(column(&w[1], 3), column(&w[0], 3))))
-        .fold(0.0, f32::max)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::camera::orbit;
+    use crate::math::length;
+
+    /// The largest distance between consecutive positions of a path.
+    fn largest_step(poses: &[Pose]) -> f32 {
+        poses
+            .windows(2)
+            .map(|w| length(sub(column(&w[1], 3), column(&w[0], 3))))
+            .fold(0.0, f32::max)
+    }
 
     #[test]
     fn quaternions_round_trip_rotations() {

@@ -144,11 +144,13 @@ impl GradBuffer {
         self.dirty[range.start / BLOCK..=last].fill(true);
     }
 
+    #[cfg(test)]
     pub fn is_dirty(&self, i: usize) -> bool {
         self.dirty[i / BLOCK]
     }
 
     /// Value ranges of the dirty blocks, in order.
+    #[cfg(test)]
     pub fn dirty_ranges(&self) -> impl Iterator<Item = std::ops::Range<usize>> + '_ {
         let n = self.values.len();
         self.dirty
