@@ -7,9 +7,9 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use nerf::camera::{Camera, Pose};
 use nerf::data::synth::{self, SceneKind, SynthOptions};
+use nerf::data::scene::{Convention, Format, SceneOptions};
 use nerf::data::{blender, image::save_rgb_png, Background, Split};
 use nerf::model::ModelConfig;
-use nerf::renderer::RenderSettings;
 use nerf::train::run::{self, Event, LoadedRun, RunOptions, StopReason};
 use nerf::train::TrainConfig;
 
@@ -95,9 +95,17 @@ pub enum BackgroundArg {
 
 #[derive(Args)]
 pub struct TrainArgs {
-    /// Scene folder in Blender format (transforms_train.json, ...).
+    /// Scene folder: Blender (transforms_train.json), instant-ngp / nerfstudio
+    /// (transforms.json), LLFF (poses_bounds.npy + images/) or COLMAP (sparse/0 + images/).
     #[arg(long)]
     data: PathBuf,
+    #[command(flatten)]
+    scene: SceneArgs,
+    /// Fast: half-extent of the scene box [-B, B]^3 the hash grid covers, in scene units
+    /// after the format's placement. Default: from the scene (Blender 1.5, NDC 1,
+    /// instant-ngp aabb_scale / 2, COLMAP from its points).
+    #[arg(long)]
+    bound: Option<f32>,
     /// Run folder (config.json, checkpoint, metrics.jsonl, val/). Default: runs/<scene>-<preset>.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -161,6 +169,64 @@ pub struct TrainArgs {
     /// spans --steps); continue later with --resume.
     #[arg(long)]
     pause_at: Option<u64>,
+}
+
+/// How to read real captures.
+#[derive(Args, Clone)]
+pub struct SceneArgs {
+    /// Read the scene as this format instead of detecting it.
+    #[arg(long, value_enum)]
+    format: Option<FormatArg>,
+    /// LLFF: the capture circles the object (inward-facing 360); train in world space
+    /// centred on what the cameras look at, not in NDC.
+    #[arg(long)]
+    spherify: bool,
+    /// LLFF: train a forward-facing scene in world space instead of NDC.
+    #[arg(long, conflicts_with = "spherify")]
+    no_ndc: bool,
+    /// Real captures: hold out every N-th image for testing (the paper's LLFF setting: 8).
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u64).range(2..))]
+    holdout: u64,
+    /// transforms.json: whose world placement to follow (auto: instant-ngp when the file
+    /// has aabb_scale, scale or offset, else nerfstudio).
+    #[arg(long, value_enum, default_value = "auto")]
+    convention: ConventionArg,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum FormatArg {
+    Blender,
+    Transforms,
+    Llff,
+    Colmap,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum ConventionArg {
+    Auto,
+    Ngp,
+    Nerfstudio,
+}
+
+impl SceneArgs {
+    pub fn options(&self) -> SceneOptions {
+        SceneOptions {
+            format: self.format.map(|f| match f {
+                FormatArg::Blender => Format::Blender,
+                FormatArg::Transforms => Format::Transforms,
+                FormatArg::Llff => Format::Llff,
+                FormatArg::Colmap => Format::Colmap,
+            }),
+            spherify: self.spherify,
+            ndc: self.no_ndc.then_some(false),
+            holdout: self.holdout as usize,
+            convention: match self.convention {
+                ConventionArg::Auto => Convention::Auto,
+                ConventionArg::Ngp => Convention::Ngp,
+                ConventionArg::Nerfstudio => Convention::Nerfstudio,
+            },
+        }
+    }
 }
 
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -231,6 +297,15 @@ impl TrainArgs {
             };
         }
         c.downscale = self.downscale;
+        c.scene = self.scene.options();
+        let scene = c.open_scene(1)?;
+        match &mut c.model {
+            ModelConfig::Fast(m) => m.field.bound = self.bound.unwrap_or(scene.bound),
+            ModelConfig::Vanilla(_) if self.bound.is_some() => {
+                bail!("--bound applies to --model fast only")
+            }
+            ModelConfig::Vanilla(_) => {}
+        }
         c.precrop_steps = self.precrop_steps.unwrap_or(c.precrop_steps);
         c.seed = self.seed;
         c.val_every = self.val_every.unwrap_or(c.val_every);
@@ -452,11 +527,13 @@ pub struct RenderArgs {
     /// Orbit elevation in degrees.
     #[arg(long, default_value_t = 30.0)]
     elevation: f32,
-    /// Orbit radius (scene units).
-    #[arg(long, default_value_t = 4.0)]
-    radius: f32,
-    /// Output size: square for generated paths, the height for --path file (default: the
-    /// training resolution, or the file's).
+    /// Orbit radius in scene units (default: the training cameras' mean distance from the
+    /// scene centre).
+    #[arg(long)]
+    radius: Option<f32>,
+    /// Output size: the width for generated paths (the height keeps the scene's aspect
+    /// ratio), the height for --path file (default: the training resolution, or the
+    /// file's).
     #[arg(long)]
     size: Option<usize>,
     /// Output folder for the PNG frames (RGB, turbo depth, opacity). Default:
@@ -508,12 +585,9 @@ pub fn render(a: RenderArgs) -> Result<()> {
 
 fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
     let cfg = &run.config;
+    let scene = cfg.open_scene(1)?;
     let cameras: Vec<Camera> = match a.path {
-        PathArg::Test => {
-            let t = blender::load_transforms(&cfg.data, Split::Test)?;
-            let size = image_size(&cfg.data, &t, cfg.downscale)?;
-            cameras_at(size, &t, poses(&t, "test")?)
-        }
+        PathArg::Test => scene.cameras(Split::Test),
         PathArg::File => {
             let file = a
                 .camera_path
@@ -522,20 +596,30 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
             nerf::camera_path::load_camera_path(file, a.size)?
         }
         PathArg::Orbit | PathArg::Spiral | PathArg::Interpolate => {
-            let t = blender::load_transforms(&cfg.data, Split::Train)?;
-            let size = match a.size {
-                Some(s) => (s, s),
-                None => image_size(&cfg.data, &t, cfg.downscale)?,
-            };
+            let train = scene.cameras(Split::Train);
+            let reference = train.first().context("the scene has no training views")?;
+            let poses: Vec<Pose> = train.iter().map(|c| c.c2w).collect();
             let frames = a.frames.max(1);
             let path = match a.path {
-                PathArg::Spiral => nerf::camera_path::spiral(&poses(&t, "training")?, frames, 2.0),
-                PathArg::Interpolate => {
-                    nerf::camera_path::interpolate(&poses(&t, "training")?, 8, frames)
+                PathArg::Spiral => nerf::camera_path::spiral(&poses, frames, 2.0),
+                PathArg::Interpolate => nerf::camera_path::interpolate(&poses, 8, frames),
+                _ => {
+                    let mean_distance = poses
+                        .iter()
+                        .map(|p| nerf::math::length([p[0][3], p[1][3], p[2][3]]))
+                        .sum::<f32>()
+                        / poses.len() as f32;
+                    let radius = a.radius.unwrap_or(mean_distance);
+                    nerf::camera::orbit(frames, radius, a.elevation.to_radians())
                 }
-                _ => nerf::camera::orbit(frames, a.radius, a.elevation.to_radians()),
             };
-            cameras_at(size, &t, path)
+            let template = match a.size {
+                Some(width) => resized(reference, width),
+                None => reference.clone(),
+            };
+            path.into_iter()
+                .map(|c2w| Camera { c2w, ..template.clone() })
+                .collect()
         }
     };
     let video = a
@@ -560,12 +644,7 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
         })
         .transpose()?;
     nerf::io::create_dir(out)?;
-    let settings = RenderSettings {
-        near: blender::NEAR,
-        far: blender::FAR,
-        background: cfg.background.eval_colour(),
-        chunk_rays: cfg.chunk_rays,
-    };
+    let settings = scene.render_settings(cfg.background.eval_colour(), cfg.chunk_rays);
     let rays: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let pb = bar(rays as u64, "render rays");
     let t0 = Instant::now();
@@ -591,7 +670,7 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
         )?;
         let (near, far) = *depth_range.get_or_insert_with(|| {
             nerf::video::auto_depth_range(&r.depth, &r.opacity)
-                .unwrap_or((blender::NEAR, blender::FAR))
+                .unwrap_or((settings.near, settings.far))
         });
         save_rgb_png(
             &out.join(format!("frame_{k:04}_depth.png")),
@@ -630,38 +709,20 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
     Ok(())
 }
 
-/// The camera-to-world poses of a split's frames; errors name the frame.
-fn poses(t: &blender::Transforms, split: &str) -> Result<Vec<Pose>> {
-    t.frames
-        .iter()
-        .enumerate()
-        .map(|(k, f)| {
-            blender::parse_pose(&f.transform_matrix)
-                .map_err(|m| anyhow::anyhow!("{split} frame {k}: {m}"))
-        })
-        .collect()
-}
-
-/// Cameras of `size` with the scene's field of view at `poses`.
-fn cameras_at(size: (usize, usize), t: &blender::Transforms, poses: Vec<Pose>) -> Vec<Camera> {
-    poses
-        .into_iter()
-        .map(|pose| Camera::from_fov_x(size.0, size.1, t.camera_angle_x, pose))
-        .collect()
-}
-
-/// Size of the scene's images after downscaling, read from the first training image header.
-fn image_size(data: &Path, t: &blender::Transforms, downscale: usize) -> Result<(usize, usize)> {
-    let first = t.frames.first().context("the scene lists no frames")?;
-    let path = blender::image_path(data, &first.file_path);
-    let (w, h) = image_dimensions(&path)?;
-    let d = downscale.max(1);
-    Ok((w / d, h / d))
-}
-
-fn image_dimensions(path: &Path) -> Result<(usize, usize)> {
-    let img = nerf::data::RgbaImage::load(path)?;
-    Ok((img.width, img.height))
+/// `camera`'s pinhole view (no lens distortion: rendered views are ideal) at `width`
+/// pixels across, keeping its field of view and aspect ratio.
+fn resized(camera: &Camera, width: usize) -> Camera {
+    let s = width as f32 / camera.width as f32;
+    Camera {
+        width,
+        height: ((camera.height as f32 * s).round() as usize).max(1),
+        fx: camera.fx * s,
+        fy: camera.fy * s,
+        cx: camera.cx * s,
+        cy: camera.cy * s,
+        c2w: camera.c2w,
+        distortion: Default::default(),
+    }
 }
 
 #[derive(Args)]
@@ -731,7 +792,7 @@ pub fn demo(a: DemoArgs) -> Result<()> {
         path: PathArg::Orbit,
         frames: 36,
         elevation: 30.0,
-        radius: 4.0,
+        radius: Some(4.0),
         camera_path: None,
         size: None,
         out: None,

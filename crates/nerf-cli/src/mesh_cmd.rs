@@ -128,19 +128,13 @@ pub fn points(a: PointsArgs) -> Result<()> {
     }
     let run = LoadedRun::open(&a.run)?;
     let config = &run.config;
-    let data = nerf::data::blender::load_every(
-        &config.data,
-        nerf::data::Split::Train,
-        config.downscale * a.downscale,
-        a.every,
-    )?;
-    let cameras: Vec<_> = data.views.iter().map(|v| v.camera.clone()).collect();
-    let settings = nerf::renderer::RenderSettings {
-        near: data.near,
-        far: data.far,
-        background: config.background.eval_colour(),
-        chunk_rays: config.chunk_rays,
-    };
+    let scene = config.open_scene(a.downscale)?;
+    let cameras: Vec<_> = scene
+        .cameras(nerf::data::Split::Train)
+        .into_iter()
+        .step_by(a.every)
+        .collect();
+    let settings = scene.render_settings(config.background.eval_colour(), config.chunk_rays);
     let t0 = Instant::now();
     let pb = bar(cameras.len() as u64, "views");
     let (points, colours) = nerf::mesh::points::from_views(

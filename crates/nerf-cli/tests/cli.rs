@@ -176,7 +176,15 @@ fn errors_name_the_file_and_exit_non_zero() {
     let out = nerf(&["train", "--data", "nowhere", "--steps", "1"], dir.path());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success());
-    assert!(err.contains("nowhere/transforms_train.json"), "{err}");
+    assert!(err.contains("nowhere: is not a folder"), "{err}");
+    std::fs::create_dir(dir.path().join("empty")).expect("mkdir");
+    let out = nerf(&["train", "--data", "empty", "--steps", "1"], dir.path());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("empty: holds no scene") && err.contains("nerf capture"),
+        "{err}"
+    );
     let out = nerf(&["eval", "--run", "norun"], dir.path());
     assert!(
         !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("norun/config.json")

@@ -175,6 +175,7 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
         far: 6.0,
         background: [1.0; 3],
         chunk_rays: trainer.config.chunk_rays,
+        space: Default::default(),
     };
     let t = Instant::now();
     crate::renderer::render_view(&trainer.model, &trainer.params, &band, &settings, &|_| {});

@@ -17,7 +17,7 @@ use crate::data::synth::{self, SceneKind, SynthOptions};
 use crate::data::{blender, Split};
 use crate::error::Result;
 use crate::model::{FastModelConfig, ModelConfig};
-use crate::renderer::{render_view, RenderSettings};
+use crate::renderer::render_view;
 use crate::train::{TrainConfig, Trainer};
 
 #[derive(Clone, Debug)]
@@ -95,7 +95,6 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     let mut config = TrainConfig::fast("(in memory)".into());
     config.model = ModelConfig::Fast(opts.model.clone());
     config.steps = opts.warmup_steps + opts.steps as u64;
-    let (near, far) = (data.near, data.far);
     let mut trainer = Trainer::new(config, data)?;
     say(format!(
         "training {} warm-up steps so the occupancy grid takes shape...",
@@ -134,12 +133,9 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         "rendering a {}x{} view...",
         camera.width, camera.height
     ));
-    let settings = RenderSettings {
-        near,
-        far,
-        background: [1.0; 3],
-        chunk_rays: trainer.config.chunk_rays,
-    };
+    let settings = trainer
+        .data
+        .render_settings([1.0; 3], trainer.config.chunk_rays);
     let t = Instant::now();
     render_view(&trainer.model, &trainer.params, &camera, &settings, &|_| {});
     let render_s = t.elapsed().as_secs_f64();

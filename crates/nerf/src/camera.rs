@@ -3,8 +3,10 @@
 //! A pose is camera-to-world: the camera looks down its own -Z axis, +Y is up, +X right.
 //! Pixel (i, j) (column, row) has camera-space direction
 //! `((i + 0.5 - cx) / fx, -(j + 0.5 - cy) / fy, -1)`, rotated into the world by the pose.
+//! Real lenses are undistorted first (see [`crate::distortion`]).
 //! Directions are *not* normalised, so the marching parameter `t` is depth along -Z.
 
+use crate::distortion::Distortion;
 use crate::math::{cross, normalize_or_zero, scale, sub, V3};
 
 /// Camera-to-world transform: rotation columns are the camera's X, Y, Z axes in the world.
@@ -20,6 +22,8 @@ pub struct Camera {
     pub cx: f32,
     pub cy: f32,
     pub c2w: Pose,
+    /// Lens distortion of the image (none for synthetic scenes).
+    pub distortion: Distortion,
 }
 
 /// A ray `o + t d`, with `d` unnormalised (see the module docs).
@@ -42,6 +46,7 @@ impl Camera {
             cx: 0.5 * width as f32,
             cy: 0.5 * height as f32,
             c2w,
+            distortion: Distortion::default(),
         }
     }
 
@@ -56,6 +61,7 @@ impl Camera {
             cx: self.cx * s,
             cy: self.cy * s,
             c2w: self.c2w,
+            distortion: self.distortion,
         }
     }
 
@@ -72,7 +78,10 @@ impl Camera {
     /// The ray through the continuous image point (x, y), in pixels from the top-left corner.
     #[inline]
     pub fn ray_at(&self, x: f32, y: f32) -> Ray {
-        let d_cam = [(x - self.cx) / self.fx, -(y - self.cy) / self.fy, -1.0];
+        let (u, v) = self
+            .distortion
+            .undistort((x - self.cx) / self.fx, (y - self.cy) / self.fy);
+        let d_cam = [u, -v, -1.0];
         let m = &self.c2w;
         let dir = [
             m[0][0] * d_cam[0] + m[0][1] * d_cam[1] + m[0][2] * d_cam[2],

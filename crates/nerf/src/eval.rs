@@ -117,15 +117,10 @@ pub fn evaluate(
 ) -> Result<EvalReport> {
     let cfg = &run.config;
     let every = every.max(1);
-    let data = crate::data::blender::load_every(&cfg.data, split, cfg.downscale, every)?;
+    let data = cfg.open_scene(1)?.load(split, every)?;
     crate::io::create_dir(out_dir)?;
     let bg = cfg.background.eval_colour();
-    let settings = crate::renderer::RenderSettings {
-        near: data.near,
-        far: data.far,
-        background: bg,
-        chunk_rays: cfg.chunk_rays,
-    };
+    let settings = data.render_settings(bg, cfg.chunk_rays);
     let (width, height) = data.image_size();
     let total_rays = data.views.len() * width * height;
     let mut views = Vec::new();

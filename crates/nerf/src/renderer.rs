@@ -7,17 +7,21 @@ use rayon::prelude::*;
 
 use crate::camera::Camera;
 use crate::model::Model;
+use crate::ray_space::RaySpace;
 use crate::render::marched::{self, MarchWorkspace};
 use crate::render::pipeline::{render_chunk, ChunkWorkspace, Rays};
 use crate::render::volume::RayOutput;
 
-/// How to render: marching bounds, background colour, rays per work unit.
+/// How to render: marching bounds, background colour, rays per work unit, and the space
+/// rays are marched in (world rays are warped into it, e.g. NDC for LLFF scenes).
 #[derive(Clone, Copy, Debug)]
 pub struct RenderSettings {
+    /// Bounds in ray space (see `Dataset::near`).
     pub near: f32,
     pub far: f32,
     pub background: [f32; 3],
     pub chunk_rays: usize,
+    pub space: RaySpace,
 }
 
 #[derive(Default)]
@@ -73,8 +77,8 @@ pub fn render_view(
     }
 }
 
-/// Renders arbitrary rays (packed `n x 3` origins and directions) with `settings`: the
-/// same per-chunk renderers as whole views.
+/// Renders arbitrary world rays (packed `n x 3` origins and directions) with `settings`:
+/// the same per-chunk renderers as whole views.
 pub fn render_rays(
     model: &Model,
     params: &[f32],
@@ -129,6 +133,13 @@ fn render_in_chunks(
             &mut s.origins,
             &mut s.dirs,
         );
+        if settings.space != RaySpace::World {
+            for (o, d) in s.origins.chunks_exact_mut(3).zip(s.dirs.chunks_exact_mut(3)) {
+                let (o2, d2) = settings.space.warp([o[0], o[1], o[2]], [d[0], d[1], d[2]]);
+                o.copy_from_slice(&o2);
+                d.copy_from_slice(&d2);
+            }
+        }
         for _ in 0..out.len() {
             s.backgrounds.extend_from_slice(&settings.background);
         }

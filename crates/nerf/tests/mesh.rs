@@ -159,12 +159,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
     let data_views =
         nerf::data::blender::load_every(&data, nerf::data::Split::Train, 2, 15).expect("views");
     let cameras: Vec<_> = data_views.views.iter().map(|v| v.camera.clone()).collect();
-    let settings = nerf::renderer::RenderSettings {
-        near: 2.0,
-        far: 6.0,
-        background: [1.0; 3],
-        chunk_rays: 256,
-    };
+    let settings = data_views.render_settings([1.0; 3], 256);
     let (points, point_colours) = nerf::mesh::points::from_views(
         &run.model,
         &run.params,

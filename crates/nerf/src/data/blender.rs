@@ -9,12 +9,13 @@
 
 use std::path::{Path, PathBuf};
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use super::{Dataset, RgbaImage, Split, View};
+use super::scene::{Format, Frame as SceneFrame, Parsed, Scene, SceneOptions};
+use super::{Dataset, Split};
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
+use crate::ray_space::RaySpace;
 
 /// The JSON document of one split.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -35,6 +36,8 @@ pub struct Frame {
 /// Near and far bounds of the Blender scenes.
 pub const NEAR: f32 = 2.0;
 pub const FAR: f32 = 6.0;
+/// Half-extent of the box that holds every Blender scene.
+pub const BOUND: f32 = 1.5;
 
 /// Path of the JSON file of `split` in `dir`.
 pub fn transforms_path(dir: &Path, split: Split) -> PathBuf {
@@ -49,65 +52,63 @@ pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
 /// Loads frames `0, every, 2 every, ...` of one split (quick evaluations, validation views),
 /// reading only their images.
 pub fn load_every(dir: &Path, split: Split, downscale: usize, every: usize) -> Result<Dataset> {
-    let json_path = transforms_path(dir, split);
-    let transforms = load_transforms(dir, split)?;
-    if transforms.frames.is_empty() {
-        return Err(NerfError::format(&json_path, "lists no frames"));
-    }
-    if !(transforms.camera_angle_x > 0.0 && transforms.camera_angle_x < std::f32::consts::PI) {
-        return Err(NerfError::format(
-            &json_path,
-            format!(
-                "camera_angle_x {} is not an angle in (0, pi)",
-                transforms.camera_angle_x
-            ),
-        ));
-    }
-    let base = json_path.parent().unwrap_or(Path::new("."));
-    let downscale = downscale.max(1);
-    let views = transforms
-        .frames
-        .par_iter()
-        .enumerate()
-        .step_by(every.max(1))
-        .map(|(k, frame)| {
+    let opts = SceneOptions {
+        format: Some(Format::Blender),
+        ..SceneOptions::default()
+    };
+    Scene::open(dir, &opts, downscale)?.load(split, every)
+}
+
+/// Reads the three splits' JSON files (a missing `val` or `test` split is empty) and the
+/// first image's header for the image size.
+pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
+    let mut frames = Vec::new();
+    let mut splits: [Vec<usize>; 3] = Default::default();
+    let mut size = None;
+    for (s, split) in [Split::Train, Split::Val, Split::Test].into_iter().enumerate() {
+        let json_path = transforms_path(dir, split);
+        if split != Split::Train && !json_path.exists() {
+            continue;
+        }
+        let transforms = load_transforms(dir, split)?;
+        if transforms.frames.is_empty() {
+            return Err(NerfError::format(&json_path, "lists no frames"));
+        }
+        let fov = transforms.camera_angle_x;
+        if !(fov > 0.0 && fov < std::f32::consts::PI) {
+            return Err(NerfError::format(
+                &json_path,
+                format!("camera_angle_x {fov} is not an angle in (0, pi)"),
+            ));
+        }
+        let base = json_path.parent().unwrap_or(Path::new("."));
+        for (k, frame) in transforms.frames.iter().enumerate() {
             let pose = parse_pose(&frame.transform_matrix).map_err(|m| {
                 NerfError::format(&json_path, format!("frame {k} ({}): {m}", frame.file_path))
             })?;
-            let image_path = image_path(base, &frame.file_path);
-            let image = RgbaImage::load(&image_path)?.downscale(downscale);
-            let camera =
-                Camera::from_fov_x(image.width, image.height, transforms.camera_angle_x, pose);
-            Ok(View {
-                camera,
+            let image = image_path(base, &frame.file_path);
+            // Every image of the format shares one size; read it once.
+            let (w, h) = match size {
+                Some(s) => s,
+                None => *size.insert(super::scene::image_dimensions(&image)?),
+            };
+            splits[s].push(frames.len());
+            frames.push(SceneFrame {
+                camera: Camera::from_fov_x(w, h, fov, pose),
                 image,
+                mask: None,
                 name: frame.file_path.clone(),
-            })
-        })
-        .collect::<Result<Vec<_>>>()?;
-    let (w0, h0) = (views[0].image.width, views[0].image.height);
-    if let Some(bad) = views
-        .iter()
-        .find(|v| (v.image.width, v.image.height) != (w0, h0))
-    {
-        return Err(NerfError::format(
-            image_path(base, &bad.name),
-            format!(
-                "image is {}x{} but {} is {w0}x{h0}; all images of a split must have one size",
-                bad.image.width, bad.image.height, views[0].name
-            ),
-        ));
+            });
+        }
     }
-    if w0 == 0 || h0 == 0 {
-        return Err(NerfError::Config(format!(
-            "--downscale {downscale} leaves no pixels of the {} images",
-            split.name()
-        )));
-    }
-    Ok(Dataset {
-        views,
+    Ok(Parsed {
+        frames,
+        splits: Some(splits),
         near: NEAR,
         far: FAR,
+        space: RaySpace::World,
+        bound: BOUND,
+        prescaled: 1,
     })
 }
 
@@ -234,6 +235,8 @@ mod tests {
             "{err}"
         );
 
+        let dir = tempfile::tempdir().expect("tempdir");
+        write_scene(dir.path(), identity(), &[(4, 4)]);
         let err = load(dir.path(), Split::Val, 1).expect_err("missing split");
         assert!(err.to_string().contains("transforms_val.json"), "{err}");
     }

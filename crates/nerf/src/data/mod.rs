@@ -1,11 +1,19 @@
 //! Scenes: posed images plus the bounds rays are marched over.
 //!
-//! One loader per on-disk format turns files into a [`Dataset`]; everything downstream
-//! (training, evaluation, rendering) sees only this type.
+//! One reader per on-disk format turns files into a [`scene::Scene`] (cameras, splits,
+//! bounds), which loads a split's images into a [`Dataset`]; everything downstream
+//! (training, evaluation, rendering) sees only these types.
 
 pub mod blender;
+pub mod colmap;
+pub mod colmap_scene;
 pub mod image;
+pub mod llff;
+pub mod npy;
+pub mod poses;
+pub mod scene;
 pub mod synth;
+pub mod transforms;
 
 use serde::{Deserialize, Serialize};
 
@@ -19,15 +27,20 @@ pub struct View {
     pub image: RgbaImage,
     /// Where the image came from, for messages and output names.
     pub name: String,
+    /// Pixels that count in training (`None`: all); from a mask image.
+    pub kept_pixels: Option<Vec<u32>>,
 }
 
 /// The posed images of one split of a scene.
 #[derive(Clone, Debug)]
 pub struct Dataset {
     pub views: Vec<View>,
-    /// Ray marching bounds along the (unnormalised) ray direction, i.e. in depth units.
+    /// Ray marching bounds along the (unnormalised) ray direction in ray space: depth
+    /// units in world space, `0..1` in NDC.
     pub near: f32,
     pub far: f32,
+    /// The space rays are marched in.
+    pub space: crate::ray_space::RaySpace,
 }
 
 impl Dataset {
@@ -47,6 +60,21 @@ impl Dataset {
             .zip(keep)
             .filter_map(|(v, k)| k.then_some(v))
             .collect();
+    }
+
+    /// Settings to render this dataset's rays.
+    pub fn render_settings(
+        &self,
+        background: [f32; 3],
+        chunk_rays: usize,
+    ) -> crate::renderer::RenderSettings {
+        crate::renderer::RenderSettings {
+            near: self.near,
+            far: self.far,
+            background,
+            chunk_rays,
+            space: self.space,
+        }
     }
 
     pub fn image_size(&self) -> (usize, usize) {

@@ -152,6 +152,8 @@ pub fn colour_vertices(model: &Model, params: &[f32], mesh: &Mesh, offset: f32) 
         far: 2.0 * offset,
         background: [0.0; 3],
         chunk_rays: 1024,
+        // The mesh lives in the model's own space already.
+        space: crate::ray_space::RaySpace::World,
     };
     render_rays(model, params, &origins, &dirs, &settings)
         .iter()

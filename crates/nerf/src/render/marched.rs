@@ -78,9 +78,12 @@ impl MarchBatch {
         if self.starts.is_empty() {
             self.starts.push(0);
         }
-        let d = scale(dir, 1.0 / length(dir));
+        let norm = length(dir);
+        let d = scale(dir, 1.0 / norm);
         let before = self.t.len();
-        if let Some((t0, t1)) = ray_box(origin, d, grid.bound, marcher.near, marcher.far) {
+        // Bounds are along `dir`; the march is along the unit direction.
+        let (near, far) = (marcher.near * norm, marcher.far * norm);
+        if let Some((t0, t1)) = ray_box(origin, d, grid.bound, near, far) {
             let t = t0 + jitter * marcher.dt;
             grid.march(
                 origin,
@@ -253,13 +256,14 @@ pub fn render_chunk(
             rays.origins[3 * k + 2],
         ];
         let dir = [rays.dirs[3 * k], rays.dirs[3 * k + 1], rays.dirs[3 * k + 2]];
-        let d = scale(dir, 1.0 / length(dir));
+        let norm = length(dir);
+        let d = scale(dir, 1.0 / norm);
         ws.unit_rays.push(UnitRay {
             origin: o,
             dir: d,
-            norm: length(dir),
+            norm,
         });
-        match ray_box(o, d, grid.bound, marcher.near, marcher.far) {
+        match ray_box(o, d, grid.bound, marcher.near * norm, marcher.far * norm) {
             Some((t0, t1)) => {
                 ws.next_t.push(t0 + 0.5 * marcher.dt);
                 ws.end_t.push(t1);

@@ -18,6 +18,7 @@ use std::path::PathBuf;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::data::scene::{Scene, SceneOptions};
 use crate::data::{Background, Dataset};
 use crate::error::{NerfError, Result};
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig, VanillaModel};
@@ -30,8 +31,11 @@ use crate::rng::Rng;
 /// Everything that defines a training run; saved as `config.json` in the run folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TrainConfig {
-    /// Scene folder (Blender format).
+    /// Scene folder (any format `data::scene` reads).
     pub data: PathBuf,
+    /// How to read the scene (format, LLFF treatment, held-out images).
+    #[serde(default)]
+    pub scene: SceneOptions,
     /// Preset the model came from (see `presets`; "fast" for the fast model).
     pub preset: String,
     pub model: ModelConfig,
@@ -68,6 +72,7 @@ impl TrainConfig {
         let (model, train_views) = crate::presets::build(preset)?;
         Ok(TrainConfig {
             data,
+            scene: SceneOptions::default(),
             preset: preset.to_string(),
             model: ModelConfig::Vanilla(model),
             batch_rays: 1024,
@@ -93,6 +98,7 @@ impl TrainConfig {
     pub fn fast(data: PathBuf) -> Self {
         TrainConfig {
             data,
+            scene: SceneOptions::default(),
             preset: "fast".into(),
             model: ModelConfig::Fast(FastModelConfig::default()),
             batch_rays: 0,
@@ -115,6 +121,15 @@ impl TrainConfig {
             val_downscale: 4,
             checkpoint_every: 500,
         }
+    }
+
+    /// The run's scene, read at `1 / (downscale * extra)` of its resolution.
+    pub fn open_scene(&self, extra_downscale: usize) -> Result<Scene> {
+        Scene::open(
+            &self.data,
+            &self.scene,
+            self.downscale.max(1) * extra_downscale.max(1),
+        )
     }
 
     /// Rejects settings that cannot run, naming the field.
@@ -221,7 +236,8 @@ struct DrawnRay {
 }
 
 /// Ray `stream` of step `step`: a uniformly random training pixel (inside the central
-/// `crop` fraction while warming up).
+/// `crop` fraction while warming up; among the pixels its mask keeps, if it has one),
+/// warped into the scene's ray space.
 fn draw_ray(data: &Dataset, cfg: &TrainConfig, step: u64, stream: u64, crop: f32) -> DrawnRay {
     let mut rng = Rng::for_stream(cfg.seed, step, stream);
     let view = &data.views[rng.below(data.views.len())];
@@ -231,16 +247,23 @@ fn draw_ray(data: &Dataset, cfg: &TrainConfig, step: u64, stream: u64, crop: f32
         ((h as f32 * crop) as usize).max(1),
     );
     let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
-    let (i, j) = (x0 + rng.below(cw), y0 + rng.below(ch));
+    let (i, j) = match &view.kept_pixels {
+        Some(kept) => {
+            let p = kept[rng.below(kept.len())] as usize;
+            (p % w, p / w)
+        }
+        None => (x0 + rng.below(cw), y0 + rng.below(ch)),
+    };
     let ray = view.camera.ray(i, j);
+    let (origin, dir) = data.space.warp(ray.origin, ray.dir);
     let background = match cfg.background {
         Background::White => [1.0; 3],
         Background::Black => [0.0; 3],
         Background::Random => [rng.uniform(), rng.uniform(), rng.uniform()],
     };
     DrawnRay {
-        origin: ray.origin,
-        dir: ray.dir,
+        origin,
+        dir,
         background,
         target: view.image.composite_pixel(j * w + i, background),
         rng,

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use super::{StepStats, TrainConfig, Trainer};
 use crate::checkpoint::{self, Checkpoint};
-use crate::data::{blender, image::save_rgb_png, Split, View};
+use crate::data::{image::save_rgb_png, Split, View};
 use crate::error::{NerfError, Result};
 use crate::model::Model;
 
@@ -144,7 +144,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         opts.config.clone()
     };
 
-    let mut data = blender::load(&config.data, Split::Train, config.downscale)?;
+    let mut data = config.open_scene(1)?.load(Split::Train, 1)?;
     if let Some(n) = config.train_views {
         data.keep_evenly(n);
     }
@@ -281,28 +281,21 @@ fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
     if config.val_every == 0 {
         return Ok(None);
     }
-    let split = if blender::transforms_path(&config.data, Split::Val).exists() {
+    let scene = config.open_scene(config.val_downscale)?;
+    let split = if scene.has_val() {
         Split::Val
     } else {
         Split::Train
     };
-    let data = blender::load_every(
-        &config.data,
-        split,
-        config.downscale * config.val_downscale,
-        usize::MAX,
-    )?;
+    let data = scene.load(split, usize::MAX)?;
     Ok(data.views.into_iter().next())
 }
 
 fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
     let bg = trainer.config.background.eval_colour();
-    let settings = crate::renderer::RenderSettings {
-        near: trainer.data.near,
-        far: trainer.data.far,
-        background: bg,
-        chunk_rays: trainer.config.chunk_rays,
-    };
+    let settings = trainer
+        .data
+        .render_settings(bg, trainer.config.chunk_rays);
     let r = crate::renderer::render_view(
         &trainer.model,
         &trainer.params,

@@ -214,6 +214,7 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
                 camera,
                 image,
                 name: format!("{}/r_{k}", split.name()),
+                kept_pixels: None,
             }
         })
         .collect();
@@ -221,6 +222,7 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
         views,
         near: super::blender::NEAR,
         far: super::blender::FAR,
+        space: Default::default(),
     }
 }
 

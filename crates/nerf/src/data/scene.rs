@@ -1,0 +1,377 @@
+//! A scene on disk, in any supported format, as cameras and image files.
+//!
+//! Opening a scene reads only its metadata (JSON, `.npy`, COLMAP model, image headers):
+//! the cameras, the splits, the bounds rays are marched over and the box the fast model
+//! covers. [`Scene::load`] then reads a split's images into a [`Dataset`]. Every format
+//! ends in the same frame conventions: camera-to-world poses with OpenGL axes (the camera
+//! looks down -Z, +Y up in the image), so training and rendering never see the format.
+//!
+//! | format | detected by | splits |
+//! |---|---|---|
+//! | Blender | `transforms_train.json` | its three JSON files |
+//! | instant-ngp / nerfstudio | `transforms.json` | every `holdout`-th frame is test |
+//! | LLFF | `poses_bounds.npy` | every `holdout`-th image is test |
+//! | COLMAP | `sparse/0/cameras.{bin,txt}` | every `holdout`-th image is test |
+
+use std::path::{Path, PathBuf};
+
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::{Dataset, RgbaImage, Split, View};
+use crate::camera::{Camera, Pose};
+use crate::error::{NerfError, Result};
+use crate::ray_space::RaySpace;
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Format {
+    Blender,
+    /// instant-ngp's or nerfstudio's `transforms.json`.
+    Transforms,
+    Llff,
+    Colmap,
+}
+
+/// Axis and scale conventions of a `transforms.json` (see `data::transforms`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Convention {
+    /// instant-ngp when the file has `aabb_scale`, `scale` or `offset`; else nerfstudio.
+    #[default]
+    Auto,
+    Ngp,
+    Nerfstudio,
+}
+
+/// How to read a scene; saved in the run's config so evaluation reads it the same way.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SceneOptions {
+    /// Force a format instead of detecting it.
+    pub format: Option<Format>,
+    /// LLFF: an inward-facing (360-degree) capture, trained in world space around the
+    /// cameras' focus point.
+    pub spherify: bool,
+    /// Train in NDC space (`None`: yes for forward-facing LLFF scenes, no otherwise).
+    pub ndc: Option<bool>,
+    /// Real captures: every `holdout`-th image (0, holdout, 2 holdout, ...) is held out
+    /// for testing (8 in the paper's LLFF experiments).
+    pub holdout: usize,
+    /// `transforms.json` conventions.
+    pub convention: Convention,
+}
+
+impl Default for SceneOptions {
+    fn default() -> Self {
+        SceneOptions {
+            format: None,
+            spherify: false,
+            ndc: None,
+            holdout: 8,
+            convention: Convention::Auto,
+        }
+    }
+}
+
+/// One image of a scene with its camera (at the resolution of the image file).
+#[derive(Clone, Debug)]
+pub struct Frame {
+    pub camera: Camera,
+    pub image: PathBuf,
+    /// Optional mask: black pixels are left out of training (nerfstudio's convention).
+    pub mask: Option<PathBuf>,
+    pub name: String,
+}
+
+/// A scene's cameras, splits and bounds.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub dir: PathBuf,
+    pub format: Format,
+    pub frames: Vec<Frame>,
+    pub train: Vec<usize>,
+    pub val: Vec<usize>,
+    pub test: Vec<usize>,
+    /// Marching bounds along camera rays, in world depth units.
+    pub near: f32,
+    pub far: f32,
+    /// Where rays are marched (world, or NDC for forward-facing captures).
+    pub space: RaySpace,
+    /// Half-extent of the box `[-bound, bound]^3` the fast model covers, in ray space.
+    pub bound: f32,
+    /// Integer area-downscale still to apply to each image file on load.
+    pub(crate) image_factor: usize,
+}
+
+/// What a format reader hands back; [`Scene::open`] adds splits and downscaling.
+pub(crate) struct Parsed {
+    pub frames: Vec<Frame>,
+    /// Explicit splits (Blender); `None` holds out every `holdout`-th frame.
+    pub splits: Option<[Vec<usize>; 3]>,
+    pub near: f32,
+    pub far: f32,
+    pub space: RaySpace,
+    pub bound: f32,
+    /// Downscale already applied by picking a smaller image folder (LLFF `images_N`).
+    pub prescaled: usize,
+}
+
+/// The format of the scene in `dir`, from the files it holds.
+pub fn detect(dir: &Path) -> Result<Format> {
+    if !dir.is_dir() {
+        return Err(NerfError::format(dir, "is not a folder"));
+    }
+    if super::blender::transforms_path(dir, Split::Train).exists() {
+        Ok(Format::Blender)
+    } else if dir.join("transforms.json").exists() {
+        Ok(Format::Transforms)
+    } else if dir.join("poses_bounds.npy").exists() {
+        Ok(Format::Llff)
+    } else if super::colmap::find_model(dir).is_some() {
+        Ok(Format::Colmap)
+    } else {
+        Err(NerfError::format(
+            dir,
+            "holds no scene: expected transforms_train.json (Blender), transforms.json \
+             (instant-ngp / nerfstudio), poses_bounds.npy (LLFF) or sparse/0/cameras.bin|txt \
+             (COLMAP); `nerf capture` makes a scene from photos",
+        ))
+    }
+}
+
+/// Training and test indices of `n` frames: every `holdout`-th frame is a test frame.
+pub fn hold_out(n: usize, holdout: usize) -> (Vec<usize>, Vec<usize>) {
+    let holdout = holdout.max(2);
+    (0..n).partition(|i| i % holdout != 0)
+}
+
+impl Scene {
+    /// Reads the scene in `dir` at `1/downscale` of its images' resolution.
+    pub fn open(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result<Scene> {
+        let downscale = downscale.max(1);
+        let format = match opts.format {
+            Some(f) => f,
+            None => detect(dir)?,
+        };
+        let parsed = match format {
+            Format::Blender => super::blender::parse(dir)?,
+            Format::Transforms => super::transforms::parse(dir, opts)?,
+            Format::Llff => super::llff::parse(dir, opts, downscale)?,
+            Format::Colmap => super::colmap_scene::parse(dir, opts)?,
+        };
+        if parsed.frames.is_empty() {
+            return Err(NerfError::format(dir, "the scene lists no images"));
+        }
+        let image_factor = (downscale / parsed.prescaled.max(1)).max(1);
+        let [train, val, test] = parsed.splits.unwrap_or_else(|| {
+            let (train, test) = hold_out(parsed.frames.len(), opts.holdout);
+            [train, test.clone(), test]
+        });
+        let frames = parsed.frames;
+        if let Some(f) = frames
+            .iter()
+            .find(|f| f.camera.width < image_factor || f.camera.height < image_factor)
+        {
+            return Err(NerfError::Config(format!(
+                "--downscale {downscale} leaves no pixels of {}",
+                f.image.display()
+            )));
+        }
+        Ok(Scene {
+            dir: dir.to_path_buf(),
+            format,
+            frames,
+            train,
+            val,
+            test,
+            near: parsed.near,
+            far: parsed.far,
+            space: parsed.space,
+            bound: parsed.bound,
+            image_factor,
+        })
+    }
+
+    pub fn indices(&self, split: Split) -> &[usize] {
+        match split {
+            Split::Train => &self.train,
+            Split::Val => &self.val,
+            Split::Test => &self.test,
+        }
+    }
+
+    /// Whether the scene has a validation split of its own (Blender) rather than reusing
+    /// its held-out test images.
+    pub fn has_val(&self) -> bool {
+        !self.val.is_empty()
+    }
+
+    /// The cameras of a split at the resolution the scene is loaded at.
+    pub fn cameras(&self, split: Split) -> Vec<Camera> {
+        self.indices(split)
+            .iter()
+            .map(|&i| self.frames[i].camera.downscaled(self.image_factor))
+            .collect()
+    }
+
+    pub fn poses(&self, split: Split) -> Vec<Pose> {
+        self.cameras(split).into_iter().map(|c| c.c2w).collect()
+    }
+
+    /// Marching bounds in ray space.
+    pub fn ray_bounds(&self) -> (f32, f32) {
+        self.space.bounds(self.near, self.far)
+    }
+
+    /// Settings to render this scene's rays.
+    pub fn render_settings(
+        &self,
+        background: [f32; 3],
+        chunk_rays: usize,
+    ) -> crate::renderer::RenderSettings {
+        let (near, far) = self.ray_bounds();
+        crate::renderer::RenderSettings {
+            near,
+            far,
+            background,
+            chunk_rays,
+            space: self.space,
+        }
+    }
+
+    /// Frames `0, every, 2 every, ...` of `split`, with their images.
+    pub fn load(&self, split: Split, every: usize) -> Result<Dataset> {
+        let views = self
+            .indices(split)
+            .par_iter()
+            .step_by(every.max(1))
+            .map(|&i| self.load_frame(&self.frames[i]))
+            .collect::<Result<Vec<_>>>()?;
+        if views.is_empty() {
+            let path = match self.format {
+                Format::Blender => super::blender::transforms_path(&self.dir, split),
+                _ => self.dir.clone(),
+            };
+            return Err(NerfError::format(
+                path,
+                format!("the scene has no {} images", split.name()),
+            ));
+        }
+        let (near, far) = self.ray_bounds();
+        Ok(Dataset {
+            views,
+            near,
+            far,
+            space: self.space,
+        })
+    }
+
+    fn load_frame(&self, frame: &Frame) -> Result<View> {
+        let full = RgbaImage::load(&frame.image)?;
+        let camera = fit_to_image(&frame.camera, full.width, full.height)
+            .map_err(|m| NerfError::format(&frame.image, m))?
+            .downscaled(self.image_factor);
+        let image = full.downscale(self.image_factor);
+        let kept_pixels = match &frame.mask {
+            None => None,
+            Some(path) => Some(load_mask(path, &image, self.image_factor)?),
+        };
+        Ok(View {
+            camera,
+            image,
+            name: frame.name.clone(),
+            kept_pixels,
+        })
+    }
+}
+
+/// `camera` for an image of `width x height`: itself, or its intrinsics scaled when the
+/// image was resized since the metadata was written (same shape, another resolution).
+pub(crate) fn fit_to_image(camera: &Camera, width: usize, height: usize) -> std::result::Result<Camera, String> {
+    let (cw, ch) = (camera.width, camera.height);
+    if (cw, ch) == (width, height) {
+        return Ok(camera.clone());
+    }
+    let (sx, sy) = (width as f32 / cw as f32, height as f32 / ch as f32);
+    // Same shape: scaling the camera's height by the width ratio lands within a pixel.
+    if (ch as f32 * sx - height as f32).abs() >= 1.0 {
+        return Err(format!(
+            "image is {width}x{height} but its camera is {cw}x{ch} (a different shape)"
+        ));
+    }
+    Ok(Camera {
+        width,
+        height,
+        fx: camera.fx * sx,
+        fy: camera.fy * sy,
+        cx: camera.cx * sx,
+        cy: camera.cy * sy,
+        ..camera.clone()
+    })
+}
+
+/// Indices of the pixels a mask keeps (mean mask value over the pixel's area >= 0.5).
+fn load_mask(path: &Path, image: &RgbaImage, factor: usize) -> Result<Vec<u32>> {
+    let mask = RgbaImage::load(path)?;
+    if (mask.width / factor, mask.height / factor) != (image.width, image.height) {
+        return Err(NerfError::format(
+            path,
+            format!(
+                "mask is {}x{} but its image is {}x{} (after --downscale {factor})",
+                mask.width,
+                mask.height,
+                image.width * factor,
+                image.height * factor
+            ),
+        ));
+    }
+    let small = mask.downscale(factor);
+    let kept: Vec<u32> = small
+        .data
+        .chunks_exact(4)
+        .enumerate()
+        .filter(|(_, p)| p[0] >= 0.5)
+        .map(|(i, _)| i as u32)
+        .collect();
+    if kept.is_empty() {
+        return Err(NerfError::format(path, "the mask leaves no pixel to train on"));
+    }
+    Ok(kept)
+}
+
+/// The path `relative` names, resolved against `base`.
+pub(crate) fn resolve(base: &Path, relative: &str) -> PathBuf {
+    let p = Path::new(relative);
+    if p.is_absolute() {
+        p.to_path_buf()
+    } else {
+        base.join(p)
+    }
+}
+
+/// Width and height from an image file's header.
+pub(crate) fn image_dimensions(path: &Path) -> Result<(usize, usize)> {
+    image::image_dimensions(path)
+        .map(|(w, h)| (w as usize, h as usize))
+        .map_err(|e| match e {
+            image::ImageError::IoError(io) => NerfError::io(path, io),
+            e => NerfError::Image {
+                path: path.to_path_buf(),
+                message: e.to_string(),
+            },
+        })
+}
+
+/// Near and far bounds that see the whole box `[-bound, bound]^3` from every camera.
+pub(crate) fn bounds_around_box(cameras: &[Camera], bound: f32) -> (f32, f32) {
+    let far = cameras
+        .iter()
+        .map(|c| {
+            let o = c.origin();
+            let corner = o.map(|x| x.abs() + bound);
+            crate::math::length(corner)
+        })
+        .fold(0.0f32, f32::max);
+    (0.01 * bound, far.max(2.0 * bound))
+}

@@ -1,0 +1,233 @@
+//! instant-ngp's and nerfstudio's `transforms.json`: one file for all images, with real
+//! camera intrinsics and lens distortion.
+//!
+//! ```json
+//! { "fl_x": 1375.5, "fl_y": 1374.5, "cx": 554.6, "cy": 965.3, "w": 1080, "h": 1920,
+//!   "k1": 0.058, "k2": -0.081, "p1": -0.001, "p2": 0.0002, "aabb_scale": 4,
+//!   "frames": [ { "file_path": "images/0001.jpg", "transform_matrix": [[...], ...] } ] }
+//! ```
+//!
+//! * Intrinsics: `fl_x`/`fl_y` or `camera_angle_x`/`camera_angle_y`; `cx`, `cy` (default
+//!   the image centre); `w`, `h` (default: read from the first image). Any of them, and the
+//!   distortion, may also be given per frame, overriding the file's.
+//! * Distortion: `k1 k2 k3 k4 p1 p2` with `camera_model` OPENCV (default) or
+//!   OPENCV_FISHEYE; rays are undistorted (see `distortion`).
+//! * `transform_matrix` is camera-to-world with OpenGL axes in both tools.
+//! * `mask_path` (per frame, optional): black pixels are left out of training.
+//!
+//! The two tools place the world differently, so the convention matters:
+//! * **instant-ngp** maps a camera position `p` to `p * scale + offset` (defaults 0.33 and
+//!   (0.5, 0.5, 0.5)) and renders the cube `[0.5 - a/2, 0.5 + a/2]^3` with `a = aabb_scale`.
+//!   We apply the same scale and offset, then move the cube's centre to the origin: the
+//!   fast model's box has half-extent `aabb_scale / 2`.
+//! * **nerfstudio** leaves placement to its data parser, which by default turns the mean
+//!   camera up vector to +Z, centres the mean camera position and scales so the cameras fit
+//!   in `[-1, 1]^3`. We do the same; the box is `[-1, 1]^3`.
+//!
+//! `Convention::Auto` picks instant-ngp when the file has `aabb_scale`, `scale` or
+//! `offset`, nerfstudio otherwise.
+
+use std::path::Path;
+
+use serde::Deserialize;
+
+use super::poses::{column, origin, Similarity};
+use super::scene::{bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, SceneOptions};
+use crate::camera::{Camera, Pose};
+use crate::distortion::{Distortion, LensModel};
+use crate::error::{NerfError, Result};
+use crate::math::{normalize_or_zero, scale, V3};
+use crate::ray_space::RaySpace;
+
+/// Intrinsics that may appear at the top level and in each frame.
+#[derive(Clone, Debug, Default, Deserialize)]
+struct Intrinsics {
+    fl_x: Option<f64>,
+    fl_y: Option<f64>,
+    camera_angle_x: Option<f64>,
+    camera_angle_y: Option<f64>,
+    cx: Option<f64>,
+    cy: Option<f64>,
+    w: Option<f64>,
+    h: Option<f64>,
+    k1: Option<f64>,
+    k2: Option<f64>,
+    k3: Option<f64>,
+    k4: Option<f64>,
+    p1: Option<f64>,
+    p2: Option<f64>,
+    camera_model: Option<String>,
+}
+
+impl Intrinsics {
+    /// `self`'s values where given, `base`'s elsewhere.
+    fn over(&self, base: &Intrinsics) -> Intrinsics {
+        macro_rules! pick {
+            ($($f:ident),*) => { Intrinsics { $($f: self.$f.clone().or(base.$f.clone()),)* } };
+        }
+        pick!(fl_x, fl_y, camera_angle_x, camera_angle_y, cx, cy, w, h, k1, k2, k3, k4, p1, p2, camera_model)
+    }
+}
+
+#[derive(Debug, Deserialize)]
+struct FrameJson {
+    file_path: String,
+    transform_matrix: Vec<Vec<f32>>,
+    mask_path: Option<String>,
+    #[serde(flatten)]
+    intrinsics: Intrinsics,
+}
+
+#[derive(Debug, Deserialize)]
+struct TransformsJson {
+    frames: Vec<FrameJson>,
+    aabb_scale: Option<f32>,
+    scale: Option<f32>,
+    offset: Option<[f32; 3]>,
+    #[serde(flatten)]
+    intrinsics: Intrinsics,
+}
+
+/// instant-ngp's defaults.
+const NGP_SCALE: f32 = 0.33;
+const NGP_OFFSET: [f32; 3] = [0.5; 3];
+
+pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
+    let json_path = dir.join("transforms.json");
+    let mut doc: TransformsJson = crate::io::read_json(&json_path)?;
+    if doc.frames.is_empty() {
+        return Err(NerfError::format(&json_path, "lists no frames"));
+    }
+    // A stable order, so the held-out frames do not depend on how the file was written.
+    doc.frames.sort_by(|a, b| a.file_path.cmp(&b.file_path));
+    let bad = |k: usize, f: &FrameJson, m: String| {
+        NerfError::format(&json_path, format!("frame {k} ({}): {m}", f.file_path))
+    };
+    let mut frames = Vec::with_capacity(doc.frames.len());
+    for (k, f) in doc.frames.iter().enumerate() {
+        let pose = super::blender::parse_pose(&f.transform_matrix).map_err(|m| bad(k, f, m))?;
+        let image = resolve(dir, &f.file_path);
+        let intr = f.intrinsics.over(&doc.intrinsics);
+        let (w, h) = match (intr.w, intr.h) {
+            (Some(w), Some(h)) => (w as usize, h as usize),
+            _ => image_dimensions(&image)?,
+        };
+        let mut camera = camera_from(&intr, w, h, pose).map_err(|m| bad(k, f, m))?;
+        camera.c2w = pose;
+        frames.push(Frame {
+            camera,
+            image,
+            mask: f.mask_path.as_deref().map(|m| resolve(dir, m)),
+            name: f.file_path.clone(),
+        });
+    }
+    let ngp = match opts.convention {
+        Convention::Ngp => true,
+        Convention::Nerfstudio => false,
+        Convention::Auto => doc.aabb_scale.is_some() || doc.scale.is_some() || doc.offset.is_some(),
+    };
+    let poses: Vec<Pose> = frames.iter().map(|f| f.camera.c2w).collect();
+    let (placement, bound) = if ngp {
+        let s = doc.scale.unwrap_or(NGP_SCALE);
+        let offset = doc.offset.unwrap_or(NGP_OFFSET);
+        let aabb = doc.aabb_scale.unwrap_or(1.0);
+        if !(s > 0.0 && aabb > 0.0) {
+            return Err(NerfError::format(
+                &json_path,
+                format!("scale {s} and aabb_scale {aabb} must be positive"),
+            ));
+        }
+        (
+            Similarity {
+                translation: offset.map(|o| o - 0.5),
+                scale: s,
+                ..Similarity::IDENTITY
+            },
+            0.5 * aabb,
+        )
+    } else {
+        (nerfstudio_placement(&poses), 1.0)
+    };
+    for f in &mut frames {
+        f.camera.c2w = placement.apply_pose(&f.camera.c2w);
+    }
+    let cameras: Vec<Camera> = frames.iter().map(|f| f.camera.clone()).collect();
+    let (near, far) = bounds_around_box(&cameras, bound);
+    Ok(Parsed {
+        frames,
+        splits: None,
+        near,
+        far,
+        space: RaySpace::World,
+        bound,
+        prescaled: 1,
+    })
+}
+
+/// nerfstudio's default placement: mean up to +Z, mean position to the origin, cameras
+/// scaled into `[-1, 1]^3`.
+fn nerfstudio_placement(poses: &[Pose]) -> Similarity {
+    let n = poses.len().max(1) as f32;
+    let up: V3 = normalize_or_zero(poses.iter().fold([0.0; 3], |s, p| {
+        crate::math::add(s, column(p, 1))
+    }));
+    let rotate = super::poses::rotation_between(up, [0.0, 0.0, 1.0]);
+    let oriented = Similarity {
+        rotation: rotate,
+        ..Similarity::IDENTITY
+    };
+    let mean = scale(
+        poses.iter().fold([0.0; 3], |s, p| crate::math::add(s, oriented.apply_point(origin(p)))),
+        1.0 / n,
+    );
+    let extent = poses
+        .iter()
+        .flat_map(|p| {
+            let q = oriented.apply_point(origin(p));
+            [q[0] - mean[0], q[1] - mean[1], q[2] - mean[2]]
+        })
+        .fold(0.0f32, |m, x| m.max(x.abs()));
+    let s = if extent > 0.0 { 1.0 / extent } else { 1.0 };
+    Similarity {
+        rotation: rotate,
+        translation: scale(mean, -s),
+        scale: s,
+    }
+}
+
+fn camera_from(intr: &Intrinsics, w: usize, h: usize, c2w: Pose) -> std::result::Result<Camera, String> {
+    let focal = |fl: Option<f64>, angle: Option<f64>, size: usize| {
+        fl.or(angle.map(|a| 0.5 * size as f64 / (0.5 * a).tan()))
+    };
+    let fx = focal(intr.fl_x, intr.camera_angle_x, w);
+    let fy = focal(intr.fl_y, intr.camera_angle_y, h);
+    let (fx, fy) = match (fx, fy) {
+        (Some(x), Some(y)) => (x, y),
+        (Some(x), None) => (x, x),
+        (None, Some(y)) => (y, y),
+        (None, None) => return Err("no focal length (fl_x, fl_y, camera_angle_x or camera_angle_y)".into()),
+    };
+    if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite()) || w == 0 || h == 0 {
+        return Err(format!("focal lengths ({fx}, {fy}) and size {w}x{h} must be positive"));
+    }
+    let model = match intr.camera_model.as_deref() {
+        None | Some("OPENCV") | Some("PINHOLE") | Some("SIMPLE_PINHOLE") | Some("SIMPLE_RADIAL") | Some("RADIAL") => LensModel::Opencv,
+        Some("OPENCV_FISHEYE") => LensModel::Fisheye,
+        Some(other) => return Err(format!("camera_model {other:?} is not supported (OPENCV, OPENCV_FISHEYE, PINHOLE)")),
+    };
+    let c = |v: Option<f64>| v.unwrap_or(0.0) as f32;
+    Ok(Camera {
+        width: w,
+        height: h,
+        fx: fx as f32,
+        fy: fy as f32,
+        cx: intr.cx.map_or(0.5 * w as f32, |v| v as f32),
+        cy: intr.cy.map_or(0.5 * h as f32, |v| v as f32),
+        c2w,
+        distortion: Distortion {
+            model,
+            k: [c(intr.k1), c(intr.k2), c(intr.k3), c(intr.k4)],
+            p: [c(intr.p1), c(intr.p2)],
+        },
+    })
+}
