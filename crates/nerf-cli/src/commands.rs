@@ -6,8 +6,8 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use nerf::camera::{Camera, Pose};
-use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::data::scene::{Convention, Format, SceneOptions};
+use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::data::{blender, image::save_rgb_png, Background, Split};
 use nerf::model::ModelConfig;
 use nerf::train::run::{self, Event, LoadedRun, RunOptions, StopReason};
@@ -20,6 +20,8 @@ pub enum SceneArg {
     Chair,
     Table,
     Lamp,
+    /// The chair on a patterned rug: texture for `nerf capture` (structure from motion).
+    Rug,
 }
 
 impl SceneArg {
@@ -28,6 +30,7 @@ impl SceneArg {
             SceneArg::Chair => SceneKind::Chair,
             SceneArg::Table => SceneKind::Table,
             SceneArg::Lamp => SceneKind::Lamp,
+            SceneArg::Rug => SceneKind::Rug,
         }
     }
 }
@@ -618,7 +621,10 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
                 None => reference.clone(),
             };
             path.into_iter()
-                .map(|c2w| Camera { c2w, ..template.clone() })
+                .map(|c2w| Camera {
+                    c2w,
+                    ..template.clone()
+                })
                 .collect()
         }
     };

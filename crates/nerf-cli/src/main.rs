@@ -1,5 +1,6 @@
 //! `nerf`: train and render neural radiance fields from the command line.
 
+mod capture_cmd;
 mod commands;
 mod mesh_cmd;
 mod progress;
@@ -26,7 +27,11 @@ struct Cli {
 enum Command {
     /// Render a built-in scene (procedural furniture) as a Blender-format dataset.
     Synth(commands::SynthArgs),
-    /// Train a radiance field on a Blender-format scene.
+    /// Photos or a video -> camera poses with COLMAP -> a trainable scene folder.
+    Capture(capture_cmd::CaptureArgs),
+    /// What a scene folder holds, as training reads it (format, splits, bounds, box).
+    Scene(capture_cmd::SceneArgs),
+    /// Train a radiance field on a scene (Blender, instant-ngp / nerfstudio, LLFF, COLMAP).
     Train(commands::TrainArgs),
     /// Render a split of the scene and report PSNR / SSIM per view and on average.
     Eval(commands::EvalArgs),
@@ -71,6 +76,8 @@ fn main() {
     }
     let result = match cli.command {
         Command::Synth(a) => commands::synth(a),
+        Command::Capture(a) => capture_cmd::capture(a),
+        Command::Scene(a) => capture_cmd::scene(a),
         Command::Train(a) => commands::train(a),
         Command::Eval(a) => commands::eval(a),
         Command::Render(a) => commands::render(a),

@@ -9,6 +9,7 @@ pub mod bench;
 pub mod bench_fast;
 pub mod camera;
 pub mod camera_path;
+pub mod capture;
 pub mod checkpoint;
 pub mod data;
 pub mod distortion;

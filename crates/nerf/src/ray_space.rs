@@ -102,7 +102,10 @@ mod tests {
         let on_near = [o[0] + t_near * d[0], o[1] + t_near * d[1], -1.0];
         let back = space.to_world(o2);
         for a in 0..3 {
-            assert!((back[a] - on_near[a]).abs() < 1e-5, "{back:?} vs {on_near:?}");
+            assert!(
+                (back[a] - on_near[a]).abs() < 1e-5,
+                "{back:?} vs {on_near:?}"
+            );
         }
         assert!((o2[2] + 1.0).abs() < 1e-6, "near plane is z' = -1: {o2:?}");
         // Every world point along the ray maps onto the NDC ray's line, monotonically in t.

@@ -134,7 +134,11 @@ fn render_in_chunks(
             &mut s.dirs,
         );
         if settings.space != RaySpace::World {
-            for (o, d) in s.origins.chunks_exact_mut(3).zip(s.dirs.chunks_exact_mut(3)) {
+            for (o, d) in s
+                .origins
+                .chunks_exact_mut(3)
+                .zip(s.dirs.chunks_exact_mut(3))
+            {
                 let (o2, d2) = settings.space.warp([o[0], o[1], o[2]], [d[0], d[1], d[2]]);
                 o.copy_from_slice(&o2);
                 d.copy_from_slice(&d2);

@@ -65,7 +65,10 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
     let mut frames = Vec::new();
     let mut splits: [Vec<usize>; 3] = Default::default();
     let mut size = None;
-    for (s, split) in [Split::Train, Split::Val, Split::Test].into_iter().enumerate() {
+    for (s, split) in [Split::Train, Split::Val, Split::Test]
+        .into_iter()
+        .enumerate()
+    {
         let json_path = transforms_path(dir, split);
         if split != Split::Train && !json_path.exists() {
             continue;

@@ -48,7 +48,12 @@ impl CameraModel {
             .iter()
             .find(|m| m.1 == id)
             .map(|m| m.0)
-            .or_else(|| Self::OTHER_PARAMS.iter().any(|m| m.0 == id).then_some(CameraModel::Other(id)))
+            .or_else(|| {
+                Self::OTHER_PARAMS
+                    .iter()
+                    .any(|m| m.0 == id)
+                    .then_some(CameraModel::Other(id))
+            })
     }
 
     pub fn from_name(name: &str) -> Option<CameraModel> {
@@ -56,7 +61,12 @@ impl CameraModel {
             .iter()
             .find(|m| m.2 == name)
             .map(|m| m.0)
-            .or_else(|| Self::OTHER_PARAMS.iter().find(|m| m.1 == name).map(|m| CameraModel::Other(m.0)))
+            .or_else(|| {
+                Self::OTHER_PARAMS
+                    .iter()
+                    .find(|m| m.1 == name)
+                    .map(|m| CameraModel::Other(m.0))
+            })
     }
 
     pub fn id(self) -> i32 {
@@ -68,14 +78,23 @@ impl CameraModel {
 
     pub fn name(self) -> &'static str {
         match self {
-            CameraModel::Other(id) => Self::OTHER_PARAMS.iter().find(|m| m.0 == id).map_or("UNKNOWN", |m| m.1),
-            m => Self::NAMED.iter().find(|n| n.0 == m).map_or("UNKNOWN", |n| n.2),
+            CameraModel::Other(id) => Self::OTHER_PARAMS
+                .iter()
+                .find(|m| m.0 == id)
+                .map_or("UNKNOWN", |m| m.1),
+            m => Self::NAMED
+                .iter()
+                .find(|n| n.0 == m)
+                .map_or("UNKNOWN", |n| n.2),
         }
     }
 
     pub fn num_params(self) -> usize {
         match self {
-            CameraModel::Other(id) => Self::OTHER_PARAMS.iter().find(|m| m.0 == id).map_or(0, |m| m.2),
+            CameraModel::Other(id) => Self::OTHER_PARAMS
+                .iter()
+                .find(|m| m.0 == id)
+                .map_or(0, |m| m.2),
             m => Self::NAMED.iter().find(|n| n.0 == m).map_or(0, |n| n.3),
         }
     }
@@ -120,12 +139,30 @@ pub struct Model {
 impl Image {
     /// World-to-camera rotation matrix (OpenCV axes).
     pub fn rotation(&self) -> [[f64; 3]; 3] {
-        let n = self.qvec.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-300);
+        let n = self
+            .qvec
+            .iter()
+            .map(|v| v * v)
+            .sum::<f64>()
+            .sqrt()
+            .max(1e-300);
         let [w, x, y, z] = self.qvec.map(|v| v / n);
         [
-            [1.0 - 2.0 * (y * y + z * z), 2.0 * (x * y - w * z), 2.0 * (x * z + w * y)],
-            [2.0 * (x * y + w * z), 1.0 - 2.0 * (x * x + z * z), 2.0 * (y * z - w * x)],
-            [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)],
+            [
+                1.0 - 2.0 * (y * y + z * z),
+                2.0 * (x * y - w * z),
+                2.0 * (x * z + w * y),
+            ],
+            [
+                2.0 * (x * y + w * z),
+                1.0 - 2.0 * (x * x + z * z),
+                2.0 * (y * z - w * x),
+            ],
+            [
+                2.0 * (x * z - w * y),
+                2.0 * (y * z + w * x),
+                1.0 - 2.0 * (x * x + y * y),
+            ],
         ]
     }
 
@@ -185,16 +222,36 @@ fn quaternion(r: &[[f64; 3]; 3]) -> [f64; 4] {
     let trace = r[0][0] + r[1][1] + r[2][2];
     let q = if trace > 0.0 {
         let s = 0.5 / (trace + 1.0).sqrt();
-        [0.25 / s, (r[2][1] - r[1][2]) * s, (r[0][2] - r[2][0]) * s, (r[1][0] - r[0][1]) * s]
+        [
+            0.25 / s,
+            (r[2][1] - r[1][2]) * s,
+            (r[0][2] - r[2][0]) * s,
+            (r[1][0] - r[0][1]) * s,
+        ]
     } else if r[0][0] > r[1][1] && r[0][0] > r[2][2] {
         let s = 2.0 * (1.0 + r[0][0] - r[1][1] - r[2][2]).sqrt();
-        [(r[2][1] - r[1][2]) / s, 0.25 * s, (r[0][1] + r[1][0]) / s, (r[0][2] + r[2][0]) / s]
+        [
+            (r[2][1] - r[1][2]) / s,
+            0.25 * s,
+            (r[0][1] + r[1][0]) / s,
+            (r[0][2] + r[2][0]) / s,
+        ]
     } else if r[1][1] > r[2][2] {
         let s = 2.0 * (1.0 + r[1][1] - r[0][0] - r[2][2]).sqrt();
-        [(r[0][2] - r[2][0]) / s, (r[0][1] + r[1][0]) / s, 0.25 * s, (r[1][2] + r[2][1]) / s]
+        [
+            (r[0][2] - r[2][0]) / s,
+            (r[0][1] + r[1][0]) / s,
+            0.25 * s,
+            (r[1][2] + r[2][1]) / s,
+        ]
     } else {
         let s = 2.0 * (1.0 + r[2][2] - r[0][0] - r[1][1]).sqrt();
-        [(r[1][0] - r[0][1]) / s, (r[0][2] + r[2][0]) / s, (r[1][2] + r[2][1]) / s, 0.25 * s]
+        [
+            (r[1][0] - r[0][1]) / s,
+            (r[0][2] + r[2][0]) / s,
+            (r[1][2] + r[2][1]) / s,
+            0.25 * s,
+        ]
     };
     let sign = if q[0] < 0.0 { -1.0 } else { 1.0 };
     q.map(|v| v * sign)
@@ -218,19 +275,38 @@ pub fn read_model(dir: &Path) -> Result<Model> {
     let (cameras, images, points) = if binary {
         let cameras = binary::cameras(&path("cameras"))?;
         let images = binary::images(&path("images"))?;
-        let points = if points_path.exists() { binary::points(&points_path)? } else { Vec::new() };
+        let points = if points_path.exists() {
+            binary::points(&points_path)?
+        } else {
+            Vec::new()
+        };
         (cameras, images, points)
     } else {
         let cameras = text::cameras(&path("cameras"))?;
         let images = text::images(&path("images"))?;
-        let points = if points_path.exists() { text::points(&points_path)? } else { Vec::new() };
+        let points = if points_path.exists() {
+            text::points(&points_path)?
+        } else {
+            Vec::new()
+        };
         (cameras, images, points)
     };
-    let model = Model { cameras, images, points };
-    if let Some(img) = model.images.iter().find(|i| !model.cameras.contains_key(&i.camera_id)) {
+    let model = Model {
+        cameras,
+        images,
+        points,
+    };
+    if let Some(img) = model
+        .images
+        .iter()
+        .find(|i| !model.cameras.contains_key(&i.camera_id))
+    {
         return Err(NerfError::format(
             path("images"),
-            format!("image {} ({}) uses camera {}, which cameras.{ext} does not define", img.id, img.name, img.camera_id),
+            format!(
+                "image {} ({}) uses camera {}, which cameras.{ext} does not define",
+                img.id, img.name, img.camera_id
+            ),
         ));
     }
     Ok(model)
@@ -242,18 +318,29 @@ pub fn write_text_model(dir: &Path, model: &Model) -> Result<()> {
     let mut cams = String::from("# CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n");
     for c in model.cameras.values() {
         let params: Vec<String> = c.params.iter().map(|p| p.to_string()).collect();
-        cams += &format!("{} {} {} {} {}\n", c.id, c.model.name(), c.width, c.height, params.join(" "));
+        cams += &format!(
+            "{} {} {} {} {}\n",
+            c.id,
+            c.model.name(),
+            c.width,
+            c.height,
+            params.join(" ")
+        );
     }
     let mut imgs = String::from("# IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n# POINTS2D[] as (X, Y, POINT3D_ID)\n");
     for i in &model.images {
         let [qw, qx, qy, qz] = i.qvec;
         let [tx, ty, tz] = i.tvec;
-        imgs += &format!("{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}\n", i.id, i.camera_id, i.name);
+        imgs += &format!(
+            "{} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {} {}\n",
+            i.id, i.camera_id, i.name
+        );
         let obs: Vec<String> = i.point_ids.iter().map(|p| format!("0 0 {p}")).collect();
         imgs += &obs.join(" ");
         imgs.push('\n');
     }
-    let mut pts = String::from("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
+    let mut pts =
+        String::from("# POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n");
     for p in &model.points {
         let [x, y, z] = p.xyz;
         let [r, g, b] = p.rgb;
@@ -277,9 +364,17 @@ mod text {
             .collect())
     }
 
-    fn num<T: std::str::FromStr>(path: &Path, line: usize, field: &str, s: Option<&str>) -> Result<T> {
-        let s = s.ok_or_else(|| NerfError::format(path, format!("line {line}: missing {field}")))?;
-        s.parse().map_err(|_| NerfError::format(path, format!("line {line}: {field} {s:?} is not a number")))
+    fn num<T: std::str::FromStr>(
+        path: &Path,
+        line: usize,
+        field: &str,
+        s: Option<&str>,
+    ) -> Result<T> {
+        let s =
+            s.ok_or_else(|| NerfError::format(path, format!("line {line}: missing {field}")))?;
+        s.parse().map_err(|_| {
+            NerfError::format(path, format!("line {line}: {field} {s:?} is not a number"))
+        })
     }
 
     pub fn cameras(path: &Path) -> Result<BTreeMap<u32, Camera>> {
@@ -291,18 +386,34 @@ mod text {
             let mut f = line.split_whitespace();
             let id = num(path, n, "CAMERA_ID", f.next())?;
             let name = f.next().unwrap_or_default();
-            let model = CameraModel::from_name(name)
-                .ok_or_else(|| NerfError::format(path, format!("line {n}: unknown camera model {name:?}")))?;
+            let model = CameraModel::from_name(name).ok_or_else(|| {
+                NerfError::format(path, format!("line {n}: unknown camera model {name:?}"))
+            })?;
             let width = num(path, n, "WIDTH", f.next())?;
             let height = num(path, n, "HEIGHT", f.next())?;
-            let params = f.map(|s| num(path, n, "PARAMS", Some(s))).collect::<Result<Vec<f64>>>()?;
+            let params = f
+                .map(|s| num(path, n, "PARAMS", Some(s)))
+                .collect::<Result<Vec<f64>>>()?;
             if params.len() != model.num_params() {
                 return Err(NerfError::format(
                     path,
-                    format!("line {n}: {name} takes {} parameters, got {}", model.num_params(), params.len()),
+                    format!(
+                        "line {n}: {name} takes {} parameters, got {}",
+                        model.num_params(),
+                        params.len()
+                    ),
                 ));
             }
-            out.insert(id, Camera { id, model, width, height, params });
+            out.insert(
+                id,
+                Camera {
+                    id,
+                    model,
+                    width,
+                    height,
+                    params,
+                },
+            );
         }
         Ok(out)
     }
@@ -341,7 +452,14 @@ mod text {
                     }
                 }
             }
-            out.push(Image { id, qvec, tvec, camera_id, name, point_ids });
+            out.push(Image {
+                id,
+                qvec,
+                tvec,
+                camera_id,
+                name,
+                point_ids,
+            });
         }
         Ok(out)
     }
@@ -354,7 +472,10 @@ mod text {
             }
             let f: Vec<&str> = line.split_whitespace().collect();
             if f.len() < 8 {
-                return Err(NerfError::format(path, format!("line {n}: expected POINT3D_ID X Y Z R G B ERROR")));
+                return Err(NerfError::format(
+                    path,
+                    format!("line {n}: expected POINT3D_ID X Y Z R G B ERROR"),
+                ));
             }
             let v = |k: usize, name: &str| num::<f64>(path, n, name, Some(f[k]));
             let c = |k: usize, name: &str| num::<u8>(path, n, name, Some(f[k]));
@@ -381,9 +502,16 @@ mod binary {
 
     impl<'a> Reader<'a> {
         fn take(&mut self, n: usize) -> Result<&'a [u8]> {
-            let end = self.at.checked_add(n).filter(|&e| e <= self.bytes.len()).ok_or_else(|| {
-                NerfError::format(self.path, format!("truncated at byte {} (wanted {n} more)", self.at))
-            })?;
+            let end = self
+                .at
+                .checked_add(n)
+                .filter(|&e| e <= self.bytes.len())
+                .ok_or_else(|| {
+                    NerfError::format(
+                        self.path,
+                        format!("truncated at byte {} (wanted {n} more)", self.at),
+                    )
+                })?;
             let s = &self.bytes[self.at..end];
             self.at = end;
             Ok(s)
@@ -414,7 +542,10 @@ mod binary {
             let n = self.u64()?;
             let left = (self.bytes.len() - self.at) as u64;
             if n.saturating_mul(min_size as u64) > left {
-                return Err(NerfError::format(self.path, format!("claims {n} entries, more than the file holds")));
+                return Err(NerfError::format(
+                    self.path,
+                    format!("claims {n} entries, more than the file holds"),
+                ));
             }
             Ok(n as usize)
         }
@@ -430,25 +561,45 @@ mod binary {
 
     pub fn cameras(path: &Path) -> Result<BTreeMap<u32, Camera>> {
         let bytes = read(path)?;
-        let mut r = Reader { path, bytes: &bytes, at: 0 };
+        let mut r = Reader {
+            path,
+            bytes: &bytes,
+            at: 0,
+        };
         let n = r.count(24)?;
         let mut out = BTreeMap::new();
         for _ in 0..n {
             let id = r.u32()?;
             let model_id = r.i32()?;
-            let model = CameraModel::from_id(model_id)
-                .ok_or_else(|| NerfError::format(path, format!("camera {id}: unknown model id {model_id}")))?;
+            let model = CameraModel::from_id(model_id).ok_or_else(|| {
+                NerfError::format(path, format!("camera {id}: unknown model id {model_id}"))
+            })?;
             let width = r.u64()?;
             let height = r.u64()?;
-            let params = (0..model.num_params()).map(|_| r.f64()).collect::<Result<Vec<_>>>()?;
-            out.insert(id, Camera { id, model, width, height, params });
+            let params = (0..model.num_params())
+                .map(|_| r.f64())
+                .collect::<Result<Vec<_>>>()?;
+            out.insert(
+                id,
+                Camera {
+                    id,
+                    model,
+                    width,
+                    height,
+                    params,
+                },
+            );
         }
         Ok(out)
     }
 
     pub fn images(path: &Path) -> Result<Vec<Image>> {
         let bytes = read(path)?;
-        let mut r = Reader { path, bytes: &bytes, at: 0 };
+        let mut r = Reader {
+            path,
+            bytes: &bytes,
+            at: 0,
+        };
         let n = r.count(64)?;
         let mut out = Vec::with_capacity(n);
         for _ in 0..n {
@@ -473,14 +624,25 @@ mod binary {
                     point_ids.push(p as u64);
                 }
             }
-            out.push(Image { id, qvec, tvec, camera_id, name, point_ids });
+            out.push(Image {
+                id,
+                qvec,
+                tvec,
+                camera_id,
+                name,
+                point_ids,
+            });
         }
         Ok(out)
     }
 
     pub fn points(path: &Path) -> Result<Vec<Point>> {
         let bytes = read(path)?;
-        let mut r = Reader { path, bytes: &bytes, at: 0 };
+        let mut r = Reader {
+            path,
+            bytes: &bytes,
+            at: 0,
+        };
         let n = r.count(43)?;
         let mut out = Vec::with_capacity(n);
         for _ in 0..n {
@@ -490,7 +652,12 @@ mod binary {
             let error = r.f64()?;
             let track = r.count(8)?;
             r.take(track * 8)?;
-            out.push(Point { id, xyz, rgb, error });
+            out.push(Point {
+                id,
+                xyz,
+                rgb,
+                error,
+            });
         }
         Ok(out)
     }
@@ -508,7 +675,10 @@ mod tests {
         let back = img.camera_to_world();
         for r in 0..3 {
             for c in 0..4 {
-                assert!((back[r][c] - pose[r][c]).abs() < 1e-5, "{back:?} vs {pose:?}");
+                assert!(
+                    (back[r][c] - pose[r][c]).abs() < 1e-5,
+                    "{back:?} vs {pose:?}"
+                );
             }
         }
         // The point looked at is in front of the camera (positive OpenCV depth).
@@ -519,13 +689,32 @@ mod tests {
     fn text_model_round_trips_and_errors_name_the_line() {
         let dir = tempfile::tempdir().expect("tempdir");
         let mut model = Model::default();
-        model.cameras.insert(3, Camera { id: 3, model: CameraModel::Opencv, width: 64, height: 48, params: vec![50.0, 51.0, 32.0, 24.0, 0.01, -0.02, 0.001, 0.002] });
+        model.cameras.insert(
+            3,
+            Camera {
+                id: 3,
+                model: CameraModel::Opencv,
+                width: 64,
+                height: 48,
+                params: vec![50.0, 51.0, 32.0, 24.0, 0.01, -0.02, 0.001, 0.002],
+            },
+        );
         let pose = look_at([0.0, -4.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]);
         let mut img = Image::from_camera_to_world(7, 3, "my photo.png", &pose);
         img.point_ids = vec![1, 2];
         model.images.push(img);
-        model.points.push(Point { id: 1, xyz: [0.1, 0.2, 0.3], rgb: [10, 20, 30], error: 0.5 });
-        model.points.push(Point { id: 2, xyz: [-0.1, 0.0, 0.3], rgb: [1, 2, 3], error: 0.25 });
+        model.points.push(Point {
+            id: 1,
+            xyz: [0.1, 0.2, 0.3],
+            rgb: [10, 20, 30],
+            error: 0.5,
+        });
+        model.points.push(Point {
+            id: 2,
+            xyz: [-0.1, 0.0, 0.3],
+            rgb: [1, 2, 3],
+            error: 0.25,
+        });
         write_text_model(dir.path(), &model).expect("write");
         let back = read_model(dir.path()).expect("read");
         assert_eq!(back.cameras, model.cameras);
@@ -536,11 +725,21 @@ mod tests {
             assert!((back.images[0].qvec[k] - model.images[0].qvec[k]).abs() < 1e-12);
         }
 
-        std::fs::write(dir.path().join("cameras.txt"), "1 PINHOLE 64 48 50 50 32\n").expect("write");
+        std::fs::write(dir.path().join("cameras.txt"), "1 PINHOLE 64 48 50 50 32\n")
+            .expect("write");
         let err = read_model(dir.path()).expect_err("3 params").to_string();
-        assert!(err.contains("cameras.txt") && err.contains("line 1") && err.contains("4 parameters"), "{err}");
-        std::fs::write(dir.path().join("cameras.txt"), "1 PINHOLE 64 48 50 50 32 24\n").expect("write");
-        let err = read_model(dir.path()).expect_err("camera 3 missing").to_string();
+        assert!(
+            err.contains("cameras.txt") && err.contains("line 1") && err.contains("4 parameters"),
+            "{err}"
+        );
+        std::fs::write(
+            dir.path().join("cameras.txt"),
+            "1 PINHOLE 64 48 50 50 32 24\n",
+        )
+        .expect("write");
+        let err = read_model(dir.path())
+            .expect_err("camera 3 missing")
+            .to_string();
         assert!(err.contains("camera 3"), "{err}");
     }
 

@@ -25,15 +25,18 @@ const MAX_BOUND: f32 = 4.0;
 
 pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
     let model_dir = colmap::find_model(dir).ok_or_else(|| {
-        NerfError::format(dir, "has no COLMAP model (sparse/0/cameras.bin or cameras.txt)")
+        NerfError::format(
+            dir,
+            "has no COLMAP model (sparse/0/cameras.bin or cameras.txt)",
+        )
     })?;
     let model = colmap::read_model(&model_dir)?;
     let images_dir = dir.join("images");
     let (frames, placement) = frames_of(&model, &model_dir, &images_dir)?;
     let cameras: Vec<Camera> = frames.iter().map(|f| f.camera.clone()).collect();
     let bound = box_from_points(&model, &placement);
-    let (near, far) = depth_bounds(&model, &placement)
-        .unwrap_or_else(|| bounds_around_box(&cameras, bound));
+    let (near, far) =
+        depth_bounds(&model, &placement).unwrap_or_else(|| bounds_around_box(&cameras, bound));
     Ok(Parsed {
         frames,
         splits: None,
@@ -46,9 +49,16 @@ pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
 }
 
 /// The registered images in name order, placed in the canonical frame, and that frame.
-pub fn frames_of(model: &Model, model_dir: &Path, images_dir: &Path) -> Result<(Vec<Frame>, Similarity)> {
+pub fn frames_of(
+    model: &Model,
+    model_dir: &Path,
+    images_dir: &Path,
+) -> Result<(Vec<Frame>, Similarity)> {
     if model.images.is_empty() {
-        return Err(NerfError::format(model_dir, "the COLMAP model has no registered images"));
+        return Err(NerfError::format(
+            model_dir,
+            "the COLMAP model has no registered images",
+        ));
     }
     let mut images: Vec<&colmap::Image> = model.images.iter().collect();
     images.sort_by(|a, b| a.name.cmp(&b.name));
@@ -59,7 +69,8 @@ pub fn frames_of(model: &Model, model_dir: &Path, images_dir: &Path) -> Result<(
         .zip(&poses)
         .map(|(img, pose)| {
             let cam = &model.cameras[&img.camera_id];
-            let mut camera = camera_of(cam).map_err(|m| NerfError::format(model_dir, format!("camera {}: {m}", cam.id)))?;
+            let mut camera = camera_of(cam)
+                .map_err(|m| NerfError::format(model_dir, format!("camera {}: {m}", cam.id)))?;
             camera.c2w = placement.apply_pose(pose);
             Ok(Frame {
                 camera,
@@ -90,7 +101,10 @@ pub fn camera_of(c: &colmap::Camera) -> std::result::Result<Camera, String> {
         }
     };
     if !(fx > 0.0 && fy > 0.0) || c.width == 0 || c.height == 0 {
-        return Err(format!("focal ({fx}, {fy}) and size {}x{} must be positive", c.width, c.height));
+        return Err(format!(
+            "focal ({fx}, {fy}) and size {}x{} must be positive",
+            c.width, c.height
+        ));
     }
     Ok(Camera {
         width: c.width as usize,
@@ -99,8 +113,16 @@ pub fn camera_of(c: &colmap::Camera) -> std::result::Result<Camera, String> {
         fy,
         cx,
         cy,
-        c2w: [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0]],
-        distortion: Distortion { model, k, p: tangential },
+        c2w: [
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 1.0, 0.0, 0.0],
+            [0.0, 0.0, 1.0, 0.0],
+        ],
+        distortion: Distortion {
+            model,
+            k,
+            p: tangential,
+        },
     })
 }
 
@@ -115,7 +137,8 @@ fn percentile(values: &mut [f32], q: f32) -> Option<f32> {
 
 /// Near and far from the depths of the points each image observes, in placed units.
 fn depth_bounds(model: &Model, placement: &Similarity) -> Option<(f32, f32)> {
-    let index: std::collections::HashMap<u64, [f64; 3]> = model.points.iter().map(|p| (p.id, p.xyz)).collect();
+    let index: std::collections::HashMap<u64, [f64; 3]> =
+        model.points.iter().map(|p| (p.id, p.xyz)).collect();
     let mut depths: Vec<f32> = model
         .images
         .iter()
@@ -135,7 +158,7 @@ fn depth_bounds(model: &Model, placement: &Similarity) -> Option<(f32, f32)> {
 
 /// Half-extent of the cube holding 95% of the placed points, within
 /// `[MIN_BOUND, MAX_BOUND]` camera radii.
-fn box_from_points(model: &Model, placement: &Similarity) -> f32 {
+pub fn box_from_points(model: &Model, placement: &Similarity) -> f32 {
     let mut extents: Vec<f32> = model
         .points
         .iter()

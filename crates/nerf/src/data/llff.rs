@@ -19,7 +19,7 @@
 use std::path::{Path, PathBuf};
 
 use super::npy;
-use super::poses::{average_pose, inward_frame, into_frame_of, Similarity};
+use super::poses::{average_pose, into_frame_of, inward_frame, Similarity};
 use super::scene::{image_dimensions, Frame, Parsed, SceneOptions};
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
@@ -57,7 +57,11 @@ pub fn parse_row(row: &[f64]) -> (Pose, [f32; 3], [f32; 2]) {
         // [down, right, back] -> [right, up, back].
         *out = [m(r, 1), -m(r, 0), m(r, 2), m(r, 3)];
     }
-    (pose, [m(0, 4), m(1, 4), m(2, 4)], [row[15] as f32, row[16] as f32])
+    (
+        pose,
+        [m(0, 4), m(1, 4), m(2, 4)],
+        [row[15] as f32, row[16] as f32],
+    )
 }
 
 /// The row of an OpenGL pose (inverse of [`parse_row`]), for writing fixtures.
@@ -149,7 +153,13 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
         let frame = inward_frame(&scaled_poses, 1.0);
         let s = frame.scale;
         let space = RaySpace::World;
-        (frame.after(&scaled), 0.9 * near * s, far * s, space, SPHERIFY_BOUND)
+        (
+            frame.after(&scaled),
+            0.9 * near * s,
+            far * s,
+            space,
+            SPHERIFY_BOUND,
+        )
     } else {
         let frame = into_frame_of(&average_pose(&scaled_poses));
         let placement = frame.after(&scaled);

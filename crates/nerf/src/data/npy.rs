@@ -72,7 +72,10 @@ fn parse(bytes: &[u8]) -> std::result::Result<Array2, String> {
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>().map_err(|_| format!("bad shape entry {s:?}")))
+        .map(|s| {
+            s.parse::<usize>()
+                .map_err(|_| format!("bad shape entry {s:?}"))
+        })
         .collect::<std::result::Result<_, _>>()?;
     let (rows, cols) = match dims[..] {
         [r, c] => (r, c),
@@ -137,7 +140,10 @@ mod tests {
         assert_eq!(read(&path).expect("read").row(1), &[4.0, 5.0, 1e-9]);
 
         std::fs::write(&path, b"hello").expect("write");
-        assert!(read(&path).expect_err("magic").to_string().contains("a.npy"));
+        assert!(read(&path)
+            .expect_err("magic")
+            .to_string()
+            .contains("a.npy"));
         let mut bytes = b"\x93NUMPY\x01\x00".to_vec();
         let h = "{'descr': '<i8', 'fortran_order': False, 'shape': (2, 3), }\n";
         bytes.extend_from_slice(&(h.len() as u16).to_le_bytes());

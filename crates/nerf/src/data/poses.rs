@@ -21,7 +21,10 @@ impl Similarity {
     };
 
     pub fn apply_point(&self, p: V3) -> V3 {
-        add(scale(mat_vec(&self.rotation, p), self.scale), self.translation)
+        add(
+            scale(mat_vec(&self.rotation, p), self.scale),
+            self.translation,
+        )
     }
 
     pub fn apply_pose(&self, pose: &Pose) -> Pose {
@@ -141,7 +144,11 @@ pub fn focus_point(poses: &[Pose]) -> V3 {
             + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]))
             / det
     };
-    [solve_col(0) as f32, solve_col(1) as f32, solve_col(2) as f32]
+    [
+        solve_col(0) as f32,
+        solve_col(1) as f32,
+        solve_col(2) as f32,
+    ]
 }
 
 /// A rotation taking unit vector `from` onto `to` (Rodrigues).
@@ -154,7 +161,11 @@ pub(crate) fn rotation_between(from: V3, to: V3) -> [[f32; 3]; 3] {
             return Similarity::IDENTITY.rotation;
         }
         // Half turn about any axis perpendicular to `from`.
-        let helper = if from[0].abs() < 0.9 { [1.0, 0.0, 0.0] } else { [0.0, 1.0, 0.0] };
+        let helper = if from[0].abs() < 0.9 {
+            [1.0, 0.0, 0.0]
+        } else {
+            [0.0, 1.0, 0.0]
+        };
         let k = normalize_or_zero(cross(from, helper));
         let mut m = [[0.0; 3]; 3];
         for (r, row) in m.iter_mut().enumerate() {
@@ -200,6 +211,128 @@ pub fn inward_frame(poses: &[Pose], radius: f32) -> Similarity {
     }
 }
 
+/// The similarity `x -> s R x + t` that best maps points `from` onto `to` (least squares;
+/// Horn's closed form with quaternions), and the RMS distance left.
+pub fn fit_similarity(from: &[V3], to: &[V3]) -> (Similarity, f32) {
+    let n = from.len().min(to.len());
+    let ca = mean(from[..n].iter().copied());
+    let cb = mean(to[..n].iter().copied());
+    let mut s = [[0.0f64; 3]; 3];
+    let (mut var_a, mut var_b) = (0.0f64, 0.0f64);
+    for k in 0..n {
+        let a = sub(from[k], ca).map(f64::from);
+        let b = sub(to[k], cb).map(f64::from);
+        for r in 0..3 {
+            for c in 0..3 {
+                s[r][c] += a[r] * b[c];
+            }
+        }
+        var_a += a.iter().map(|v| v * v).sum::<f64>();
+        var_b += b.iter().map(|v| v * v).sum::<f64>();
+    }
+    let [[sxx, sxy, sxz], [syx, syy, syz], [szx, szy, szz]] = s;
+    let m = [
+        [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
+        [syz - szy, sxx - syy - szz, sxy + syx, szx + sxz],
+        [szx - sxz, sxy + syx, -sxx + syy - szz, syz + szy],
+        [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
+    ];
+    let [w, x, y, z] = top_eigenvector(m);
+    let rotation = [
+        [
+            w * w + x * x - y * y - z * z,
+            2.0 * (x * y - w * z),
+            2.0 * (x * z + w * y),
+        ],
+        [
+            2.0 * (x * y + w * z),
+            w * w - x * x + y * y - z * z,
+            2.0 * (y * z - w * x),
+        ],
+        [
+            2.0 * (x * z - w * y),
+            2.0 * (y * z + w * x),
+            w * w - x * x - y * y + z * z,
+        ],
+    ]
+    .map(|row| row.map(|v| v as f32));
+    let scale_ab = if var_a > 0.0 {
+        (var_b / var_a).sqrt() as f32
+    } else {
+        1.0
+    };
+    let rotated = mat_vec(&rotation, ca);
+    let sim = Similarity {
+        rotation,
+        translation: sub(cb, scale(rotated, scale_ab)),
+        scale: scale_ab,
+    };
+    let rms = (from[..n]
+        .iter()
+        .zip(&to[..n])
+        .map(|(&a, &b)| {
+            let d = sub(sim.apply_point(a), b);
+            dot(d, d)
+        })
+        .sum::<f32>()
+        / n.max(1) as f32)
+        .sqrt();
+    (sim, rms)
+}
+
+/// Unit eigenvector of the largest eigenvalue of a symmetric 4x4 matrix (cyclic Jacobi).
+fn top_eigenvector(mut a: [[f64; 4]; 4]) -> [f64; 4] {
+    let mut v = [[0.0f64; 4]; 4];
+    for (i, row) in v.iter_mut().enumerate() {
+        row[i] = 1.0;
+    }
+    for _sweep in 0..50 {
+        let off: f64 = (0..4)
+            .flat_map(|p| ((p + 1)..4).map(move |q| (p, q)))
+            .map(|(p, q)| a[p][q] * a[p][q])
+            .sum();
+        if off < 1e-24 {
+            break;
+        }
+        for p in 0..4 {
+            for q in (p + 1)..4 {
+                if a[p][q].abs() < 1e-300 {
+                    continue;
+                }
+                let theta = (a[q][q] - a[p][p]) / (2.0 * a[p][q]);
+                let t = theta.signum() / (theta.abs() + (theta * theta + 1.0).sqrt());
+                let t = if theta == 0.0 { 1.0 } else { t };
+                let c = 1.0 / (t * t + 1.0).sqrt();
+                let s = t * c;
+                for k in 0..4 {
+                    let (akp, akq) = (a[k][p], a[k][q]);
+                    a[k][p] = c * akp - s * akq;
+                    a[k][q] = s * akp + c * akq;
+                }
+                for k in 0..4 {
+                    let (apk, aqk) = (a[p][k], a[q][k]);
+                    a[p][k] = c * apk - s * aqk;
+                    a[q][k] = s * apk + c * aqk;
+                }
+                for row in v.iter_mut() {
+                    let (vp, vq) = (row[p], row[q]);
+                    row[p] = c * vp - s * vq;
+                    row[q] = s * vp + c * vq;
+                }
+            }
+        }
+    }
+    let best = (0..4).fold(0, |b, i| if a[i][i] > a[b][b] { i } else { b });
+    [v[0][best], v[1][best], v[2][best], v[3][best]]
+}
+
+/// Angle in degrees between the rotations of two poses.
+pub fn rotation_error_degrees(a: &Pose, b: &Pose) -> f32 {
+    // trace(Ra^T Rb) = 1 + 2 cos(angle).
+    let trace: f32 = (0..3).map(|c| dot(column(a, c), column(b, c))).sum();
+    ((trace - 1.0) * 0.5).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -231,6 +364,38 @@ mod tests {
     }
 
     #[test]
+    fn fit_similarity_recovers_a_known_transform() {
+        let truth = Similarity {
+            rotation: rotation_between(normalize_or_zero([0.3, -0.5, 0.8]), [0.0, 0.0, 1.0]),
+            translation: [0.5, -2.0, 1.0],
+            scale: 0.37,
+        };
+        let from: Vec<V3> = (0..12)
+            .map(|k| {
+                let a = k as f32 * 0.7;
+                [3.0 * a.cos(), 2.0 * a.sin(), (k % 3) as f32 - 1.0]
+            })
+            .collect();
+        let to: Vec<V3> = from.iter().map(|&p| truth.apply_point(p)).collect();
+        let (fit, rms) = fit_similarity(&from, &to);
+        assert!(rms < 1e-5, "rms {rms}");
+        assert!((fit.scale - 0.37).abs() < 1e-5);
+        for r in 0..3 {
+            for c in 0..3 {
+                assert!((fit.rotation[r][c] - truth.rotation[r][c]).abs() < 1e-5);
+            }
+        }
+        let pose = look_at([1.0, 2.0, 3.0], [0.0; 3], [0.0, 0.0, 1.0]);
+        let turned = Similarity {
+            rotation: rotation_between([1.0, 0.0, 0.0], normalize_or_zero([1.0, 0.1, 0.0])),
+            ..Similarity::IDENTITY
+        }
+        .apply_pose(&pose);
+        let angle = rotation_error_degrees(&pose, &turned);
+        assert!((angle - 0.1f32.atan().to_degrees()).abs() < 1e-2, "{angle}");
+    }
+
+    #[test]
     fn average_pose_of_an_orbit_and_inverse() {
         let poses = orbit(8, 4.0, 0.3);
         let avg = average_pose(&poses);
@@ -244,7 +409,10 @@ mod tests {
                 assert!((p[r][c] - want).abs() < 1e-5, "{p:?}");
             }
         }
-        let both = to.after(&Similarity { scale: 2.0, ..Similarity::IDENTITY });
+        let both = to.after(&Similarity {
+            scale: 2.0,
+            ..Similarity::IDENTITY
+        });
         let q = [0.3, -0.2, 0.5];
         let want = to.apply_point(scale(q, 2.0));
         assert!(length(sub(both.apply_point(q), want)) < 1e-5);

@@ -288,7 +288,11 @@ impl Scene {
 
 /// `camera` for an image of `width x height`: itself, or its intrinsics scaled when the
 /// image was resized since the metadata was written (same shape, another resolution).
-pub(crate) fn fit_to_image(camera: &Camera, width: usize, height: usize) -> std::result::Result<Camera, String> {
+pub(crate) fn fit_to_image(
+    camera: &Camera,
+    width: usize,
+    height: usize,
+) -> std::result::Result<Camera, String> {
     let (cw, ch) = (camera.width, camera.height);
     if (cw, ch) == (width, height) {
         return Ok(camera.clone());
@@ -335,7 +339,10 @@ fn load_mask(path: &Path, image: &RgbaImage, factor: usize) -> Result<Vec<u32>> 
         .map(|(i, _)| i as u32)
         .collect();
     if kept.is_empty() {
-        return Err(NerfError::format(path, "the mask leaves no pixel to train on"));
+        return Err(NerfError::format(
+            path,
+            "the mask leaves no pixel to train on",
+        ));
     }
     Ok(kept)
 }

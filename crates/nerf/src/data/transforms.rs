@@ -32,7 +32,9 @@ use std::path::Path;
 use serde::Deserialize;
 
 use super::poses::{column, origin, Similarity};
-use super::scene::{bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, SceneOptions};
+use super::scene::{
+    bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, SceneOptions,
+};
 use crate::camera::{Camera, Pose};
 use crate::distortion::{Distortion, LensModel};
 use crate::error::{NerfError, Result};
@@ -65,7 +67,23 @@ impl Intrinsics {
         macro_rules! pick {
             ($($f:ident),*) => { Intrinsics { $($f: self.$f.clone().or(base.$f.clone()),)* } };
         }
-        pick!(fl_x, fl_y, camera_angle_x, camera_angle_y, cx, cy, w, h, k1, k2, k3, k4, p1, p2, camera_model)
+        pick!(
+            fl_x,
+            fl_y,
+            camera_angle_x,
+            camera_angle_y,
+            cx,
+            cy,
+            w,
+            h,
+            k1,
+            k2,
+            k3,
+            k4,
+            p1,
+            p2,
+            camera_model
+        )
     }
 }
 
@@ -168,16 +186,20 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
 /// scaled into `[-1, 1]^3`.
 fn nerfstudio_placement(poses: &[Pose]) -> Similarity {
     let n = poses.len().max(1) as f32;
-    let up: V3 = normalize_or_zero(poses.iter().fold([0.0; 3], |s, p| {
-        crate::math::add(s, column(p, 1))
-    }));
+    let up: V3 = normalize_or_zero(
+        poses
+            .iter()
+            .fold([0.0; 3], |s, p| crate::math::add(s, column(p, 1))),
+    );
     let rotate = super::poses::rotation_between(up, [0.0, 0.0, 1.0]);
     let oriented = Similarity {
         rotation: rotate,
         ..Similarity::IDENTITY
     };
     let mean = scale(
-        poses.iter().fold([0.0; 3], |s, p| crate::math::add(s, oriented.apply_point(origin(p)))),
+        poses.iter().fold([0.0; 3], |s, p| {
+            crate::math::add(s, oriented.apply_point(origin(p)))
+        }),
         1.0 / n,
     );
     let extent = poses
@@ -195,7 +217,12 @@ fn nerfstudio_placement(poses: &[Pose]) -> Similarity {
     }
 }
 
-fn camera_from(intr: &Intrinsics, w: usize, h: usize, c2w: Pose) -> std::result::Result<Camera, String> {
+fn camera_from(
+    intr: &Intrinsics,
+    w: usize,
+    h: usize,
+    c2w: Pose,
+) -> std::result::Result<Camera, String> {
     let focal = |fl: Option<f64>, angle: Option<f64>, size: usize| {
         fl.or(angle.map(|a| 0.5 * size as f64 / (0.5 * a).tan()))
     };
@@ -205,15 +232,28 @@ fn camera_from(intr: &Intrinsics, w: usize, h: usize, c2w: Pose) -> std::result:
         (Some(x), Some(y)) => (x, y),
         (Some(x), None) => (x, x),
         (None, Some(y)) => (y, y),
-        (None, None) => return Err("no focal length (fl_x, fl_y, camera_angle_x or camera_angle_y)".into()),
+        (None, None) => {
+            return Err("no focal length (fl_x, fl_y, camera_angle_x or camera_angle_y)".into())
+        }
     };
     if !(fx > 0.0 && fy > 0.0 && fx.is_finite() && fy.is_finite()) || w == 0 || h == 0 {
-        return Err(format!("focal lengths ({fx}, {fy}) and size {w}x{h} must be positive"));
+        return Err(format!(
+            "focal lengths ({fx}, {fy}) and size {w}x{h} must be positive"
+        ));
     }
     let model = match intr.camera_model.as_deref() {
-        None | Some("OPENCV") | Some("PINHOLE") | Some("SIMPLE_PINHOLE") | Some("SIMPLE_RADIAL") | Some("RADIAL") => LensModel::Opencv,
+        None
+        | Some("OPENCV")
+        | Some("PINHOLE")
+        | Some("SIMPLE_PINHOLE")
+        | Some("SIMPLE_RADIAL")
+        | Some("RADIAL") => LensModel::Opencv,
         Some("OPENCV_FISHEYE") => LensModel::Fisheye,
-        Some(other) => return Err(format!("camera_model {other:?} is not supported (OPENCV, OPENCV_FISHEYE, PINHOLE)")),
+        Some(other) => {
+            return Err(format!(
+                "camera_model {other:?} is not supported (OPENCV, OPENCV_FISHEYE, PINHOLE)"
+            ))
+        }
     };
     let c = |v: Option<f64>| v.unwrap_or(0.0) as f32;
     Ok(Camera {

@@ -30,7 +30,11 @@ pub fn from_views(
                 let ray = camera.ray(i, j);
                 let (o, d) = settings.space.warp(ray.origin, ray.dir);
                 let t = view.depth[p] / a;
-                points.push(settings.space.to_world(std::array::from_fn(|c| o[c] + t * d[c])));
+                points.push(
+                    settings
+                        .space
+                        .to_world(std::array::from_fn(|c| o[c] + t * d[c])),
+                );
                 colours.push(std::array::from_fn(|c| {
                     ((view.rgb[3 * p + c] - (1.0 - a) * settings.background[c]) / a).clamp(0.0, 1.0)
                 }));

@@ -293,9 +293,7 @@ fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
 
 fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
     let bg = trainer.config.background.eval_colour();
-    let settings = trainer
-        .data
-        .render_settings(bg, trainer.config.chunk_rays);
+    let settings = trainer.data.render_settings(bg, trainer.config.chunk_rays);
     let r = crate::renderer::render_view(
         &trainer.model,
         &trainer.params,

@@ -18,6 +18,40 @@ pub enum Pattern {
         b: V3,
         cell: f32,
     },
+    /// Multi-octave value noise between `a` and `b` with features of size `cell` and
+    /// smaller: never repeats, which is what feature matching (COLMAP) needs.
+    Noise {
+        a: V3,
+        b: V3,
+        cell: f32,
+    },
+}
+
+/// Smooth value noise in [0, 1] on the unit lattice (hashed corner values, smoothstep
+/// blend).
+fn value_noise(p: V3) -> f32 {
+    let cell = p.map(|x| x.floor());
+    let f = [p[0] - cell[0], p[1] - cell[1], p[2] - cell[2]].map(|t| t * t * (3.0 - 2.0 * t));
+    let corner = |dx: i64, dy: i64, dz: i64| {
+        let (x, y, z) = (
+            cell[0] as i64 + dx,
+            cell[1] as i64 + dy,
+            cell[2] as i64 + dz,
+        );
+        let mut h = (x.wrapping_mul(0x8da6b343)
+            ^ y.wrapping_mul(0xd8163841)
+            ^ z.wrapping_mul(0xcb1ab31f)) as u64;
+        h ^= h >> 29;
+        h = h.wrapping_mul(0xbf58476d1ce4e5b9);
+        h ^= h >> 32;
+        (h & 0xffff) as f32 / 65535.0
+    };
+    let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+    let x00 = lerp(corner(0, 0, 0), corner(1, 0, 0), f[0]);
+    let x10 = lerp(corner(0, 1, 0), corner(1, 1, 0), f[0]);
+    let x01 = lerp(corner(0, 0, 1), corner(1, 0, 1), f[0]);
+    let x11 = lerp(corner(0, 1, 1), corner(1, 1, 1), f[0]);
+    lerp(lerp(x00, x10, f[1]), lerp(x01, x11, f[1]), f[2])
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -48,6 +82,17 @@ impl Material {
                     + 0.4 * (a * 11.0).sin();
                 let ring = (0.5 + 0.5 * (r * std::f32::consts::TAU).sin()).powf(3.0);
                 mix(light, dark, ring)
+            }
+            Pattern::Noise { a, b, cell } => {
+                let (mut sum, mut weight, mut freq) = (0.0, 0.0, 1.0 / cell);
+                for octave in 0..4 {
+                    let w = 0.55f32.powi(octave);
+                    sum += w * value_noise(p.map(|x| x * freq));
+                    weight += w;
+                    freq *= 2.3;
+                }
+                let t = (sum / weight - 0.5) * 2.5 + 0.5;
+                mix(a, b, t.clamp(0.0, 1.0))
             }
             Pattern::Checker { a, b, cell } => {
                 let k = (p[0] / cell).floor() as i64

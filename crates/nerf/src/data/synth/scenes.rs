@@ -17,16 +17,25 @@ pub enum SceneKind {
     Chair,
     Table,
     Lamp,
+    /// The chair on a rug with a non-repeating pattern: enough texture for structure from
+    /// motion (`nerf capture` tests), which the plain furniture lacks.
+    Rug,
 }
 
 impl SceneKind {
-    pub const ALL: [SceneKind; 3] = [SceneKind::Chair, SceneKind::Table, SceneKind::Lamp];
+    pub const ALL: [SceneKind; 4] = [
+        SceneKind::Chair,
+        SceneKind::Table,
+        SceneKind::Lamp,
+        SceneKind::Rug,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
             SceneKind::Chair => "chair",
             SceneKind::Table => "table",
             SceneKind::Lamp => "lamp",
+            SceneKind::Rug => "rug",
         }
     }
 
@@ -39,6 +48,7 @@ impl SceneKind {
             SceneKind::Chair => chair(),
             SceneKind::Table => table(),
             SceneKind::Lamp => lamp(),
+            SceneKind::Rug => rug(),
         }
     }
 }
@@ -81,6 +91,29 @@ fn glossy(colour: [f32; 3]) -> Material {
 
 fn part(shape: Shape, material: Material) -> Part {
     Part { shape, material }
+}
+
+const RUG: Material = Material {
+    pattern: Pattern::Noise {
+        a: [0.1, 0.16, 0.35],
+        b: [0.95, 0.8, 0.45],
+        cell: 0.18,
+    },
+    specular: 0.02,
+    shininess: 4.0,
+};
+
+fn rug() -> Vec<Part> {
+    let mut parts = chair();
+    parts.push(part(
+        Shape::Box {
+            center: [0.0, 0.0, -1.08],
+            half: [1.3, 1.3, 0.03],
+            round: 0.01,
+        },
+        RUG,
+    ));
+    parts
 }
 
 fn chair() -> Vec<Part> {
