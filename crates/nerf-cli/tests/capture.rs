@@ -136,4 +136,52 @@ fn capture_recovers_the_true_cameras_up_to_a_similarity() {
         "focal {fx} vs {}",
         cameras[0].fx
     );
+
+    // The same photos as a video: frames extracted with ffmpeg, matched sequentially.
+    if Command::new("ffmpeg").arg("-version").output().is_err() {
+        eprintln!("skipping the video capture: ffmpeg is not installed");
+        return;
+    }
+    let encode = Command::new("ffmpeg")
+        .args([
+            "-loglevel",
+            "error",
+            "-y",
+            "-framerate",
+            "10",
+            "-i",
+            "photos/%02d.png",
+        ])
+        .args([
+            "-c:v", "libx264", "-pix_fmt", "yuv420p", "-crf", "12", "ring.mp4",
+        ])
+        .current_dir(dir.path())
+        .status()
+        .expect("ffmpeg");
+    assert!(encode.success());
+    let out = nerf_with_path(
+        &[
+            "capture",
+            "--video",
+            "ring.mp4",
+            "--fps",
+            "10",
+            "--out",
+            "video_scene",
+            "--camera-model",
+            "PINHOLE",
+        ],
+        dir.path(),
+        None,
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "video capture failed:\n{text}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(text.contains("Sequential matching"), "{text}");
+    let video =
+        Scene::open(&dir.path().join("video_scene"), &SceneOptions::default(), 1).expect("open");
+    assert!(video.frames.len() >= 27, "{text}");
 }
