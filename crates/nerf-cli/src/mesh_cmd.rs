@@ -8,6 +8,7 @@ use clap::Args;
 use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
 use nerf::model::Model;
+use nerf::ray_space::RaySpace;
 use nerf::train::run::LoadedRun;
 
 use crate::progress::bar;
@@ -68,7 +69,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     };
     let t0 = Instant::now();
     let pb = bar(resolution as u64, "density slabs");
-    let mesh = extract(&run.model, &run.params, &options, &mut |done, _| {
+    let mut mesh = extract(&run.model, &run.params, &options, &mut |done, _| {
         pb.set_position(done as u64)
     });
     pb.finish_and_clear();
@@ -81,6 +82,20 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     // Colour from a few grid cells outside the surface.
     let offset = 4.0 * 2.0 * bound / resolution as f32;
     let colours = colour_vertices(&run.model, &run.params, &mesh, offset);
+    // Forward-facing scenes are modelled in NDC: export in world coordinates.
+    let space = run.config.open_scene(1).map(|s| s.space);
+    match space {
+        Ok(space) if space != RaySpace::World => {
+            for v in &mut mesh.vertices {
+                *v = space.to_world(*v);
+            }
+            println!("the run is in NDC space: vertices mapped back to world coordinates");
+        }
+        Ok(_) => {}
+        Err(e) => {
+            eprintln!("warning: cannot read the run's scene ({e}); vertices are in model space")
+        }
+    }
     write_mesh(&a.out, &mesh, &colours)?;
     println!(
         "{} triangles, {} vertices in {:.1} s (resolution {}, threshold {}{}) -> {}",
