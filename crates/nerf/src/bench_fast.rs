@@ -13,8 +13,9 @@ use serde::Serialize;
 
 use crate::bench::{median, peak_resident_mib};
 use crate::camera::Camera;
+use crate::data::scene::{Scene, SceneOptions};
 use crate::data::synth::{self, SceneKind, SynthOptions};
-use crate::data::{blender, Split};
+use crate::data::Split;
 use crate::error::Result;
 use crate::model::{FastModelConfig, ModelConfig};
 use crate::renderer::render_view;
@@ -61,12 +62,14 @@ pub struct FastBenchReport {
 
 pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastBenchReport> {
     let threads = rayon::current_num_threads();
+    let mut model = opts.model.clone();
     let (data, scene, camera) = match &opts.data {
         Some(dir) => {
             say(format!("loading {}...", dir.display()));
-            let train = blender::load(dir, Split::Train, 1)?;
-            let test = blender::load_every(dir, Split::Test, 1, usize::MAX)?;
-            let camera = test.views.first().map(|v| v.camera.clone());
+            let scene = Scene::open(dir, &SceneOptions::default(), 1)?;
+            model.field.bound = scene.bound;
+            let train = scene.load(Split::Train, 1)?;
+            let camera = scene.cameras(Split::Test).into_iter().next();
             (train, dir.display().to_string(), camera)
         }
         None => {
@@ -93,7 +96,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         )
     });
     let mut config = TrainConfig::fast("(in memory)".into());
-    config.model = ModelConfig::Fast(opts.model.clone());
+    config.model = ModelConfig::Fast(model);
     config.steps = opts.warmup_steps + opts.steps as u64;
     let mut trainer = Trainer::new(config, data)?;
     say(format!(

@@ -130,8 +130,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
             (Some(w), Some(h)) => (w as usize, h as usize),
             _ => image_dimensions(&image)?,
         };
-        let mut camera = camera_from(&intr, w, h, pose).map_err(|m| bad(k, f, m))?;
-        camera.c2w = pose;
+        let camera = camera_from(&intr, w, h, pose).map_err(|m| bad(k, f, m))?;
         frames.push(Frame {
             camera,
             image,
