@@ -43,7 +43,12 @@ pub struct SynthArgs {
     /// Output folder (Blender format: transforms_*.json + train/ val/ test/).
     #[arg(long)]
     out: PathBuf,
-    /// Square image size in pixels.
+    /// `blender`: 360-degree views in Blender format. `llff`: a forward-facing capture
+    /// (a 5 x 6 grid of cameras in front of the object, 4:3 images) in LLFF format, trained
+    /// in NDC space.
+    #[arg(long, value_enum, default_value = "blender")]
+    layout: LayoutArg,
+    /// Image size in pixels (square; the width for --layout llff).
     #[arg(long, default_value_t = 100)]
     size: usize,
     #[arg(long, default_value_t = 100)]
@@ -59,7 +64,34 @@ pub struct SynthArgs {
     seed: u64,
 }
 
+#[derive(Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum LayoutArg {
+    Blender,
+    Llff,
+}
+
 pub fn synth(a: SynthArgs) -> Result<()> {
+    if a.layout == LayoutArg::Llff {
+        let cameras = synth::llff::forward_facing_cameras(a.size, a.size * 3 / 4, 5, 6);
+        let pb = bar(cameras.len() as u64, &format!("synth {} (LLFF)", a.scene.kind().name()));
+        let t0 = Instant::now();
+        synth::llff::write(
+            a.scene.kind(),
+            &cameras,
+            a.supersample,
+            &nerf::data::poses::Similarity::IDENTITY,
+            &a.out,
+            &mut |done, _| pb.set_position(done as u64),
+        )?;
+        pb.finish_and_clear();
+        println!(
+            "wrote {} forward-facing views (LLFF) to {} in {:.1} s",
+            cameras.len(),
+            a.out.display(),
+            t0.elapsed().as_secs_f64()
+        );
+        return Ok(());
+    }
     let opts = SynthOptions {
         scene: a.scene.kind(),
         size: a.size,

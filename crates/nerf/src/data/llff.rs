@@ -78,6 +78,26 @@ pub fn make_row(pose: &Pose, hwf: [f32; 3], bounds: [f32; 2]) -> Vec<f64> {
     row
 }
 
+/// Half-extent of the NDC box that holds every training ray: NDC spans `[-1, 1]^3` for
+/// the reference (average) camera, but the other cameras' frusta reach past its sides,
+/// and rays leaving the box would see only the background colour.
+fn ndc_bound(space: &RaySpace, cameras: &[Camera]) -> f32 {
+    let mut extent = 1.0f32;
+    for c in cameras {
+        let (w, h) = (c.width as f32, c.height as f32);
+        for (x, y) in [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)] {
+            let ray = c.ray_at(x, y);
+            let (o, d) = space.warp(ray.origin, ray.dir);
+            for p in [o, [o[0] + d[0], o[1] + d[1], o[2] + d[2]]] {
+                extent = extent.max(p[0].abs()).max(p[1].abs());
+            }
+        }
+    }
+    // A little margin for the cell the edge falls in; never more than a few times the
+    // reference frustum, whatever odd camera the capture holds.
+    (1.02 * extent).min(4.0)
+}
+
 pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result<Parsed> {
     let npy_path = dir.join(POSES_FILE);
     let array = npy::read(&npy_path)?;
@@ -170,7 +190,14 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
                 ay: 2.0 * c.fy / c.height as f32,
                 near: 1.0,
             });
-            (placement, 0.9 * near, far, space, 1.0)
+            let placed: Vec<Camera> = cameras
+                .iter()
+                .map(|c| Camera {
+                    c2w: placement.apply_pose(&c.c2w),
+                    ..c.clone()
+                })
+                .collect();
+            (placement, 0.9 * near, far, space, ndc_bound(&space, &placed))
         } else {
             (placement, 0.9 * near, far, RaySpace::World, far)
         }

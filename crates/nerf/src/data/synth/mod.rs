@@ -8,6 +8,7 @@
 //! writes it). Depth is the mean z-depth of the hits, as a 16-bit PNG in millimetres
 //! (0 = background), listed per frame as `depth_file_path`.
 
+pub mod llff;
 pub mod materials;
 pub mod scenes;
 pub mod shapes;
