@@ -73,7 +73,10 @@ pub enum LayoutArg {
 pub fn synth(a: SynthArgs) -> Result<()> {
     if a.layout == LayoutArg::Llff {
         let cameras = synth::llff::forward_facing_cameras(a.size, a.size * 3 / 4, 5, 6);
-        let pb = bar(cameras.len() as u64, &format!("synth {} (LLFF)", a.scene.kind().name()));
+        let pb = bar(
+            cameras.len() as u64,
+            &format!("synth {} (LLFF)", a.scene.kind().name()),
+        );
         let t0 = Instant::now();
         synth::llff::write(
             a.scene.kind(),

@@ -197,7 +197,13 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
                     ..c.clone()
                 })
                 .collect();
-            (placement, 0.9 * near, far, space, ndc_bound(&space, &placed))
+            (
+                placement,
+                0.9 * near,
+                far,
+                space,
+                ndc_bound(&space, &placed),
+            )
         } else {
             (placement, 0.9 * near, far, RaySpace::World, far)
         }
