@@ -30,6 +30,7 @@ struct Scratch {
     march: MarchWorkspace,
     origins: Vec<f32>,
     dirs: Vec<f32>,
+    view_dirs: Vec<f32>,
     backgrounds: Vec<f32>,
 }
 
@@ -133,7 +134,11 @@ fn render_in_chunks(
             &mut s.origins,
             &mut s.dirs,
         );
-        if settings.space != RaySpace::World {
+        let warped = settings.space != RaySpace::World;
+        if warped {
+            // Colour stays conditioned on the world directions.
+            s.view_dirs.clear();
+            s.view_dirs.extend_from_slice(&s.dirs);
             for (o, d) in s
                 .origins
                 .chunks_exact_mut(3)
@@ -150,6 +155,7 @@ fn render_in_chunks(
         let rays = Rays {
             origins: &s.origins,
             dirs: &s.dirs,
+            view_dirs: warped.then_some(&s.view_dirs[..]),
             backgrounds: &s.backgrounds,
             near: settings.near,
             far: settings.far,

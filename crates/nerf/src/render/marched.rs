@@ -35,9 +35,10 @@ pub struct Marcher {
 /// Rays and their marched samples, packed for one evaluation of the field.
 #[derive(Default, Debug)]
 pub struct MarchBatch {
-    /// Per ray: origin, unit direction, background, target colour.
+    /// Per ray: origin, unit marching and viewing directions, background, target colour.
     origins: Vec<[f32; 3]>,
     dirs: Vec<[f32; 3]>,
+    view_dirs: Vec<[f32; 3]>,
     backgrounds: Vec<[f32; 3]>,
     targets: Vec<[f32; 3]>,
     /// Samples of ray `k` are `starts[k]..starts[k + 1]`.
@@ -49,6 +50,7 @@ impl MarchBatch {
     pub fn clear(&mut self) {
         self.origins.clear();
         self.dirs.clear();
+        self.view_dirs.clear();
         self.backgrounds.clear();
         self.targets.clear();
         self.t.clear();
@@ -63,7 +65,8 @@ impl MarchBatch {
     }
 
     /// Marches a camera ray (`dir` unnormalised) from a random offset `jitter` in [0, 1) of
-    /// the first step and packs it with its target colour. Returns the samples it added.
+    /// the first step and packs it with its target colour; colour is conditioned on
+    /// `view_dir` (see `Rays::view_dirs`). Returns the samples it added.
     #[allow(clippy::too_many_arguments)]
     pub fn push(
         &mut self,
@@ -71,6 +74,7 @@ impl MarchBatch {
         marcher: &Marcher,
         origin: [f32; 3],
         dir: [f32; 3],
+        view_dir: [f32; 3],
         background: [f32; 3],
         target: [f32; 3],
         jitter: f32,
@@ -96,6 +100,7 @@ impl MarchBatch {
         }
         self.origins.push(origin);
         self.dirs.push(d);
+        self.view_dirs.push(scale(view_dir, 1.0 / length(view_dir)));
         self.backgrounds.push(background);
         self.targets.push(target);
         self.starts.push(self.t.len());
@@ -109,6 +114,7 @@ impl MarchBatch {
 struct UnitRay {
     origin: [f32; 3],
     dir: [f32; 3],
+    view_dir: [f32; 3],
     norm: f32,
 }
 
@@ -133,19 +139,23 @@ pub struct MarchWorkspace {
     t: Vec<f32>,
 }
 
-/// Lays out sample positions and directions of `t` for the field.
+/// One ray's part of a packed batch: origin, unit marching direction, unit viewing
+/// direction, and its samples' range in `t`.
+type PackedRay = ([f32; 3], [f32; 3], [f32; 3], std::ops::Range<usize>);
+
+/// Lays out sample positions and viewing directions of `t` for the field.
 fn pack_samples(
     positions: &mut Vec<f32>,
     dirs: &mut Vec<f32>,
     t: &[f32],
-    rays: impl Iterator<Item = ([f32; 3], [f32; 3], std::ops::Range<usize>)>,
+    rays: impl Iterator<Item = PackedRay>,
 ) {
     positions.clear();
     dirs.clear();
-    for (o, d, range) in rays {
+    for (o, d, view, range) in rays {
         for &tt in &t[range] {
             positions.extend_from_slice(&[o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
-            dirs.extend_from_slice(&d);
+            dirs.extend_from_slice(&view);
         }
     }
 }
@@ -172,6 +182,7 @@ pub fn train_batch(
             (
                 batch.origins[k],
                 batch.dirs[k],
+                batch.view_dirs[k],
                 batch.starts[k]..batch.starts[k + 1],
             )
         }),
@@ -258,9 +269,11 @@ pub fn render_chunk(
         let dir = [rays.dirs[3 * k], rays.dirs[3 * k + 1], rays.dirs[3 * k + 2]];
         let norm = length(dir);
         let d = scale(dir, 1.0 / norm);
+        let view = rays.view_dir(k);
         ws.unit_rays.push(UnitRay {
             origin: o,
             dir: d,
+            view_dir: scale(view, 1.0 / length(view)),
             norm,
         });
         match ray_box(o, d, grid.bound, marcher.near * norm, marcher.far * norm) {
@@ -310,7 +323,7 @@ pub fn render_chunk(
             &t,
             round.iter().map(|&(k, s, e)| {
                 let u = ws.unit_rays[k];
-                (u.origin, u.dir, s..e)
+                (u.origin, u.dir, u.view_dir, s..e)
             }),
         );
         field.forward(params, &ws.positions, &ws.dirs, &mut ws.field);
@@ -400,6 +413,7 @@ mod tests {
         let rays = Rays {
             origins: &origins,
             dirs: &dirs,
+            view_dirs: None,
             backgrounds: &bgs,
             near: 2.0,
             far: 6.0,
@@ -424,6 +438,7 @@ mod tests {
                 &model.grid,
                 &marcher,
                 v(&origins),
+                v(&dirs),
                 v(&dirs),
                 v(&bgs),
                 out[k].rgb,

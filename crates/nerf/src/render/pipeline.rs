@@ -18,6 +18,10 @@ use crate::rng::Rng;
 pub struct Rays<'a> {
     pub origins: &'a [f32],
     pub dirs: &'a [f32],
+    /// The directions colour depends on, when they differ from `dirs`: NDC rays are
+    /// marched along warped directions but seen from their world directions (as in the
+    /// paper's code).
+    pub view_dirs: Option<&'a [f32]>,
     pub backgrounds: &'a [f32],
     pub near: f32,
     pub far: f32,
@@ -32,6 +36,11 @@ impl Rays<'_> {
     }
     fn dir(&self, r: usize) -> [f32; 3] {
         [self.dirs[r * 3], self.dirs[r * 3 + 1], self.dirs[r * 3 + 2]]
+    }
+    /// The (unnormalised) direction of ray `r` that colour is conditioned on.
+    pub fn view_dir(&self, r: usize) -> [f32; 3] {
+        let d = self.view_dirs.unwrap_or(self.dirs);
+        [d[r * 3], d[r * 3 + 1], d[r * 3 + 2]]
     }
     fn bg(&self, r: usize) -> [f32; 3] {
         [
@@ -70,7 +79,7 @@ fn prepare(ws: &mut ChunkWorkspace, rays: &Rays) {
     let r = rays.len();
     ws.unit_dirs.clear();
     for k in 0..r {
-        let d = rays.dir(k);
+        let d = rays.view_dir(k);
         ws.unit_dirs.extend_from_slice(&scale(d, 1.0 / length(d)));
     }
     ws.outputs.resize(r, RayOutput::default());
@@ -333,6 +342,7 @@ mod tests {
                 let rays = Rays {
                     origins: &so,
                     dirs: &sd,
+                    view_dirs: None,
                     backgrounds: &sb,
                     near: 2.0,
                     far: 6.0,

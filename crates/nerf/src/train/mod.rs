@@ -203,6 +203,7 @@ struct Worker {
     grads: GradBuffer,
     origins: Vec<f32>,
     dirs: Vec<f32>,
+    view_dirs: Vec<f32>,
     backgrounds: Vec<f32>,
     targets: Vec<f32>,
     rngs: Vec<Rng>,
@@ -228,8 +229,11 @@ pub struct Trainer {
 /// A training ray: a random pixel, its colour over the ray's background, and the ray's
 /// random stream (which also draws its sample positions).
 struct DrawnRay {
+    /// Origin and direction in ray space (warped for NDC scenes).
     origin: [f32; 3],
     dir: [f32; 3],
+    /// The world direction, which colour is conditioned on.
+    view_dir: [f32; 3],
     background: [f32; 3],
     target: [f32; 3],
     rng: Rng,
@@ -264,6 +268,7 @@ fn draw_ray(data: &Dataset, cfg: &TrainConfig, step: u64, stream: u64, crop: f32
     DrawnRay {
         origin,
         dir,
+        view_dir: ray.dir,
         background,
         target: view.image.composite_pixel(j * w + i, background),
         rng,
@@ -300,6 +305,7 @@ impl Trainer {
                 grads: GradBuffer::new(params.len()),
                 origins: Vec::new(),
                 dirs: Vec::new(),
+                view_dirs: Vec::new(),
                 backgrounds: Vec::new(),
                 targets: Vec::new(),
                 rngs: Vec::new(),
@@ -431,6 +437,7 @@ fn vanilla_pass(model: &VanillaModel, ctx: &PassContext, workers: &mut [Worker])
             let r = Rays {
                 origins: &worker.origins,
                 dirs: &worker.dirs,
+                view_dirs: Some(&worker.view_dirs),
                 backgrounds: &worker.backgrounds,
                 near: data.near,
                 far: data.far,
@@ -508,6 +515,7 @@ fn fast_pass(model: &FastModel, ctx: &PassContext, workers: &mut [Worker]) -> Pa
                 &marcher,
                 ray.origin,
                 ray.dir,
+                ray.view_dir,
                 ray.background,
                 ray.target,
                 jitter,
@@ -559,6 +567,7 @@ impl Worker {
         for v in [
             &mut self.origins,
             &mut self.dirs,
+            &mut self.view_dirs,
             &mut self.backgrounds,
             &mut self.targets,
         ] {
@@ -569,6 +578,7 @@ impl Worker {
             let ray = draw_ray(data, cfg, step, g as u64, crop);
             self.origins.extend_from_slice(&ray.origin);
             self.dirs.extend_from_slice(&ray.dir);
+            self.view_dirs.extend_from_slice(&ray.view_dir);
             self.backgrounds.extend_from_slice(&ray.background);
             self.targets.extend_from_slice(&ray.target);
             self.rngs.push(ray.rng);
