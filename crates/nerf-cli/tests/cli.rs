@@ -360,3 +360,82 @@ fn fast_model_through_the_same_commands() {
         "{err}"
     );
 }
+
+/// A forward-facing LLFF scene goes through the same commands: `nerf scene` reports NDC,
+/// `train` fits the box to the frusta, `eval` scores the held-out images, `render` flies
+/// the spiral, and `mesh` comes back in world coordinates.
+#[test]
+fn llff_scene_through_the_same_commands() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    ok(&nerf(
+        &[
+            "synth",
+            "--layout",
+            "llff",
+            "--scene",
+            "rug",
+            "--size",
+            "32",
+            "--out",
+            "ff",
+            "--supersample",
+            "1",
+        ],
+        d,
+    ));
+    assert!(d.join("ff/poses_bounds.npy").exists() && d.join("ff/images_2/000.png").exists());
+    let info = ok(&nerf(&["scene", "--data", "ff"], d));
+    assert!(
+        info.contains("format: Llff")
+            && info.contains("26 train, 4 val, 4 test")
+            && info.contains("Ndc"),
+        "{info}"
+    );
+    let spherified = ok(&nerf(&["scene", "--data", "ff", "--spherify"], d));
+    assert!(spherified.contains("ray space: World"), "{spherified}");
+    ok(&nerf(
+        &[
+            "train",
+            "--data",
+            "ff",
+            "--out",
+            "run",
+            "--steps",
+            "100",
+            "--samples",
+            "4096",
+            "--table-log2",
+            "12",
+            "--val-every",
+            "10",
+        ],
+        d,
+    ));
+    let config = std::fs::read_to_string(d.join("run/config.json")).expect("config");
+    assert!(config.contains("\"holdout\": 8"), "{config}");
+    let text = ok(&nerf(&["eval", "--run", "run"], d));
+    assert!(text.contains("4 views of test"), "{text}");
+    ok(&nerf(
+        &[
+            "render", "--run", "run", "--path", "spiral", "--frames", "2",
+        ],
+        d,
+    ));
+    assert!(d.join("run/render_spiral/frame_0001.png").exists());
+    let mesh = ok(&nerf(
+        &[
+            "mesh",
+            "--run",
+            "run",
+            "--out",
+            "m.ply",
+            "--resolution",
+            "24",
+            "--threshold",
+            "5",
+        ],
+        d,
+    ));
+    assert!(mesh.contains("NDC space"), "{mesh}");
+}
