@@ -136,5 +136,8 @@ pub fn scene(a: SceneArgs) -> Result<()> {
     println!("near {:.3}, far {:.3} (world depth)", s.near, s.far);
     println!("ray space: {:?}", s.space);
     println!("fast-model box: [-{0:.3}, {0:.3}]^3", s.bound);
+    if let Some(w) = s.warning() {
+        println!("warning: {w}");
+    }
     Ok(())
 }

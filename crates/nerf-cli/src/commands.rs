@@ -337,6 +337,9 @@ impl TrainArgs {
         c.downscale = self.downscale;
         c.scene = self.scene.options();
         let scene = c.open_scene(1)?;
+        if let Some(w) = scene.warning() {
+            eprintln!("warning: {w}");
+        }
         match &mut c.model {
             ModelConfig::Fast(m) => m.field.bound = self.bound.unwrap_or(scene.bound),
             ModelConfig::Vanilla(_) if self.bound.is_some() => {

@@ -326,6 +326,22 @@ fn top_eigenvector(mut a: [[f64; 4]; 4]) -> [f64; 4] {
     [v[0][best], v[1][best], v[2][best], v[3][best]]
 }
 
+/// The largest angle (degrees) between a camera's viewing direction and the cameras' mean
+/// viewing direction: small for forward-facing captures, large for ones that circle the
+/// object.
+pub fn view_spread_degrees(poses: &[Pose]) -> f32 {
+    let mean = normalize_or_zero(mean(poses.iter().map(|p| normalize_or_zero(column(p, 2)))));
+    poses
+        .iter()
+        .map(|p| {
+            dot(normalize_or_zero(column(p, 2)), mean)
+                .clamp(-1.0, 1.0)
+                .acos()
+                .to_degrees()
+        })
+        .fold(0.0, f32::max)
+}
+
 /// Angle in degrees between the rotations of two poses.
 pub fn rotation_error_degrees(a: &Pose, b: &Pose) -> f32 {
     // trace(Ra^T Rb) = 1 + 2 cos(angle).

@@ -140,6 +140,9 @@ pub fn detect(dir: &Path) -> Result<Format> {
     }
 }
 
+/// Viewing directions spread wider than this (from their mean) mark an inward-facing capture.
+pub const INWARD_SPREAD_DEGREES: f32 = 45.0;
+
 /// Training and test indices of `n` frames: every `holdout`-th frame is a test frame.
 pub fn hold_out(n: usize, holdout: usize) -> (Vec<usize>, Vec<usize>) {
     let holdout = holdout.max(2);
@@ -217,6 +220,25 @@ impl Scene {
 
     pub fn poses(&self, split: Split) -> Vec<Pose> {
         self.cameras(split).into_iter().map(|c| c.c2w).collect()
+    }
+
+    /// A warning when the scene is read in a way its cameras contradict: a forward-facing
+    /// treatment (NDC) of cameras that look in directions more than
+    /// [`INWARD_SPREAD_DEGREES`] apart from their mean, i.e. an inward-facing capture that
+    /// wants `--spherify`.
+    pub fn warning(&self) -> Option<String> {
+        if !matches!(self.space, RaySpace::Ndc(_)) {
+            return None;
+        }
+        let poses: Vec<Pose> = self.frames.iter().map(|f| f.camera.c2w).collect();
+        let spread = super::poses::view_spread_degrees(&poses);
+        (spread > INWARD_SPREAD_DEGREES).then(|| {
+            format!(
+                "the cameras' viewing directions spread {spread:.0} degrees from their mean: \
+                 this looks like an inward-facing capture; NDC suits forward-facing ones, so \
+                 consider --spherify"
+            )
+        })
     }
 
     /// Marching bounds in ray space.
