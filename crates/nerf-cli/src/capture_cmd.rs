@@ -135,7 +135,15 @@ pub fn scene(a: SceneArgs) -> Result<()> {
     println!("camera distance from the origin: {lo:.3} .. {hi:.3}");
     println!("near {:.3}, far {:.3} (world depth)", s.near, s.far);
     println!("ray space: {:?}", s.space);
-    println!("fast-model box: [-{0:.3}, {0:.3}]^3", s.bound);
+    if s.contract {
+        println!(
+            "fast-model box: [-{0:.3}, {0:.3}]^3, holding the cube [-{1:.3}, {1:.3}]^3 as it is and all space beyond it contracted",
+            s.bound,
+            0.5 * s.bound
+        );
+    } else {
+        println!("fast-model box: [-{0:.3}, {0:.3}]^3", s.bound);
+    }
     if let Some(w) = s.warning() {
         println!("warning: {w}");
     }

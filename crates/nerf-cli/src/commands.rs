@@ -144,6 +144,11 @@ pub struct TrainArgs {
     /// instant-ngp aabb_scale / 2, COLMAP from its points).
     #[arg(long)]
     bound: Option<f32>,
+    /// Fast: keep the whole scene in the box instead of contracting the space beyond its
+    /// inner half (contraction is the default for 360-degree real captures: LLFF
+    /// --spherify and COLMAP).
+    #[arg(long)]
+    no_contract: bool,
     /// Run folder (config.json, checkpoint, metrics.jsonl, val/). Default: runs/<scene>-<preset>.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -341,9 +346,12 @@ impl TrainArgs {
             eprintln!("warning: {w}");
         }
         match &mut c.model {
-            ModelConfig::Fast(m) => m.field.bound = self.bound.unwrap_or(scene.bound),
-            ModelConfig::Vanilla(_) if self.bound.is_some() => {
-                bail!("--bound applies to --model fast only")
+            ModelConfig::Fast(m) => {
+                m.field.bound = self.bound.unwrap_or(scene.bound);
+                m.contract = scene.contract && !self.no_contract;
+            }
+            ModelConfig::Vanilla(_) if self.bound.is_some() || self.no_contract => {
+                bail!("--bound and --no-contract apply to --model fast only")
             }
             ModelConfig::Vanilla(_) => {}
         }

@@ -33,7 +33,8 @@ pub struct MeshArgs {
     /// Keep only the N largest connected pieces (N = 1 when given without a value).
     #[arg(long, num_args = 0..=1, default_missing_value = "1")]
     keep_largest: Option<usize>,
-    /// Half-extent of the sampled box [-B, B]^3 (default: the fast model's box, else 1.5).
+    /// Half-extent of the sampled box [-B, B]^3 (default: the fast model's box, or its
+    /// undistorted inner half when space is contracted; 1.5 for vanilla runs).
     #[arg(long)]
     bound: Option<f32>,
 }
@@ -55,6 +56,8 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         Model::Vanilla(_) => 128,
     });
     let bound = a.bound.unwrap_or(match &run.model {
+        // A contracted model's inner cube is the part of its box that is undistorted.
+        Model::Fast(m) if m.config.contract => 0.5 * m.config.field.bound,
         Model::Fast(m) => m.config.field.bound,
         Model::Vanilla(_) => 1.5,
     });

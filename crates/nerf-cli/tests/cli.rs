@@ -393,7 +393,10 @@ fn llff_scene_through_the_same_commands() {
         "{info}"
     );
     let spherified = ok(&nerf(&["scene", "--data", "ff", "--spherify"], d));
-    assert!(spherified.contains("ray space: World"), "{spherified}");
+    assert!(
+        spherified.contains("ray space: World") && spherified.contains("contracted"),
+        "{spherified}"
+    );
     ok(&nerf(
         &[
             "train",

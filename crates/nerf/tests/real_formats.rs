@@ -92,6 +92,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
     assert!(matches!(scene.space, RaySpace::Ndc(_)), "{:?}", scene.space);
     assert_eq!(scene.ray_bounds(), (0.0, 1.0));
     assert_eq!(scene.warning(), None, "a forward-facing capture");
+    assert!(!scene.contract, "NDC already reaches infinity");
     let truth: Vec<Pose> = shots.iter().map(|s| s.camera.c2w).collect();
     let loaded: Vec<Pose> = scene.frames.iter().map(|f| f.camera.c2w).collect();
     let sim = assert_same_up_to_similarity(&truth, &loaded, "LLFF");
@@ -511,6 +512,7 @@ fn real_beer_llff_and_its_colmap_model_agree() {
         colmap.far
     );
     assert_eq!(llff.warning(), None);
+    assert!(llff.contract && colmap.contract, "360-degree captures are unbounded");
     // Read as forward-facing, the half circle of cameras is flagged.
     let ndc = Scene::open(&dir, &SceneOptions::default(), 4).expect("llff as forward-facing");
     assert!(ndc.warning().is_some_and(|w| w.contains("--spherify")));

@@ -111,6 +111,7 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
         far: FAR,
         space: RaySpace::World,
         bound: BOUND,
+        contract: false,
         prescaled: 1,
     })
 }

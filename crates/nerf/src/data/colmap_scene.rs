@@ -43,7 +43,9 @@ pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
         near,
         far,
         space: RaySpace::World,
-        bound,
+        // The points' cube is kept as it is; everything beyond is contracted around it.
+        bound: 2.0 * bound,
+        contract: true,
         prescaled: 1,
     })
 }

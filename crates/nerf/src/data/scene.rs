@@ -100,6 +100,10 @@ pub struct Scene {
     pub space: RaySpace,
     /// Half-extent of the box `[-bound, bound]^3` the fast model covers, in ray space.
     pub bound: f32,
+    /// Whether the scene reaches beyond the box (360-degree real captures): the fast model
+    /// then keeps the cube of half-extent `bound / 2` as it is and contracts the rest of
+    /// space into the box.
+    pub contract: bool,
     /// Integer area-downscale still to apply to each image file on load.
     pub(crate) image_factor: usize,
 }
@@ -113,6 +117,7 @@ pub(crate) struct Parsed {
     pub far: f32,
     pub space: RaySpace,
     pub bound: f32,
+    pub contract: bool,
     /// Downscale already applied by picking a smaller image folder (LLFF `images_N`).
     pub prescaled: usize,
 }
@@ -192,6 +197,7 @@ impl Scene {
             far: parsed.far,
             space: parsed.space,
             bound: parsed.bound,
+            contract: parsed.contract,
             image_factor,
         })
     }

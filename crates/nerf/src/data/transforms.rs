@@ -177,6 +177,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         far,
         space: RaySpace::World,
         bound,
+        contract: false,
         prescaled: 1,
     })
 }

@@ -21,6 +21,10 @@ pub struct FastModelConfig {
     pub max_samples_per_ray: usize,
     /// L2 penalty on the MLP weights.
     pub weight_decay: f32,
+    /// Unbounded scenes: the field's box `[-B, B]^3` holds the world cube of half-extent
+    /// `B / 2` as it is and all space beyond, contracted (see `render::contraction`).
+    #[serde(default)]
+    pub contract: bool,
 }
 
 impl Default for FastModelConfig {
@@ -33,6 +37,7 @@ impl Default for FastModelConfig {
             steps_per_diagonal: 1024.0,
             max_samples_per_ray: 1024,
             weight_decay: 1e-6,
+            contract: false,
         }
     }
 }
@@ -71,6 +76,10 @@ impl FastModel {
             max_samples: self.config.max_samples_per_ray,
             near,
             far,
+            contract: self
+                .config
+                .contract
+                .then_some(0.5 * self.config.field.bound),
         }
     }
 }

@@ -14,6 +14,7 @@ use crate::field::{FastField, FastWorkspace};
 use crate::math::{length, scale};
 use crate::model::FastModel;
 use crate::nn::GradBuffer;
+use crate::render::contraction;
 use crate::render::occupancy::{ray_box, OccupancyGrid};
 use crate::render::pipeline::Rays;
 use crate::render::volume::{composite, composite_bwd, Accumulator, RayOutput};
@@ -24,12 +25,97 @@ pub const MIN_TRANSMITTANCE: f32 = 1e-4;
 /// Where and how finely rays are marched.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Marcher {
-    /// Step length (metric).
+    /// Step length (metric; in contracted space when `contract` is set).
     pub dt: f32,
     /// Samples per ray at most.
     pub max_samples: usize,
     pub near: f32,
     pub far: f32,
+    /// Contract space outside the cube of this half-extent (see `contraction`).
+    pub contract: Option<f32>,
+}
+
+impl Marcher {
+    /// The metric span to march of a ray with unit direction `d` whose camera direction
+    /// has length `norm` (near and far are along the camera direction): inside the box, or
+    /// all of `near..far` when space is contracted.
+    pub fn span(
+        &self,
+        grid: &OccupancyGrid,
+        o: [f32; 3],
+        d: [f32; 3],
+        norm: f32,
+    ) -> Option<(f32, f32)> {
+        let (near, far) = (self.near * norm, self.far * norm);
+        match self.contract {
+            None => ray_box(o, d, grid.bound, near, far),
+            Some(_) => (far > near).then_some((near, far)),
+        }
+    }
+
+    /// Marches over `span`, appending sample depths in occupied cells and their step
+    /// lengths, at most `max` of them; returns the depth to continue from.
+    #[allow(clippy::too_many_arguments)]
+    pub fn march(
+        &self,
+        grid: &OccupancyGrid,
+        o: [f32; 3],
+        d: [f32; 3],
+        span: std::ops::Range<f32>,
+        max: usize,
+        t: &mut Vec<f32>,
+        dt: &mut Vec<f32>,
+    ) -> f32 {
+        match self.contract {
+            None => {
+                let next = grid.march(o, d, span, self.dt, max, t);
+                dt.resize(t.len(), self.dt);
+                next
+            }
+            Some(r) => march_contracted(grid, o, d, span, self.dt, r, max, t, dt),
+        }
+    }
+
+    /// Where the field sees a world point.
+    #[inline]
+    pub fn field_point(&self, p: [f32; 3]) -> [f32; 3] {
+        match self.contract {
+            None => p,
+            Some(r) => contraction::contract(p, r),
+        }
+    }
+}
+
+/// Marching through contracted space: steps grow with distance so each covers about `dt`
+/// of the contracted grid; no cell skipping (the ray is curved in grid space).
+#[allow(clippy::too_many_arguments)]
+fn march_contracted(
+    grid: &OccupancyGrid,
+    o: [f32; 3],
+    d: [f32; 3],
+    span: std::ops::Range<f32>,
+    dt: f32,
+    r: f32,
+    max: usize,
+    t_out: &mut Vec<f32>,
+    dt_out: &mut Vec<f32>,
+) -> f32 {
+    let (mut t, end) = (span.start, span.end);
+    let mut added = 0;
+    while t < end && added < max {
+        let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+        if contraction::beyond(p, r) {
+            return f32::INFINITY;
+        }
+        let step = contraction::world_step(p, r, dt);
+        if grid.is_occupied(contraction::contract(p, r)) {
+            t_out.push(t);
+            dt_out.push(step);
+            added += 1;
+        }
+        t += step;
+    }
+    t
 }
 
 /// Rays and their marched samples, packed for one evaluation of the field.
@@ -41,9 +127,11 @@ pub struct MarchBatch {
     view_dirs: Vec<[f32; 3]>,
     backgrounds: Vec<[f32; 3]>,
     targets: Vec<[f32; 3]>,
-    /// Samples of ray `k` are `starts[k]..starts[k + 1]`.
+    /// Samples of ray `k` are `starts[k]..starts[k + 1]`; each has a depth and a step
+    /// length.
     starts: Vec<usize>,
     t: Vec<f32>,
+    dt: Vec<f32>,
 }
 
 impl MarchBatch {
@@ -54,6 +142,7 @@ impl MarchBatch {
         self.backgrounds.clear();
         self.targets.clear();
         self.t.clear();
+        self.dt.clear();
         self.starts.clear();
     }
 
@@ -85,17 +174,16 @@ impl MarchBatch {
         let norm = length(dir);
         let d = scale(dir, 1.0 / norm);
         let before = self.t.len();
-        // Bounds are along `dir`; the march is along the unit direction.
-        let (near, far) = (marcher.near * norm, marcher.far * norm);
-        if let Some((t0, t1)) = ray_box(origin, d, grid.bound, near, far) {
+        if let Some((t0, t1)) = marcher.span(grid, origin, d, norm) {
             let t = t0 + jitter * marcher.dt;
-            grid.march(
+            marcher.march(
+                grid,
                 origin,
                 d,
                 t..t1,
-                marcher.dt,
                 marcher.max_samples,
                 &mut self.t,
+                &mut self.dt,
             );
         }
         self.origins.push(origin);
@@ -124,7 +212,6 @@ pub struct MarchWorkspace {
     pub field: FastWorkspace,
     positions: Vec<f32>,
     dirs: Vec<f32>,
-    deltas: Vec<f32>,
     weights: Vec<f32>,
     d_sigma: Vec<f32>,
     d_rgb: Vec<f32>,
@@ -137,6 +224,7 @@ pub struct MarchWorkspace {
     live: Vec<usize>,
     round_rays: Vec<(usize, usize, usize)>,
     t: Vec<f32>,
+    dt: Vec<f32>,
 }
 
 /// One ray's part of a packed batch: origin, unit marching direction, unit viewing
@@ -145,6 +233,7 @@ type PackedRay = ([f32; 3], [f32; 3], [f32; 3], std::ops::Range<usize>);
 
 /// Lays out sample positions and viewing directions of `t` for the field.
 fn pack_samples(
+    marcher: &Marcher,
     positions: &mut Vec<f32>,
     dirs: &mut Vec<f32>,
     t: &[f32],
@@ -154,7 +243,8 @@ fn pack_samples(
     dirs.clear();
     for (o, d, view, range) in rays {
         for &tt in &t[range] {
-            positions.extend_from_slice(&[o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
+            let p = [o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]];
+            positions.extend_from_slice(&marcher.field_point(p));
             dirs.extend_from_slice(&view);
         }
     }
@@ -175,6 +265,7 @@ pub fn train_batch(
     let n = batch.samples();
     let rays = batch.rays();
     pack_samples(
+        marcher,
         &mut ws.positions,
         &mut ws.dirs,
         &batch.t,
@@ -187,8 +278,6 @@ pub fn train_batch(
             )
         }),
     );
-    ws.deltas.clear();
-    ws.deltas.resize(n, marcher.dt);
     ws.weights.resize(n, 0.0);
     ws.d_sigma.resize(n, 0.0);
     ws.d_rgb.resize(n * 3, 0.0);
@@ -204,7 +293,7 @@ pub fn train_batch(
         );
         let out = composite(
             &batch.t[r.clone()],
-            &ws.deltas[r.clone()],
+            &batch.dt[r.clone()],
             sigma,
             rgb,
             batch.backgrounds[k],
@@ -217,7 +306,7 @@ pub fn train_batch(
             d_out[c] = 2.0 * e * loss_scale;
         }
         composite_bwd(
-            &ws.deltas[r.clone()],
+            &batch.dt[r.clone()],
             sigma,
             rgb,
             batch.backgrounds[k],
@@ -276,7 +365,7 @@ pub fn render_chunk(
             view_dir: scale(view, 1.0 / length(view)),
             norm,
         });
-        match ray_box(o, d, grid.bound, marcher.near * norm, marcher.far * norm) {
+        match marcher.span(grid, o, d, norm) {
             Some((t0, t1)) => {
                 ws.next_t.push(t0 + 0.5 * marcher.dt);
                 ws.end_t.push(t1);
@@ -291,6 +380,7 @@ pub fn render_chunk(
     while !ws.live.is_empty() {
         let per_ray = (samples_per_round / ws.live.len()).clamp(1, 64);
         ws.t.clear();
+        ws.dt.clear();
         ws.round_rays.clear();
         let mut still = Vec::with_capacity(ws.live.len());
         for &k in &ws.live {
@@ -299,13 +389,14 @@ pub fn render_chunk(
             } = ws.unit_rays[k];
             let start = ws.t.len();
             let budget = per_ray.min(marcher.max_samples - ws.taken[k]);
-            ws.next_t[k] = grid.march(
+            ws.next_t[k] = marcher.march(
+                grid,
                 o,
                 d,
                 ws.next_t[k]..ws.end_t[k],
-                marcher.dt,
                 budget,
                 &mut ws.t,
+                &mut ws.dt,
             );
             ws.taken[k] += ws.t.len() - start;
             if ws.t.len() > start {
@@ -318,6 +409,7 @@ pub fn render_chunk(
         let t = std::mem::take(&mut ws.t);
         let round = std::mem::take(&mut ws.round_rays);
         pack_samples(
+            marcher,
             &mut ws.positions,
             &mut ws.dirs,
             &t,
@@ -333,7 +425,7 @@ pub fn render_chunk(
             for i in s..e {
                 acc.add(
                     t[i] / norm,
-                    marcher.dt,
+                    ws.dt[i],
                     ws.field.sigma[i],
                     &ws.field.rgb[i * 3..][..3],
                 );
@@ -457,5 +549,71 @@ mod tests {
             &mut grads,
         );
         assert!(sse < 1e-9, "render and training disagree: sse {sse}");
+    }
+
+    /// With contraction, rays run on past the box with growing steps, and rendering and
+    /// training still see the same colour.
+    #[test]
+    fn contracted_rays_march_beyond_the_box_and_agree() {
+        let (mut model, mut params) = dense_model();
+        model.config.contract = true;
+        // A thin fog (sigma about 1): light reaches the contracted shell.
+        for t in &model.field.layout.tensors {
+            if t.name == "density.1.weight" {
+                for row in params[t.range()].chunks_exact_mut(t.shape[1]) {
+                    row[0] = 0.0;
+                }
+            }
+        }
+        let origins: Vec<f32> = (0..4).flat_map(|_| [0.0, -1.0, 0.2]).collect();
+        let dirs: Vec<f32> = (0..4)
+            .flat_map(|k| [0.1 * k as f32 - 0.15, 1.0, 0.05])
+            .collect();
+        let bgs: Vec<f32> = (0..4).flat_map(|_| [0.2, 0.4, 0.6]).collect();
+        let rays = Rays {
+            origins: &origins,
+            dirs: &dirs,
+            view_dirs: None,
+            backgrounds: &bgs,
+            near: 0.05,
+            far: 1e4,
+        };
+        let mut ws = MarchWorkspace::default();
+        let mut out = vec![RayOutput::default(); 4];
+        render_chunk(&model, &params, &rays, &mut ws, &mut out);
+        let marcher = model.marcher(0.05, 1e4);
+        let r = marcher.contract.expect("contracted");
+        let mut batch = MarchBatch::default();
+        for k in 0..4 {
+            let v = |b: &[f32]| [b[3 * k], b[3 * k + 1], b[3 * k + 2]];
+            batch.push(
+                &model.grid,
+                &marcher,
+                v(&origins),
+                v(&dirs),
+                v(&dirs),
+                v(&bgs),
+                out[k].rgb,
+                0.5,
+            );
+        }
+        // Samples reach far past the inner cube, with steps that grow with distance.
+        let far_t = batch.t.iter().copied().fold(0.0f32, f32::max);
+        let max_dt = batch.dt.iter().copied().fold(0.0f32, f32::max);
+        assert!(far_t > 20.0 * r, "last sample at {far_t}, inner cube {r}");
+        assert!(max_dt > 100.0 * marcher.dt, "{max_dt} vs {}", marcher.dt);
+        assert!(batch.samples() < 4 * marcher.max_samples);
+        let mut grads = GradBuffer::new(model.field.num_params());
+        let sse = train_batch(
+            &model.field,
+            &params,
+            &marcher,
+            &batch,
+            1.0,
+            &mut ws,
+            &mut grads,
+        );
+        assert!(sse < 1e-9, "render and training disagree: sse {sse}");
+        assert!(out.iter().all(|o| o.opacity > 0.5), "{out:?}");
     }
 }

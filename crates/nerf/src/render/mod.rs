@@ -3,6 +3,7 @@
 //! [`pipeline`] and the fast field's occupancy-grid ray marching in [`occupancy`] and
 //! [`marched`].
 
+pub mod contraction;
 pub mod marched;
 pub mod occupancy;
 pub mod pipeline;
