@@ -512,7 +512,10 @@ fn real_beer_llff_and_its_colmap_model_agree() {
         colmap.far
     );
     assert_eq!(llff.warning(), None);
-    assert!(llff.contract && colmap.contract, "360-degree captures are unbounded");
+    assert!(
+        llff.contract && colmap.contract,
+        "360-degree captures are unbounded"
+    );
     // Read as forward-facing, the half circle of cameras is flagged.
     let ndc = Scene::open(&dir, &SceneOptions::default(), 4).expect("llff as forward-facing");
     assert!(ndc.warning().is_some_and(|w| w.contains("--spherify")));
