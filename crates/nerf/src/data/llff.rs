@@ -131,7 +131,6 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
         ));
     }
     let size = image_dimensions(&images[0])?;
-    let mut poses = Vec::with_capacity(array.rows);
     let mut cameras = Vec::with_capacity(array.rows);
     let (mut near, mut far) = (f32::INFINITY, 0.0f32);
     for (k, image) in images.iter().enumerate() {
@@ -159,7 +158,6 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
         let camera = super::scene::fit_to_image(&full, size.0, size.1)
             .map_err(|m| NerfError::format(image, m))?;
         cameras.push(camera);
-        poses.push(pose);
         near = near.min(n);
         far = far.max(fa);
     }
@@ -168,61 +166,42 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
         scale: sc,
         ..Similarity::IDENTITY
     };
-    let scaled_poses: Vec<Pose> = poses.iter().map(|p| scaled.apply_pose(p)).collect();
-    let (near, far) = (near * sc, far * sc);
-    let (placement, near, far, space, bound) = if opts.spherify {
-        let frame = inward_frame(&scaled_poses, 1.0);
-        let s = frame.scale;
-        let space = RaySpace::World;
-        (
-            frame.after(&scaled),
-            0.9 * near * s,
-            far * s,
-            space,
-            SPHERIFY_BOUND,
-        )
+    let scaled_poses: Vec<Pose> = cameras.iter().map(|c| scaled.apply_pose(&c.c2w)).collect();
+    let frame = if opts.spherify {
+        inward_frame(&scaled_poses, 1.0)
     } else {
-        let frame = into_frame_of(&average_pose(&scaled_poses));
-        let placement = frame.after(&scaled);
-        if opts.ndc.unwrap_or(true) {
-            let c = &cameras[0];
-            let space = RaySpace::Ndc(Ndc {
-                ax: 2.0 * c.fx / c.width as f32,
-                ay: 2.0 * c.fy / c.height as f32,
-                near: 1.0,
-            });
-            let placed: Vec<Camera> = cameras
-                .iter()
-                .map(|c| Camera {
-                    c2w: placement.apply_pose(&c.c2w),
-                    ..c.clone()
-                })
-                .collect();
-            (
-                placement,
-                0.9 * near,
-                far,
-                space,
-                ndc_bound(&space, &placed),
-            )
-        } else {
-            (placement, 0.9 * near, far, RaySpace::World, far)
-        }
+        into_frame_of(&average_pose(&scaled_poses))
+    };
+    let placement = frame.after(&scaled);
+    for c in &mut cameras {
+        c.c2w = placement.apply_pose(&c.c2w);
+    }
+    // Bounds in placed units (the recentring frame keeps the scale).
+    let (near, far) = (0.9 * near * sc * frame.scale, far * sc * frame.scale);
+    let (space, bound) = if opts.spherify {
+        (RaySpace::World, SPHERIFY_BOUND)
+    } else if opts.ndc.unwrap_or(true) {
+        let c = &cameras[0];
+        let space = RaySpace::Ndc(Ndc {
+            ax: 2.0 * c.fx / c.width as f32,
+            ay: 2.0 * c.fy / c.height as f32,
+            near: 1.0,
+        });
+        (space, ndc_bound(&space, &cameras))
+    } else {
+        (RaySpace::World, far)
     };
     let frames = images
         .into_iter()
         .zip(cameras)
-        .map(|(image, mut camera)| {
-            camera.c2w = placement.apply_pose(&camera.c2w);
-            Frame {
-                name: image
-                    .file_name()
-                    .map(|n| n.to_string_lossy().into_owned())
-                    .unwrap_or_default(),
-                camera,
-                image,
-                mask: None,
-            }
+        .map(|(image, camera)| Frame {
+            name: image
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            camera,
+            image,
+            mask: None,
         })
         .collect();
     Ok(Parsed {
