@@ -151,8 +151,34 @@ pub fn focus_point(poses: &[Pose]) -> V3 {
     ]
 }
 
+/// The rotation that turns the cameras' mean up vector to +Z (our orbits' up).
+fn up_to_z(poses: &[Pose]) -> [[f32; 3]; 3] {
+    let up = normalize_or_zero(mean(poses.iter().map(|p| column(p, 1))));
+    rotation_between(up, [0.0, 0.0, 1.0])
+}
+
+/// nerfstudio's default placement: the cameras' mean up vector becomes +Z, their mean
+/// position moves to the origin, and they are scaled to fit in `[-1, 1]^3`.
+pub fn centred_frame(poses: &[Pose]) -> Similarity {
+    let oriented = Similarity {
+        rotation: up_to_z(poses),
+        ..Similarity::IDENTITY
+    };
+    let centre = mean(poses.iter().map(|p| oriented.apply_point(origin(p))));
+    let extent = poses
+        .iter()
+        .flat_map(|p| sub(oriented.apply_point(origin(p)), centre))
+        .fold(0.0f32, |m, x| m.max(x.abs()));
+    let s = if extent > 0.0 { 1.0 / extent } else { 1.0 };
+    Similarity {
+        rotation: oriented.rotation,
+        translation: scale(centre, -s),
+        scale: s,
+    }
+}
+
 /// A rotation taking unit vector `from` onto `to` (Rodrigues).
-pub(crate) fn rotation_between(from: V3, to: V3) -> [[f32; 3]; 3] {
+fn rotation_between(from: V3, to: V3) -> [[f32; 3]; 3] {
     let v = cross(from, to);
     let c = dot(from, to);
     let s = length(v);
@@ -192,8 +218,7 @@ pub(crate) fn rotation_between(from: V3, to: V3) -> [[f32; 3]; 3] {
 /// root-mean-square distance `radius` from the origin.
 pub fn inward_frame(poses: &[Pose], radius: f32) -> Similarity {
     let centre = focus_point(poses);
-    let up = normalize_or_zero(mean(poses.iter().map(|p| column(p, 1))));
-    let rotation = rotation_between(up, [0.0, 0.0, 1.0]);
+    let rotation = up_to_z(poses);
     let rms = (poses
         .iter()
         .map(|p| {

@@ -31,14 +31,13 @@ use std::path::Path;
 
 use serde::Deserialize;
 
-use super::poses::{column, origin, Similarity};
+use super::poses::{centred_frame, Similarity};
 use super::scene::{
     bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, SceneOptions,
 };
 use crate::camera::{Camera, Pose};
 use crate::distortion::{Distortion, LensModel};
 use crate::error::{NerfError, Result};
-use crate::math::{normalize_or_zero, scale, V3};
 use crate::ray_space::RaySpace;
 
 /// Intrinsics that may appear at the top level and in each frame.
@@ -163,7 +162,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
             0.5 * aabb,
         )
     } else {
-        (nerfstudio_placement(&poses), 1.0)
+        (centred_frame(&poses), 1.0)
     };
     for f in &mut frames {
         f.camera.c2w = placement.apply_pose(&f.camera.c2w);
@@ -180,41 +179,6 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         contract: false,
         prescaled: 1,
     })
-}
-
-/// nerfstudio's default placement: mean up to +Z, mean position to the origin, cameras
-/// scaled into `[-1, 1]^3`.
-fn nerfstudio_placement(poses: &[Pose]) -> Similarity {
-    let n = poses.len().max(1) as f32;
-    let up: V3 = normalize_or_zero(
-        poses
-            .iter()
-            .fold([0.0; 3], |s, p| crate::math::add(s, column(p, 1))),
-    );
-    let rotate = super::poses::rotation_between(up, [0.0, 0.0, 1.0]);
-    let oriented = Similarity {
-        rotation: rotate,
-        ..Similarity::IDENTITY
-    };
-    let mean = scale(
-        poses.iter().fold([0.0; 3], |s, p| {
-            crate::math::add(s, oriented.apply_point(origin(p)))
-        }),
-        1.0 / n,
-    );
-    let extent = poses
-        .iter()
-        .flat_map(|p| {
-            let q = oriented.apply_point(origin(p));
-            [q[0] - mean[0], q[1] - mean[1], q[2] - mean[2]]
-        })
-        .fold(0.0f32, |m, x| m.max(x.abs()));
-    let s = if extent > 0.0 { 1.0 / extent } else { 1.0 };
-    Similarity {
-        rotation: rotate,
-        translation: scale(mean, -s),
-        scale: s,
-    }
 }
 
 fn camera_from(
