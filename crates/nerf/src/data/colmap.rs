@@ -69,13 +69,6 @@ impl CameraModel {
             })
     }
 
-    pub fn id(self) -> i32 {
-        match self {
-            CameraModel::Other(id) => id,
-            m => Self::NAMED.iter().find(|n| n.0 == m).map_or(-1, |n| n.1),
-        }
-    }
-
     pub fn name(self) -> &'static str {
         match self {
             CameraModel::Other(id) => Self::OTHER_PARAMS

@@ -128,13 +128,10 @@ pub fn camera_of(c: &colmap::Camera) -> std::result::Result<Camera, String> {
     })
 }
 
-fn percentile(values: &mut [f32], q: f32) -> Option<f32> {
-    if values.is_empty() {
-        return None;
-    }
-    values.sort_by(f32::total_cmp);
-    let i = ((values.len() - 1) as f32 * q).round() as usize;
-    Some(values[i])
+/// The `q` quantile of values sorted in increasing order.
+fn quantile(sorted: &[f32], q: f32) -> Option<f32> {
+    let last = sorted.len().checked_sub(1)?;
+    Some(sorted[(last as f32 * q).round() as usize])
 }
 
 /// Near and far from the depths of the points each image observes, in placed units.
@@ -153,8 +150,9 @@ fn depth_bounds(model: &Model, placement: &Similarity) -> Option<(f32, f32)> {
                 .collect::<Vec<_>>()
         })
         .collect();
-    let near = percentile(&mut depths, 0.01)?;
-    let far = percentile(&mut depths, 0.99)?;
+    depths.sort_by(f32::total_cmp);
+    let near = quantile(&depths, 0.01)?;
+    let far = quantile(&depths, 0.99)?;
     Some((0.5 * near, 1.5 * far))
 }
 
@@ -169,6 +167,7 @@ pub fn box_from_points(model: &Model, placement: &Similarity) -> f32 {
             q.iter().fold(0.0f32, |m, v| m.max(v.abs()))
         })
         .collect();
-    let b = percentile(&mut extents, 0.95).unwrap_or(MIN_BOUND * CAMERA_RADIUS);
+    extents.sort_by(f32::total_cmp);
+    let b = quantile(&extents, 0.95).unwrap_or(MIN_BOUND * CAMERA_RADIUS);
     b.clamp(MIN_BOUND * CAMERA_RADIUS, MAX_BOUND * CAMERA_RADIUS)
 }

@@ -224,10 +224,6 @@ impl Scene {
             .collect()
     }
 
-    pub fn poses(&self, split: Split) -> Vec<Pose> {
-        self.cameras(split).into_iter().map(|c| c.c2w).collect()
-    }
-
     /// A warning when the scene is read in a way its cameras contradict: a forward-facing
     /// treatment (NDC) of cameras that look in directions more than
     /// [`INWARD_SPREAD_DEGREES`] apart from their mean, i.e. an inward-facing capture that
