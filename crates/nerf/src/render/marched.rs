@@ -492,6 +492,71 @@ mod tests {
         (model, params)
     }
 
+    /// Renders packed rays, then packs them for training on the renderer's lattice (jitter
+    /// 0.5) with the rendered colours as targets and runs the training pass.
+    struct RenderThenTrain {
+        out: Vec<RayOutput>,
+        /// The renderer's workspace, reused by training (which leaves the renderer's per-ray
+        /// step counts `taken` as they were).
+        ws: MarchWorkspace,
+        marcher: Marcher,
+        batch: MarchBatch,
+        /// Training loss against the rendered colours.
+        sse: f64,
+    }
+
+    fn render_then_train(
+        model: &FastModel,
+        params: &[f32],
+        (origins, dirs, bgs): (&[f32], &[f32], &[f32]),
+        (near, far): (f32, f32),
+    ) -> RenderThenTrain {
+        let n = origins.len() / 3;
+        let rays = Rays {
+            origins,
+            dirs,
+            view_dirs: None,
+            backgrounds: bgs,
+            near,
+            far,
+        };
+        let mut ws = MarchWorkspace::default();
+        let mut out = vec![RayOutput::default(); n];
+        render_chunk(model, params, &rays, &mut ws, &mut out);
+        let marcher = model.marcher(near, far);
+        let mut batch = MarchBatch::default();
+        for k in 0..n {
+            let v = |b: &[f32]| [b[3 * k], b[3 * k + 1], b[3 * k + 2]];
+            batch.push(
+                &model.grid,
+                &marcher,
+                v(origins),
+                v(dirs),
+                v(dirs),
+                v(bgs),
+                out[k].rgb,
+                0.5,
+            );
+        }
+        let mut grads = GradBuffer::new(model.field.num_params());
+        let sse = train_batch(
+            &model.field,
+            params,
+            &marcher,
+            &batch,
+            1.0,
+            &mut ws,
+            &mut grads,
+        );
+        RenderThenTrain {
+            out,
+            ws,
+            marcher,
+            batch,
+            sse,
+        }
+    }
+
     /// Rendering (in rounds, stopping opaque rays) and training (all samples, composited at
     /// once) see the same colour for the same lattice, and rendering stops early.
     #[test]
@@ -502,17 +567,13 @@ mod tests {
             .flat_map(|k| [0.05 * k as f32 - 0.1, 1.0, 0.02 * k as f32])
             .collect();
         let bgs: Vec<f32> = (0..6).flat_map(|k| [0.1 * k as f32, 0.5, 1.0]).collect();
-        let rays = Rays {
-            origins: &origins,
-            dirs: &dirs,
-            view_dirs: None,
-            backgrounds: &bgs,
-            near: 2.0,
-            far: 6.0,
-        };
-        let mut ws = MarchWorkspace::default();
-        let mut out = vec![RayOutput::default(); 6];
-        render_chunk(&model, &params, &rays, &mut ws, &mut out);
+        let RenderThenTrain {
+            out,
+            ws,
+            batch,
+            sse,
+            ..
+        } = render_then_train(&model, &params, (&origins, &dirs, &bgs), (2.0, 6.0));
         assert!(out.iter().all(|o| o.opacity > 0.999), "{out:?}");
         // The box is about 590 steps deep; an opaque fog ends each ray within a few rounds.
         assert!(
@@ -520,34 +581,7 @@ mod tests {
             "{:?}",
             ws.taken
         );
-
-        let marcher = model.marcher(2.0, 6.0);
-        let mut batch = MarchBatch::default();
-        for k in 0..6 {
-            let v = |b: &[f32]| [b[3 * k], b[3 * k + 1], b[3 * k + 2]];
-            // Jitter 0.5: the renderer's lattice; the target is the rendered colour.
-            batch.push(
-                &model.grid,
-                &marcher,
-                v(&origins),
-                v(&dirs),
-                v(&dirs),
-                v(&bgs),
-                out[k].rgb,
-                0.5,
-            );
-        }
         assert!(batch.samples() > 6 * 500, "training marches whole rays");
-        let mut grads = GradBuffer::new(model.field.num_params());
-        let sse = train_batch(
-            &model.field,
-            &params,
-            &marcher,
-            &batch,
-            1.0,
-            &mut ws,
-            &mut grads,
-        );
         assert!(sse < 1e-9, "render and training disagree: sse {sse}");
     }
 
@@ -570,49 +604,20 @@ mod tests {
             .flat_map(|k| [0.1 * k as f32 - 0.15, 1.0, 0.05])
             .collect();
         let bgs: Vec<f32> = (0..4).flat_map(|_| [0.2, 0.4, 0.6]).collect();
-        let rays = Rays {
-            origins: &origins,
-            dirs: &dirs,
-            view_dirs: None,
-            backgrounds: &bgs,
-            near: 0.05,
-            far: 1e4,
-        };
-        let mut ws = MarchWorkspace::default();
-        let mut out = vec![RayOutput::default(); 4];
-        render_chunk(&model, &params, &rays, &mut ws, &mut out);
-        let marcher = model.marcher(0.05, 1e4);
+        let RenderThenTrain {
+            out,
+            marcher,
+            batch,
+            sse,
+            ..
+        } = render_then_train(&model, &params, (&origins, &dirs, &bgs), (0.05, 1e4));
         let r = marcher.contract.expect("contracted");
-        let mut batch = MarchBatch::default();
-        for k in 0..4 {
-            let v = |b: &[f32]| [b[3 * k], b[3 * k + 1], b[3 * k + 2]];
-            batch.push(
-                &model.grid,
-                &marcher,
-                v(&origins),
-                v(&dirs),
-                v(&dirs),
-                v(&bgs),
-                out[k].rgb,
-                0.5,
-            );
-        }
         // Samples reach far past the inner cube, with steps that grow with distance.
         let far_t = batch.t.iter().copied().fold(0.0f32, f32::max);
         let max_dt = batch.dt.iter().copied().fold(0.0f32, f32::max);
         assert!(far_t > 20.0 * r, "last sample at {far_t}, inner cube {r}");
         assert!(max_dt > 100.0 * marcher.dt, "{max_dt} vs {}", marcher.dt);
         assert!(batch.samples() < 4 * marcher.max_samples);
-        let mut grads = GradBuffer::new(model.field.num_params());
-        let sse = train_batch(
-            &model.field,
-            &params,
-            &marcher,
-            &batch,
-            1.0,
-            &mut ws,
-            &mut grads,
-        );
         assert!(sse < 1e-9, "render and training disagree: sse {sse}");
         assert!(out.iter().all(|o| o.opacity > 0.5), "{out:?}");
     }
