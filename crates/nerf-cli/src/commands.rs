@@ -696,7 +696,7 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
         })
         .transpose()?;
     nerf::io::create_dir(out)?;
-    let settings = scene.render_settings(cfg.background.eval_colour(), cfg.chunk_rays);
+    let settings = nerf::views::RenderSettings::of_scene(&scene, cfg.background.eval_colour());
     let rays: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let pb = bar(rays as u64, "render rays");
     let t0 = Instant::now();
@@ -710,7 +710,7 @@ fn render_run(run: &LoadedRun, a: &RenderArgs, out: &Path) -> Result<()> {
             cameras.len(),
             k as f64 / t0.elapsed().as_secs_f64().max(1e-9)
         ));
-        let r = nerf::renderer::render_view(&run.model, &run.params, cam, &settings, &|n| {
+        let r = nerf::views::render_view(run.engine.as_ref(), cam, &settings, &|n| {
             pb.set_position((done + n) as u64)
         });
         done += cam.width * cam.height;
@@ -910,14 +910,14 @@ pub fn bench(a: BenchArgs) -> Result<()> {
     if a.model == ModelArg::Fast {
         return bench_fast(a);
     }
-    let opts = nerf::bench::BenchOptions {
+    let opts = nerf::bench_vanilla::BenchOptions {
         rays: a.rays,
         steps: a.steps.unwrap_or(3).max(1),
         render_size: a.render_size,
         render_rows: a.render_rows,
         preset: a.preset,
     };
-    let report = nerf::bench::run(&opts, &mut |line| println!("{line}"))?;
+    let report = nerf::bench_vanilla::run(&opts, &mut |line| println!("{line}"))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());

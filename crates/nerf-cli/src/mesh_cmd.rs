@@ -7,7 +7,6 @@ use anyhow::{bail, Result};
 use clap::Args;
 use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
-use nerf::model::Model;
 use nerf::ray_space::RaySpace;
 use nerf::train::run::LoadedRun;
 
@@ -51,16 +50,9 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         bail!("{}: choose a .ply, .obj or .glb file", a.out.display());
     }
     let run = LoadedRun::open(&a.run)?;
-    let resolution = a.resolution.unwrap_or(match &run.model {
-        Model::Fast(_) => 256,
-        Model::Vanilla(_) => 128,
-    });
-    let bound = a.bound.unwrap_or(match &run.model {
-        // A contracted model's inner cube is the part of its box that is undistorted.
-        Model::Fast(m) if m.config.contract => 0.5 * m.config.field.bound,
-        Model::Fast(m) => m.config.field.bound,
-        Model::Vanilla(_) => 1.5,
-    });
+    let (default_resolution, default_bound) = run.config.model.mesh_defaults();
+    let resolution = a.resolution.unwrap_or(default_resolution);
+    let bound = a.bound.unwrap_or(default_bound);
     if bound.is_nan() || bound <= 0.0 {
         bail!("--bound must be positive");
     }
@@ -72,7 +64,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     };
     let t0 = Instant::now();
     let pb = bar(resolution as u64, "density slabs");
-    let mut mesh = extract(&run.model, &run.params, &options, &mut |done, _| {
+    let mut mesh = extract(run.engine.as_ref(), &options, &mut |done, _| {
         pb.set_position(done as u64)
     });
     pb.finish_and_clear();
@@ -84,7 +76,7 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
     }
     // Colour from a few grid cells outside the surface.
     let offset = 4.0 * 2.0 * bound / resolution as f32;
-    let colours = colour_vertices(&run.model, &run.params, &mesh, offset);
+    let colours = colour_vertices(run.engine.as_ref(), &mesh, offset);
     // Forward-facing scenes are modelled in NDC: export in world coordinates.
     let space = run.config.open_scene(1).map(|s| s.space);
     match space {
@@ -152,12 +144,11 @@ pub fn points(a: PointsArgs) -> Result<()> {
         .into_iter()
         .step_by(a.every)
         .collect();
-    let settings = scene.render_settings(config.background.eval_colour(), config.chunk_rays);
+    let settings = nerf::views::RenderSettings::of_scene(&scene, config.background.eval_colour());
     let t0 = Instant::now();
     let pb = bar(cameras.len() as u64, "views");
     let (points, colours) = nerf::mesh::points::from_views(
-        &run.model,
-        &run.params,
+        run.engine.as_ref(),
         &cameras,
         &settings,
         a.min_opacity,

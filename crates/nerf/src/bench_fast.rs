@@ -11,15 +11,15 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::bench::{median, peak_resident_mib};
+use crate::bench_vanilla::{median, peak_resident_mib};
 use crate::camera::Camera;
 use crate::data::scene::{Scene, SceneOptions};
 use crate::data::synth::{self, SceneKind, SynthOptions};
 use crate::data::Split;
 use crate::error::Result;
 use crate::model::{FastModelConfig, ModelConfig};
-use crate::renderer::render_view;
 use crate::train::{TrainConfig, Trainer};
+use crate::views::{render_view, RenderSettings};
 
 #[derive(Clone, Debug)]
 pub struct FastBenchOptions {
@@ -128,19 +128,14 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     let amortised = ((every - 1) as f64 * step_s + refresh_s) / every as f64;
     let samples = opts.model.samples_per_step as f64;
     let levels = opts.model.field.grid.levels as f64;
-    let occupied = match &trainer.model {
-        crate::model::Model::Fast(m) => m.grid.occupancy(),
-        crate::model::Model::Vanilla(_) => 1.0,
-    };
+    let occupied = trainer.engine.occupancy().unwrap_or(1.0);
     say(format!(
         "rendering a {}x{} view...",
         camera.width, camera.height
     ));
-    let settings = trainer
-        .data
-        .render_settings([1.0; 3], trainer.config.chunk_rays);
+    let settings = RenderSettings::of_dataset(&trainer.data, [1.0; 3]);
     let t = Instant::now();
-    render_view(&trainer.model, &trainer.params, &camera, &settings, &|_| {});
+    render_view(trainer.engine.as_ref(), &camera, &settings, &|_| {});
     let render_s = t.elapsed().as_secs_f64();
     Ok(FastBenchReport {
         threads,
@@ -155,7 +150,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         train_rays_per_second: rays_median / step_s,
         hash_lookups_per_second: 2.0 * 8.0 * levels * samples / step_s,
         occupied_fraction: occupied,
-        touched_fraction: trainer.touched_fraction,
+        touched_fraction: trainer.engine.touched_fraction(),
         render_width: camera.width,
         render_height: camera.height,
         render_seconds: render_s,

@@ -27,7 +27,7 @@ pub struct Checkpoint {
     pub adam_m: Vec<f32>,
     pub adam_v: Vec<f32>,
     pub adam_t: u64,
-    /// Non-trainable model state (see [`crate::model::Buffer`]), in buffer-layout order.
+    /// Non-trainable model state (the occupancy grid), in buffer-layout order.
     pub buffers: Vec<f32>,
 }
 

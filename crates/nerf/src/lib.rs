@@ -1,12 +1,17 @@
 //! `nerf`: neural radiance fields (Mildenhall et al., ECCV 2020) on a plain CPU.
 //!
-//! Data flows one way: [`data`] (posed images) -> [`camera`] rays -> [`render::sampling`]
-//! -> [`field`] (the MLP) -> [`render::volume`] (compositing) -> loss, and gradients flow
-//! back the same way into [`nn::Adam`]. [`train`] runs that loop with checkpoints;
-//! [`eval`] measures PSNR / SSIM; [`data::synth`] renders the built-in scenes.
+//! Data flows one way: [`data`] (posed images, training rays) -> [`render::sampling`] or
+//! [`render::march`] (samples) -> a [`stage::Field`] ([`field`]) -> [`render::volume`]
+//! (compositing, the volume renderer) -> [`render::loss`], and gradients flow back the same
+//! way into [`nn::Adam`]. The values between these stages and the contract every
+//! differentiable stage follows are in [`stage`]. Each [`model`] strings the stages into a
+//! training pass and a renderer; an [`engine`] owns a model's parameters and runs it (the
+//! CPU engine today; the seam where a GPU engine plugs in). Above the seam: [`train`] (the
+//! schedule and the run folder), [`eval`] and [`metrics`], [`views`] (whole images),
+//! [`mesh`], and [`data::synth`], which renders the built-in scenes.
 
-pub mod bench;
 pub mod bench_fast;
+pub mod bench_vanilla;
 pub mod camera;
 pub mod camera_path;
 pub mod capture;
@@ -14,20 +19,23 @@ pub mod checkpoint;
 pub mod data;
 pub mod distortion;
 pub mod encoding;
+pub mod engine;
 pub mod error;
 pub mod eval;
 pub mod field;
 pub mod io;
 pub mod math;
 pub mod mesh;
+pub mod metrics;
 pub mod model;
 pub mod nn;
 pub mod presets;
 pub mod ray_space;
 pub mod render;
-pub mod renderer;
 pub mod rng;
+pub mod stage;
 pub mod train;
 pub mod video;
+pub mod views;
 
 pub use error::{NerfError, Result};

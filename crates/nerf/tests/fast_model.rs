@@ -8,7 +8,6 @@ mod common;
 use common::{fast_config, small_scene};
 
 use nerf::data::Split;
-use nerf::model::Model;
 use nerf::train::run::{self, LoadedRun, RunOptions, StopReason};
 use nerf::train::TrainConfig;
 
@@ -35,11 +34,11 @@ fn fast_model_trains_a_small_scene_past_a_psnr_floor() {
     .expect("train");
     assert_eq!((summary.steps, summary.reason), (500, StopReason::Steps));
     let loaded = LoadedRun::open(&out).expect("open run");
-    let Model::Fast(model) = &loaded.model else {
-        panic!("the run did not reload as a fast model");
-    };
     // The chair fills a small part of its box: most cells must have been found empty.
-    let occupied = model.grid.occupancy();
+    let occupied = loaded
+        .engine
+        .occupancy()
+        .expect("the run did not reload as a fast model");
     assert!(
         occupied < 0.5,
         "{:.1}% of the grid still occupied",
@@ -86,10 +85,14 @@ fn fast_run_resumes_exactly_across_an_occupancy_refresh() {
         LoadedRun::open(&split).expect("b"),
     );
     assert_eq!((a.step, b.step), (20, 20));
-    assert!(a.params == b.params, "resumed weights differ");
-    let (ga, gb) = (a.model.buffers(), b.model.buffers());
-    assert_eq!(ga.len(), 1, "the occupancy grid is checkpointed");
-    assert!(ga == gb, "resumed occupancy grid differs");
+    let (sa, sb) = (a.engine.state(), b.engine.state());
+    assert!(sa.params == sb.params, "resumed weights differ");
+    assert_eq!(
+        a.engine.buffer_layout().tensors.len(),
+        1,
+        "the occupancy grid is checkpointed"
+    );
+    assert!(sa.buffers == sb.buffers, "resumed occupancy grid differs");
     // The refresh at step 16 ran (the grid is no longer all-occupied and fresh).
-    assert!(ga[0].values.iter().any(|&v| v > 0.0));
+    assert!(sa.buffers.iter().any(|&v| v > 0.0));
 }

@@ -133,7 +133,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
         bound: 1.5,
         keep_largest: Some(1),
     };
-    let mesh = extract(&run.model, &run.params, &options, &mut |_, _| {});
+    let mesh = extract(run.engine.as_ref(), &options, &mut |_, _| {});
     assert!(
         mesh.triangles.len() > 1000,
         "{} triangles",
@@ -159,15 +159,9 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
     let data_views =
         nerf::data::blender::load_every(&data, nerf::data::Split::Train, 2, 15).expect("views");
     let cameras: Vec<_> = data_views.views.iter().map(|v| v.camera.clone()).collect();
-    let settings = data_views.render_settings([1.0; 3], 256);
-    let (points, point_colours) = nerf::mesh::points::from_views(
-        &run.model,
-        &run.params,
-        &cameras,
-        &settings,
-        0.95,
-        &mut |_| {},
-    );
+    let settings = nerf::views::RenderSettings::of_dataset(&data_views, [1.0; 3]);
+    let (points, point_colours) =
+        nerf::mesh::points::from_views(run.engine.as_ref(), &cameras, &settings, 0.95, &mut |_| {});
     assert!(points.len() > 500 && points.len() == point_colours.len());
     let near_chair = points
         .iter()
@@ -178,7 +172,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
         "{near_chair} of {} points within 5 cm of the chair's box",
         points.len()
     );
-    let colours = colour_vertices(&run.model, &run.params, &mesh, 0.05);
+    let colours = colour_vertices(run.engine.as_ref(), &mesh, 0.05);
     // The chair is wood and fabric, not black or white: most vertices get a real colour.
     let coloured = colours
         .iter()

@@ -160,7 +160,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
                 .map(|c| rgb.iter().skip(c).step_by(3).sum::<f32>() / n)
                 .collect();
             let flat: Vec<f32> = (0..rgb.len()).map(|i| mean[i % 3]).collect();
-            nerf::eval::psnr(&flat, &rgb)
+            nerf::metrics::psnr(&flat, &rgb)
         })
         .sum::<f32>()
         / test.views.len() as f32;

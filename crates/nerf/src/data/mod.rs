@@ -10,6 +10,7 @@ pub mod colmap_scene;
 pub mod image;
 pub mod llff;
 pub mod npy;
+pub mod pixels;
 pub mod poses;
 pub mod scene;
 pub mod synth;
@@ -60,21 +61,6 @@ impl Dataset {
             .zip(keep)
             .filter_map(|(v, k)| k.then_some(v))
             .collect();
-    }
-
-    /// Settings to render this dataset's rays.
-    pub fn render_settings(
-        &self,
-        background: [f32; 3],
-        chunk_rays: usize,
-    ) -> crate::renderer::RenderSettings {
-        crate::renderer::RenderSettings {
-            near: self.near,
-            far: self.far,
-            background,
-            chunk_rays,
-            space: self.space,
-        }
     }
 
     pub fn image_size(&self) -> (usize, usize) {

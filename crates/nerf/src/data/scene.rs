@@ -248,22 +248,6 @@ impl Scene {
         self.space.bounds(self.near, self.far)
     }
 
-    /// Settings to render this scene's rays.
-    pub fn render_settings(
-        &self,
-        background: [f32; 3],
-        chunk_rays: usize,
-    ) -> crate::renderer::RenderSettings {
-        let (near, far) = self.ray_bounds();
-        crate::renderer::RenderSettings {
-            near,
-            far,
-            background,
-            chunk_rays,
-            space: self.space,
-        }
-    }
-
     /// Frames `0, every, 2 every, ...` of `split`, with their images.
     pub fn load(&self, split: Split, every: usize) -> Result<Dataset> {
         let views = self

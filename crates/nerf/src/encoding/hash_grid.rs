@@ -14,7 +14,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::nn::grads::GradBuffer;
+use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;
 
@@ -203,14 +203,14 @@ impl HashGrid {
 
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
-    pub fn backward(&self, points: &[f32], d_out: &[f32], grads: &mut GradBuffer) {
+    pub fn backward(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
         let d = self.dims();
         let n = points.len() / 3;
         let mut corners = Corners::default();
         for (l, level) in self.levels.iter().enumerate() {
             for first in (0..n).step_by(GROUP) {
                 let len = GROUP.min(n - first);
-                let table = &grads.values[level.offset..][..level.entries * FEATURES];
+                let table = &grads.values_mut()[level.offset..][..level.entries * FEATURES];
                 corners.compute(level, table, &points[first * 3..(first + len) * 3]);
                 for j in 0..len {
                     let g = &d_out[(first + j) * d + l * FEATURES..][..FEATURES];
@@ -365,8 +365,8 @@ mod tests {
             grid.encode(p, &pts, &mut out);
             out.iter().zip(&d_out).map(|(a, b)| (a * b) as f64).sum()
         };
-        let mut grads = GradBuffer::new(layout.total);
-        grid.backward(&pts, &d_out, &mut grads);
+        let mut grads = crate::nn::GradBuffer::new(layout.total);
+        grid.backward(&pts, &d_out, &mut grads.all());
         let mut checked = 0;
         for i in 0..layout.total {
             let g = grads.values[i];

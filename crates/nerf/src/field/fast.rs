@@ -20,10 +20,11 @@ use serde::{Deserialize, Serialize};
 use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
 use crate::encoding::spherical_harmonics::{sh4, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
-use crate::nn::grads::GradBuffer;
 use crate::nn::linalg::{matmul, MatRef};
+use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;
+use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput};
 
 /// Log-densities are clamped here before `exp` so one bad step cannot overflow to infinity.
 pub const LOG_SIGMA_MAX: f32 = 15.0;
@@ -158,7 +159,7 @@ impl FastField {
     }
 
     /// Density network only: leaves `ws.sigma` (and `ws.geo`) for `n` positions.
-    pub fn density(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
+    fn density_ws(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
         let n = positions.len() / 3;
         let (w, g, e) = (
             self.config.hidden,
@@ -199,28 +200,36 @@ impl FastField {
         }
         WS.with(|ws| {
             let ws = &mut ws.borrow_mut();
-            self.density(params, positions, ws);
+            self.density_ws(params, positions, ws);
             out.copy_from_slice(&ws.sigma[..out.len()]);
         })
     }
 
-    /// Density and colour of `n` samples at `positions` seen along unit `dirs` (both packed
-    /// `n x 3`), into `ws.sigma` and `ws.rgb`.
-    pub fn forward(&self, params: &[f32], positions: &[f32], dirs: &[f32], ws: &mut FastWorkspace) {
+    /// Density and colour of `n` samples at `positions` (`n x 3`) seen along unit `dirs`
+    /// (one per `spd` consecutive samples), into `ws.sigma` and `ws.rgb`.
+    fn forward_ws(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        dirs: &[f32],
+        spd: usize,
+        ws: &mut FastWorkspace,
+    ) {
         let n = positions.len() / 3;
         let (w, g, ci) = (
             self.config.hidden,
             self.config.geo_features,
             self.colour_in_dims(),
         );
-        self.density(params, positions, ws);
+        self.density_ws(params, positions, ws);
         grow(&mut ws.colour_in, n * ci);
         grow(&mut ws.c1, n * w);
         grow(&mut ws.c2, n * w);
         grow(&mut ws.rgb, n * 3);
         for s in 0..n {
             let row = &mut ws.colour_in[s * ci..][..ci];
-            row[..SH_DIMS].copy_from_slice(&sh4([dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]]));
+            let d = &dirs[3 * (s / spd)..][..3];
+            row[..SH_DIMS].copy_from_slice(&sh4([d[0], d[1], d[2]]));
             row[SH_DIMS..].copy_from_slice(&ws.geo[s * g + 1..][..g - 1]);
         }
         let c1 = &mut ws.c1[..n * w];
@@ -249,15 +258,15 @@ impl FastField {
         rgb.iter_mut().for_each(|v| *v = sigmoid(*v));
     }
 
-    /// Backward of the last [`forward`](Self::forward) (over the same `n` samples): given
+    /// Backward of the forward that filled `ws` (over the same `n` samples): given
     /// `d_sigma` (`n`) and `d_rgb` (`n x 3`), accumulates parameter gradients into `grads`.
-    pub fn backward(
+    fn backward_ws(
         &self,
         params: &[f32],
         ws: &mut FastWorkspace,
         d_sigma: &[f32],
         d_rgb: &[f32],
-        grads: &mut GradBuffer,
+        grads: &mut Grads,
     ) {
         let n = d_sigma.len();
         let (w, g, ci, e) = (
@@ -274,7 +283,7 @@ impl FastField {
         grow(&mut ws.d_geo, n * g);
         grow(&mut ws.d_enc, n * e);
         let gw = |k: usize| self.weights[k];
-        let values = &mut grads.values;
+        let values = grads.values_mut();
         // Colour network.
         for ((dl, &y), &dy) in ws.d_logit[..n * 3].iter_mut().zip(&ws.rgb).zip(d_rgb) {
             *dl = dy * y * (1.0 - y);
@@ -347,9 +356,64 @@ impl FastField {
     }
 }
 
+impl Field for FastField {
+    type Context = FastWorkspace;
+
+    fn num_params(&self) -> usize {
+        self.layout.total
+    }
+
+    fn forward<'c>(
+        &self,
+        params: &[f32],
+        input: FieldInput,
+        ctx: &'c mut FastWorkspace,
+    ) -> FieldOutput<'c> {
+        let n = input.len();
+        self.forward_ws(
+            params,
+            input.positions,
+            input.dirs,
+            input.samples_per_dir,
+            ctx,
+        );
+        FieldOutput {
+            sigma: &ctx.sigma[..n],
+            rgb: &ctx.rgb[..n * 3],
+        }
+    }
+
+    fn backward(
+        &self,
+        params: &[f32],
+        ctx: &mut FastWorkspace,
+        d_output: FieldGrad,
+        grads: &mut Grads,
+    ) {
+        if d_output.d_sigma.is_empty() {
+            return;
+        }
+        self.backward_ws(params, ctx, d_output.d_sigma, d_output.d_rgb, grads);
+    }
+
+    fn density(&self, params: &[f32], positions: &[f32], ctx: &mut FastWorkspace, out: &mut [f32]) {
+        self.density_ws(params, positions, ctx);
+        out.copy_from_slice(&ctx.sigma[..out.len()]);
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::nn::GradBuffer;
+
+    fn input<'a>(positions: &'a [f32], dirs: &'a [f32]) -> FieldInput<'a> {
+        FieldInput {
+            positions,
+            dirs,
+            samples_per_dir: 1,
+        }
+    }
 
     fn tiny() -> FastField {
         FastField::new(FastFieldConfig {
@@ -389,23 +453,19 @@ mod tests {
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let loss = |p: &[f32]| -> f64 {
             let mut ws = FastWorkspace::default();
-            field.forward(p, &pos, &dirs, &mut ws);
-            let ls: f64 = ws.sigma[..n]
-                .iter()
-                .zip(&a)
-                .map(|(s, a)| (s * a) as f64)
-                .sum();
-            let lc: f64 = ws.rgb[..n * 3]
-                .iter()
-                .zip(&b)
-                .map(|(c, b)| (c * b) as f64)
-                .sum();
+            let out = field.forward(p, input(&pos, &dirs), &mut ws);
+            let ls: f64 = out.sigma.iter().zip(&a).map(|(s, a)| (s * a) as f64).sum();
+            let lc: f64 = out.rgb.iter().zip(&b).map(|(c, b)| (c * b) as f64).sum();
             ls + lc
         };
         let mut ws = FastWorkspace::default();
-        field.forward(&params, &pos, &dirs, &mut ws);
+        field.forward(&params, input(&pos, &dirs), &mut ws);
         let mut grads = GradBuffer::new(field.num_params());
-        field.backward(&params, &mut ws, &a, &b, &mut grads);
+        let d = FieldGrad {
+            d_sigma: &a,
+            d_rgb: &b,
+        };
+        field.backward(&params, &mut ws, d, &mut grads.all());
         let (mut err, mut norm, mut checked) = (0.0f64, 0.0f64, 0);
         for t in &field.layout.tensors {
             for i in t.range().step_by(3) {
@@ -438,11 +498,27 @@ mod tests {
         let pos = [0.1, 0.2, -0.3, 1.0, -1.2, 0.4];
         let dirs = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0];
         let mut ws = FastWorkspace::default();
-        field.forward(&params, &pos, &dirs, &mut ws);
-        let full = ws.sigma[..2].to_vec();
-        let mut ws2 = FastWorkspace::default();
-        field.density(&params, &pos, &mut ws2);
-        assert_eq!(full, ws2.sigma[..2].to_vec());
+        let full = field
+            .forward(&params, input(&pos, &dirs), &mut ws)
+            .sigma
+            .to_vec();
+        let mut alone = [0.0; 2];
+        field.density(&params, &pos, &mut FastWorkspace::default(), &mut alone);
+        assert_eq!(full, alone.to_vec());
+        // One direction shared by both samples gives the colour of each sample seen along it.
+        let shared = FieldInput {
+            positions: &pos,
+            dirs: &dirs[..3],
+            samples_per_dir: 2,
+        };
+        let rgb = field.forward(&params, shared, &mut ws).rgb.to_vec();
+        let per_sample = [0.0, 0.0, 1.0, 0.0, 0.0, 1.0];
+        assert_eq!(
+            rgb,
+            field
+                .forward(&params, input(&pos, &per_sample), &mut ws)
+                .rgb
+        );
         // Near-zero tables and zero-mean weights: density starts near exp(0) = 1.
         assert!(full.iter().all(|s| (0.5..2.0).contains(s)), "{full:?}");
     }

@@ -20,7 +20,8 @@ use serde::{Deserialize, Serialize};
 use crate::encoding::FrequencyEncoding;
 use crate::nn::activation::{col_sum_into, relu, relu_bwd_bias, sigmoid};
 use crate::nn::linalg::{matmul, MatRef};
-use crate::nn::ParamLayout;
+use crate::nn::{Grads, ParamLayout};
+use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput};
 
 /// The shape of one vanilla network.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -163,8 +164,8 @@ impl VanillaNet {
 
     /// Evaluates `n = dirs.len() / 3 * samples_per_ray` samples. `positions` is `n x 3`,
     /// `dirs` is one unit direction per ray (`r x 3`). Fills `ws.sigma` (`n`, after ReLU)
-    /// and `ws.rgb` (`n x 3`, after sigmoid) and keeps what [`Self::backward`] needs.
-    pub fn forward(
+    /// and `ws.rgb` (`n x 3`, after sigmoid) and keeps what [`Self::backward_ws`] needs.
+    pub fn forward_ws(
         &self,
         params: &[f32],
         positions: &[f32],
@@ -300,9 +301,9 @@ impl VanillaNet {
         }
     }
 
-    /// Backward of the last [`Self::forward`] on `ws`: given `d_sigma` (`n`) and `d_rgb`
+    /// Backward of the last [`Self::forward_ws`] on `ws`: given `d_sigma` (`n`) and `d_rgb`
     /// (`n x 3`), accumulates parameter gradients into `grads` (same layout as `params`).
-    pub fn backward(
+    pub fn backward_ws(
         &self,
         params: &[f32],
         ws: &mut VanillaWorkspace,
@@ -524,6 +525,58 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
+impl Field for VanillaNet {
+    type Context = VanillaWorkspace;
+
+    fn num_params(&self) -> usize {
+        VanillaNet::num_params(self)
+    }
+
+    /// `input.samples_per_dir` is the samples per ray: all samples of a ray share its
+    /// direction, whose share of the view layer is computed once per ray.
+    fn forward<'c>(
+        &self,
+        params: &[f32],
+        input: FieldInput,
+        ctx: &'c mut VanillaWorkspace,
+    ) -> FieldOutput<'c> {
+        let n = input.len();
+        self.forward_ws(
+            params,
+            input.positions,
+            input.dirs,
+            input.samples_per_dir,
+            ctx,
+        );
+        FieldOutput {
+            sigma: &ctx.sigma[..n],
+            rgb: &ctx.rgb[..n * 3],
+        }
+    }
+
+    fn backward(
+        &self,
+        params: &[f32],
+        ctx: &mut VanillaWorkspace,
+        d_output: FieldGrad,
+        grads: &mut Grads,
+    ) {
+        self.backward_ws(params, ctx, d_output.d_sigma, d_output.d_rgb, grads.dense());
+    }
+
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        ctx: &mut VanillaWorkspace,
+        out: &mut [f32],
+    ) {
+        // Density does not depend on the direction: one "ray" of all the points.
+        self.forward_ws(params, positions, &[0.0, 0.0, 1.0], out.len(), ctx);
+        out.copy_from_slice(&ctx.sigma[..out.len()]);
+    }
+}
+
 /// Activations of one chunk, kept for the backward pass, plus scratch for it. Grows to the
 /// largest chunk seen and is then reused.
 #[derive(Default, Debug)]
@@ -651,7 +704,7 @@ mod tests {
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let mut ws = VanillaWorkspace::default();
         let loss = |p: &[f32], ws: &mut VanillaWorkspace| -> f64 {
-            net.forward(p, &pos, &dirs, spr, ws);
+            net.forward_ws(p, &pos, &dirs, spr, ws);
             let s: f64 = ws.sigma[..n]
                 .iter()
                 .zip(&a)
@@ -665,7 +718,7 @@ mod tests {
         };
         loss(&params, &mut ws);
         let mut grads = vec![0.0; params.len()];
-        net.backward(&params, &mut ws, &a, &b, &mut grads);
+        net.backward_ws(&params, &mut ws, &a, &b, &mut grads);
         // Small step: a larger one lets some ReLU input cross zero and spoils the difference.
         let h = 1e-4f32;
         let (mut err2, mut norm2) = (0.0f64, 0.0f64);
@@ -716,9 +769,9 @@ mod tests {
             let params = net.layout.init_glorot(&mut Rng::new(2));
             let mut ws = VanillaWorkspace::default();
             let pos = [0.1, 0.2, 0.3];
-            net.forward(&params, &pos, &[1.0, 0.0, 0.0], 1, &mut ws);
+            net.forward_ws(&params, &pos, &[1.0, 0.0, 0.0], 1, &mut ws);
             let c1 = ws.rgb[..3].to_vec();
-            net.forward(&params, &pos, &[0.0, 1.0, 0.0], 1, &mut ws);
+            net.forward_ws(&params, &pos, &[0.0, 1.0, 0.0], 1, &mut ws);
             assert_eq!(c1 != ws.rgb[..3], vd);
         }
     }

@@ -5,8 +5,8 @@
 
 use super::marching_cubes::{marching_cubes, Grid};
 use super::Mesh;
-use crate::model::Model;
-use crate::renderer::{render_rays, RenderSettings};
+use crate::engine::Engine;
+use crate::views::{render_rays, RenderSettings};
 
 /// The default surface density. With sigma = 25, 4 cm of material (a voxel at 96^3 over a
 /// 3-unit box) stops 63% of the light: solid. Lower it (5-10) when thin or little-seen parts
@@ -28,8 +28,7 @@ pub struct ExtractOptions {
 /// Density on `resolution^3` grid points over the box; `on_slab(done, total)` after each
 /// z slab.
 pub fn density_grid(
-    model: &Model,
-    params: &[f32],
+    engine: &dyn Engine,
     opts: &ExtractOptions,
     on_slab: &mut dyn FnMut(usize, usize),
 ) -> (Vec<f32>, f32) {
@@ -44,7 +43,7 @@ pub fn density_grid(
                 positions.extend([x, y, z].map(|i| -opts.bound + i as f32 * spacing));
             }
         }
-        model.density(params, &positions, slab);
+        engine.density(&positions, slab);
         on_slab(z + 1, r);
     }
     (values, spacing)
@@ -52,12 +51,11 @@ pub fn density_grid(
 
 /// The mesh of the surface where density crosses `opts.threshold`.
 pub fn extract(
-    model: &Model,
-    params: &[f32],
+    engine: &dyn Engine,
     opts: &ExtractOptions,
     on_slab: &mut dyn FnMut(usize, usize),
 ) -> Mesh {
-    let (values, spacing) = density_grid(model, params, opts, on_slab);
+    let (values, spacing) = density_grid(engine, opts, on_slab);
     let r = opts.resolution.max(2);
     let grid = Grid {
         values: &values,
@@ -139,7 +137,7 @@ pub fn vertex_normals(mesh: &Mesh) -> Vec<[f32; 3]> {
 /// Colours (straight RGB in [0, 1]) of the vertices: each is rendered along a ray that
 /// starts `offset` outside the surface on its normal and looks back at it, so the colour is
 /// what a camera there would see (view-dependent effects included).
-pub fn colour_vertices(model: &Model, params: &[f32], mesh: &Mesh, offset: f32) -> Vec<[f32; 3]> {
+pub fn colour_vertices(engine: &dyn Engine, mesh: &Mesh, offset: f32) -> Vec<[f32; 3]> {
     let normals = vertex_normals(mesh);
     let mut origins = Vec::with_capacity(mesh.vertices.len() * 3);
     let mut dirs = Vec::with_capacity(mesh.vertices.len() * 3);
@@ -151,11 +149,10 @@ pub fn colour_vertices(model: &Model, params: &[f32], mesh: &Mesh, offset: f32) 
         near: 0.0,
         far: 2.0 * offset,
         background: [0.0; 3],
-        chunk_rays: 1024,
         // The mesh lives in the model's own space already.
         space: crate::ray_space::RaySpace::World,
     };
-    render_rays(model, params, &origins, &dirs, &settings)
+    render_rays(engine, &origins, &dirs, &settings)
         .iter()
         .map(|o| {
             // Over black the result is premultiplied; undo that where anything was hit.

@@ -2,14 +2,13 @@
 //! point at its expected depth, coloured with what the pixel shows.
 
 use crate::camera::Camera;
-use crate::model::Model;
-use crate::renderer::{render_view, RenderSettings};
+use crate::engine::Engine;
+use crate::views::{render_view, RenderSettings};
 
 /// Points (and straight RGB colours) from rendering `cameras`; pixels with opacity below
 /// `min_opacity` (background, soft edges) are skipped. `on_view` is called after each view.
 pub fn from_views(
-    model: &Model,
-    params: &[f32],
+    engine: &dyn Engine,
     cameras: &[Camera],
     settings: &RenderSettings,
     min_opacity: f32,
@@ -17,7 +16,7 @@ pub fn from_views(
 ) -> (Vec<[f32; 3]>, Vec<[f32; 3]>) {
     let (mut points, mut colours) = (Vec::new(), Vec::new());
     for (k, camera) in cameras.iter().enumerate() {
-        let view = render_view(model, params, camera, settings, &|_| {});
+        let view = render_view(engine, camera, settings, &|_| {});
         for j in 0..view.height {
             for i in 0..view.width {
                 let p = j * view.width + i;

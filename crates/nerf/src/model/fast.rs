@@ -1,11 +1,34 @@
-//! The fast model: one hash-grid field, its occupancy grid, and how rays are marched and
-//! batched through it.
+//! The fast model: one hash-grid field, its occupancy grid, and its training pass and
+//! renderer built from the marcher (`render::march`), compositing and the loss.
+//!
+//! Work mapping of a training step (the same rays and samples for any thread count):
+//! 1. Rays are drawn in blocks of [`BLOCK_RAYS`] (block `b` holds rays `b * BLOCK_RAYS..` of
+//!    the step) and marched, in waves of blocks run in parallel; waves grow (4, 8, ... 64
+//!    blocks) until the rays marched so far hold `samples_per_step` samples. The step's rays
+//!    are those up to the first ray at which the running sample count reaches the budget.
+//! 2. The kept blocks are grouped, in order, into chunks of at least `batch_samples`
+//!    samples; chunk `c` runs forward, loss and backward on worker `c mod W`, into that
+//!    worker's gradient buffer. Losses are summed in chunk order, so they are identical for
+//!    any thread count; gradients differ only by the order of the workers' sums.
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::field::{FastField, FastFieldConfig};
-use crate::render::marched::Marcher;
+use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
+use crate::data::pixels::TrainingRays;
+use crate::field::{FastField, FastFieldConfig, FastWorkspace as FieldContext};
+use crate::nn::{GradBuffer, ParamLayout};
+use crate::render::loss::squared_error;
+use crate::render::march::{render_marched, MarchWorkspace, Marcher};
 use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
+use crate::render::volume::{composite_packed, composite_packed_bwd};
+use crate::stage::{Field, FieldGrad, FieldOutput, PackedSamples, RayBatch, RayOutput};
+
+/// Rays per marching block of a training step.
+pub const BLOCK_RAYS: usize = 16;
+
+/// Name of the occupancy grid in checkpoints.
+const OCCUPANCY: &str = "occupancy.thickness";
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FastModelConfig {
@@ -81,5 +104,470 @@ impl FastModel {
                 .contract
                 .then_some(0.5 * self.config.field.bound),
         }
+    }
+}
+
+/// One block of a step's rays: drawn, marched and packed.
+#[derive(Default, Debug)]
+pub struct MarchedBlock {
+    rays: TrainingRays,
+    samples: PackedSamples,
+}
+
+/// Buffers of one thread: a training chunk (samples, activations, gradients) and rendering.
+#[derive(Default, Debug)]
+pub struct FastWorkspace {
+    field: FieldContext,
+    samples: PackedSamples,
+    backgrounds: Vec<[f32; 3]>,
+    targets: Vec<[f32; 3]>,
+    weights: Vec<f32>,
+    outputs: Vec<RayOutput>,
+    d_out: Vec<[f32; 3]>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+    march: MarchWorkspace<FieldContext>,
+}
+
+/// Buffers a whole step shares: the marched blocks.
+#[derive(Default, Debug)]
+pub struct StepBlocks {
+    blocks: Vec<MarchedBlock>,
+}
+
+impl FastModel {
+    /// Draws and marches the rays of block `b` of the step.
+    fn march_block(
+        &self,
+        input: &StepInput,
+        marcher: &Marcher,
+        b: usize,
+        block: &mut MarchedBlock,
+    ) {
+        let first = (b * BLOCK_RAYS) as u64;
+        block.rays.draw(
+            input.data,
+            &input.sampling,
+            first..first + BLOCK_RAYS as u64,
+        );
+        block.samples.clear();
+        for r in 0..block.rays.len() {
+            let jitter = block.rays.rngs[r].uniform();
+            marcher.pack_ray(&self.grid, &block.rays.rays, r, jitter, &mut block.samples);
+        }
+    }
+
+    /// Phase 1 of a step: marches blocks until the budget is reached. Returns the number of
+    /// blocks used and the rays kept of the last one.
+    fn march_step(&self, input: &StepInput, blocks: &mut Vec<MarchedBlock>) -> (usize, usize) {
+        let marcher = self.marcher(input.data.near, input.data.far);
+        let budget = self.config.samples_per_step;
+        // Rays that find no occupied cell add no samples: this bound ends the step when the
+        // grid is (nearly) empty instead of drawing rays forever.
+        let max_rays = budget.max(64);
+        let (mut marched, mut wave) = (0, 4);
+        let (mut samples, mut rays) = (0, 0);
+        loop {
+            if blocks.len() < marched + wave {
+                blocks.resize_with(marched + wave, MarchedBlock::default);
+            }
+            blocks[marched..marched + wave]
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(i, block)| self.march_block(input, &marcher, marched + i, block));
+            for (b, block) in blocks[marched..marched + wave].iter().enumerate() {
+                for r in 0..block.samples.rays() {
+                    samples += block.samples.ray(r).len();
+                    rays += 1;
+                    if samples >= budget || rays >= max_rays {
+                        return (marched + b + 1, r + 1);
+                    }
+                }
+            }
+            marched += wave;
+            wave = (wave * 2).min(64);
+        }
+    }
+
+    /// Phase 2, one chunk: rays `used` of `blocks` copied into `ws`, then forward,
+    /// loss and backward. Returns the chunk's sum of squared errors.
+    fn train_chunk(
+        &self,
+        params: &[f32],
+        blocks: &[MarchedBlock],
+        last_rays: usize,
+        ws: &mut FastWorkspace,
+        grads: &mut GradBuffer,
+    ) -> f64 {
+        ws.samples.clear();
+        ws.backgrounds.clear();
+        ws.targets.clear();
+        for (i, block) in blocks.iter().enumerate() {
+            let rays = if i + 1 == blocks.len() {
+                last_rays
+            } else {
+                block.rays.len()
+            };
+            let s = &block.samples;
+            let end = s.offsets[rays];
+            let base = ws.samples.len();
+            ws.samples.t.extend_from_slice(&s.t[..end]);
+            ws.samples.dt.extend_from_slice(&s.dt[..end]);
+            ws.samples.positions.extend_from_slice(&s.positions[..end]);
+            ws.samples.dirs.extend_from_slice(&s.dirs[..end]);
+            ws.samples
+                .offsets
+                .extend(s.offsets[1..=rays].iter().map(|o| o + base));
+            ws.backgrounds
+                .extend_from_slice(&block.rays.rays.backgrounds[..rays]);
+            ws.targets.extend_from_slice(&block.rays.targets[..rays]);
+        }
+        let (r, n) = (ws.samples.rays(), ws.samples.len());
+        ws.weights.resize(n, 0.0);
+        ws.outputs.resize(r, RayOutput::default());
+        ws.d_out.resize(r, [0.0; 3]);
+        ws.d_sigma.resize(n, 0.0);
+        ws.d_rgb.resize(n * 3, 0.0);
+        let field = if n > 0 {
+            self.field
+                .forward(params, ws.samples.field_input(), &mut ws.field)
+        } else {
+            FieldOutput {
+                sigma: &[],
+                rgb: &[],
+            }
+        };
+        composite_packed(
+            &ws.samples,
+            field,
+            &ws.backgrounds,
+            &mut ws.weights,
+            &mut ws.outputs,
+        );
+        let sse = squared_error(&ws.outputs, &ws.targets, &mut ws.d_out);
+        composite_packed_bwd(
+            &ws.samples,
+            field,
+            &ws.backgrounds,
+            &ws.outputs,
+            &ws.d_out,
+            &mut ws.d_sigma,
+            &mut ws.d_rgb,
+        );
+        let d = FieldGrad {
+            d_sigma: &ws.d_sigma[..n],
+            d_rgb: &ws.d_rgb[..n * 3],
+        };
+        self.field
+            .backward(params, &mut ws.field, d, &mut grads.all());
+        sse
+    }
+}
+
+impl Model for FastModel {
+    type Workspace = FastWorkspace;
+    type StepBuffers = StepBlocks;
+
+    fn layout(&self) -> &ParamLayout {
+        &self.field.layout
+    }
+
+    fn init_params(&self, seed: u64) -> Vec<f32> {
+        self.field.init_params(seed)
+    }
+
+    fn buffer_layout(&self) -> ParamLayout {
+        let mut l = ParamLayout::default();
+        let r = self.grid.resolution;
+        l.push(OCCUPANCY, &[r, r, r]);
+        l
+    }
+
+    fn buffers(&self) -> Vec<f32> {
+        self.grid.thickness.clone()
+    }
+
+    fn load_buffers(&mut self, values: Vec<f32>) {
+        let (r, b) = (self.grid.resolution, self.grid.bound);
+        self.grid = OccupancyGrid::from_thickness(r, b, values, self.config.occupancy.threshold);
+    }
+
+    /// Instant-NGP's step: a fixed number of field samples (see the module docs).
+    fn train_pass(
+        &self,
+        input: &StepInput,
+        shared: &mut StepBlocks,
+        workers: &mut [Worker<FastWorkspace>],
+    ) -> PassTotals {
+        let (used, last_rays) = self.march_step(input, &mut shared.blocks);
+        let blocks = &shared.blocks[..used];
+        let rays_in = |b: usize| {
+            if b + 1 == used {
+                last_rays
+            } else {
+                blocks[b].rays.len()
+            }
+        };
+        let samples_in = |b: usize| blocks[b].samples.offsets[rays_in(b)];
+        // Chunks: consecutive blocks holding at least `batch_samples` samples.
+        let mut chunks = Vec::new();
+        let (mut start, mut held) = (0, 0);
+        for b in 0..used {
+            held += samples_in(b);
+            if held >= self.config.batch_samples || b + 1 == used {
+                chunks.push(start..b + 1);
+                start = b + 1;
+                held = 0;
+            }
+        }
+        let n_workers = workers.len();
+        let mut sse = vec![0.0f64; chunks.len()];
+        let per_worker: Vec<Vec<(usize, f64)>> = workers
+            .par_iter_mut()
+            .enumerate()
+            .map(|(w, worker)| {
+                (w..chunks.len())
+                    .step_by(n_workers)
+                    .map(|c| {
+                        let range = chunks[c].clone();
+                        let last = if range.end == used {
+                            last_rays
+                        } else {
+                            blocks[range.end - 1].rays.len()
+                        };
+                        let e = self.train_chunk(
+                            input.params,
+                            &blocks[range],
+                            last,
+                            &mut worker.ws,
+                            &mut worker.grads,
+                        );
+                        (c, e)
+                    })
+                    .collect()
+            })
+            .collect();
+        for (c, e) in per_worker.into_iter().flatten() {
+            sse[c] = e;
+        }
+        let total: f64 = sse.iter().sum();
+        PassTotals {
+            sse: total,
+            final_sse: total,
+            rays: (0..used).map(rays_in).sum(),
+            samples: (0..used).map(samples_in).sum(),
+        }
+    }
+
+    /// Hash-table entries update lazily, MLP weights densely with weight decay.
+    fn update_rule(&self) -> UpdateRule {
+        UpdateRule {
+            lazy_end: self.field.mlp_range().start,
+            weight_decay: self.config.weight_decay,
+        }
+    }
+
+    /// Re-evaluates the occupancy grid every `update_every` steps with the current weights.
+    fn after_step(&mut self, params: &[f32], steps_done: u64, seed: u64) {
+        let every = self.config.occupancy.update_every.max(1);
+        if steps_done % every != 0 {
+            return;
+        }
+        let dt = self.config.step_length();
+        let FastModel {
+            config,
+            field,
+            grid,
+        } = self;
+        let density = |points: &[f32], out: &mut [f32]| field.density_into(params, points, out);
+        grid.update(&config.occupancy, steps_done, seed, dt, &density);
+    }
+
+    fn render_chunk(
+        &self,
+        params: &[f32],
+        rays: &RayBatch,
+        ws: &mut FastWorkspace,
+        out: &mut [RayOutput],
+    ) {
+        let marcher = self.marcher(rays.near, rays.far);
+        render_marched(
+            &self.field,
+            params,
+            &marcher,
+            &self.grid,
+            self.config.batch_samples,
+            rays,
+            &mut ws.march,
+            out,
+        );
+    }
+
+    fn density(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace, out: &mut [f32]) {
+        self.field.density(params, positions, &mut ws.field, out);
+    }
+
+    fn occupancy(&self) -> Option<f64> {
+        Some(self.grid.occupancy())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encoding::HashGridConfig;
+    use crate::rng::Rng;
+
+    fn dense_model() -> (FastModel, Vec<f32>) {
+        let config = FastModelConfig {
+            field: FastFieldConfig {
+                grid: HashGridConfig {
+                    levels: 4,
+                    log2_table_size: 10,
+                    base_resolution: 4,
+                    max_resolution: 32,
+                },
+                ..FastFieldConfig::default()
+            },
+            ..FastModelConfig::default()
+        };
+        let model = FastModel::new(config);
+        let mut params = model.field.init_params(5);
+        // Positive, varying table values and a positive log-density weight: an opaque,
+        // textured fog filling the box.
+        let mut rng = Rng::new(8);
+        for v in &mut params[model.field.grid.param_range()] {
+            *v = rng.range(0.5, 1.5);
+        }
+        for t in &model.field.layout.tensors {
+            if t.name == "density.0.weight" {
+                params[t.range()].iter_mut().for_each(|w| *w = w.abs());
+            }
+            if t.name == "density.1.weight" {
+                for row in params[t.range()].chunks_exact_mut(t.shape[1]) {
+                    row[0] = 0.5;
+                }
+            }
+        }
+        (model, params)
+    }
+
+    fn ray_batch(
+        origins: &[[f32; 3]],
+        dirs: &[[f32; 3]],
+        bgs: &[[f32; 3]],
+        (near, far): (f32, f32),
+    ) -> RayBatch {
+        let mut rays = RayBatch::new(near, far);
+        for k in 0..origins.len() {
+            let ray = crate::camera::Ray {
+                origin: origins[k],
+                dir: dirs[k],
+            };
+            rays.push(ray, dirs[k], bgs[k], k as u64);
+        }
+        rays
+    }
+
+    /// Renders the rays, then packs them for training on the renderer's lattice (jitter
+    /// 0.5) with the rendered colours as targets and runs the training chunk.
+    struct RenderThenTrain {
+        out: Vec<RayOutput>,
+        /// Samples the renderer evaluated per ray.
+        taken: Vec<usize>,
+        marcher: Marcher,
+        block: MarchedBlock,
+        /// Training loss against the rendered colours.
+        sse: f64,
+    }
+
+    fn render_then_train(model: &FastModel, params: &[f32], rays: RayBatch) -> RenderThenTrain {
+        let n = rays.len();
+        let mut ws = FastWorkspace::default();
+        let mut out = vec![RayOutput::default(); n];
+        model.render_chunk(params, &rays, &mut ws, &mut out);
+        let taken = ws.march.taken.clone();
+        let marcher = model.marcher(rays.near, rays.far);
+        let mut block = MarchedBlock::default();
+        block.samples.clear();
+        for r in 0..n {
+            marcher.pack_ray(&model.grid, &rays, r, 0.5, &mut block.samples);
+        }
+        block.rays.targets = out.iter().map(|o| o.rgb).collect();
+        block.rays.rays = rays;
+        let mut grads = GradBuffer::new(model.field.num_params());
+        let sse = model.train_chunk(params, std::slice::from_ref(&block), n, &mut ws, &mut grads);
+        RenderThenTrain {
+            out,
+            taken,
+            marcher,
+            block,
+            sse,
+        }
+    }
+
+    /// Rendering (in rounds, stopping opaque rays) and training (all samples, composited at
+    /// once) see the same colour for the same lattice, and rendering stops early.
+    #[test]
+    fn rendering_agrees_with_training_and_terminates_early() {
+        let (model, params) = dense_model();
+        let origins: Vec<[f32; 3]> = (0..6).map(|_| [0.0, -4.0, 0.3]).collect();
+        let dirs: Vec<[f32; 3]> = (0..6)
+            .map(|k| [0.05 * k as f32 - 0.1, 1.0, 0.02 * k as f32])
+            .collect();
+        let bgs: Vec<[f32; 3]> = (0..6).map(|k| [0.1 * k as f32, 0.5, 1.0]).collect();
+        let r = render_then_train(
+            &model,
+            &params,
+            ray_batch(&origins, &dirs, &bgs, (2.0, 6.0)),
+        );
+        assert!(r.out.iter().all(|o| o.opacity > 0.999), "{:?}", r.out);
+        // The box is about 590 steps deep; an opaque fog ends each ray within a few rounds.
+        assert!(r.taken.iter().all(|&n| n > 0 && n <= 128), "{:?}", r.taken);
+        assert!(
+            r.block.samples.len() > 6 * 500,
+            "training marches whole rays"
+        );
+        assert!(r.sse < 1e-9, "render and training disagree: sse {}", r.sse);
+    }
+
+    /// With contraction, rays run on past the box with growing steps, and rendering and
+    /// training still see the same colour.
+    #[test]
+    fn contracted_rays_march_beyond_the_box_and_agree() {
+        let (mut model, mut params) = dense_model();
+        model.config.contract = true;
+        // A thin fog (sigma about 1): light reaches the contracted shell.
+        for t in &model.field.layout.tensors {
+            if t.name == "density.1.weight" {
+                for row in params[t.range()].chunks_exact_mut(t.shape[1]) {
+                    row[0] = 0.0;
+                }
+            }
+        }
+        let origins: Vec<[f32; 3]> = (0..4).map(|_| [0.0, -1.0, 0.2]).collect();
+        let dirs: Vec<[f32; 3]> = (0..4).map(|k| [0.1 * k as f32 - 0.15, 1.0, 0.05]).collect();
+        let bgs: Vec<[f32; 3]> = (0..4).map(|_| [0.2, 0.4, 0.6]).collect();
+        let r = render_then_train(
+            &model,
+            &params,
+            ray_batch(&origins, &dirs, &bgs, (0.05, 1e4)),
+        );
+        let inner = r.marcher.contract.expect("contracted");
+        // Samples reach far past the inner cube, with steps that grow with distance.
+        let far_t = r.block.samples.t.iter().copied().fold(0.0f32, f32::max);
+        let max_dt = r.block.samples.dt.iter().copied().fold(0.0f32, f32::max);
+        assert!(
+            far_t > 20.0 * inner,
+            "last sample at {far_t}, inner cube {inner}"
+        );
+        assert!(
+            max_dt > 100.0 * r.marcher.dt,
+            "{max_dt} vs {}",
+            r.marcher.dt
+        );
+        assert!(r.block.samples.len() < 4 * r.marcher.max_samples);
+        assert!(r.sse < 1e-9, "render and training disagree: sse {}", r.sse);
+        assert!(r.out.iter().all(|o| o.opacity > 0.5), "{:?}", r.out);
     }
 }

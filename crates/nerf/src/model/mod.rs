@@ -1,11 +1,12 @@
-//! The two models a run can train: the paper's coarse + fine MLPs ([`VanillaModel`]) and the
-//! hash-grid field with an occupancy grid ([`FastModel`]). Both keep every trainable value in
-//! one flat vector described by a [`ParamLayout`], so the optimiser, checkpoints, evaluation
-//! and rendering treat them alike; only how a batch of rays is sampled and differentiated
-//! differs.
+//! The two models a run can train, on the CPU: the paper's coarse + fine MLPs
+//! ([`VanillaModel`]) and the hash-grid field with an occupancy grid ([`FastModel`]).
+//!
+//! A model strings the pure stages of `render` and a `Field` into its own training pass
+//! and renderer, and implements [`Model`], which the CPU engine (`engine::cpu`) drives. Both
+//! keep every trainable value in one flat vector described by a [`ParamLayout`], so the
+//! optimiser, checkpoints, evaluation and rendering treat them alike.
 
 pub mod fast;
-pub mod query;
 pub mod vanilla;
 
 use serde::{Deserialize, Serialize};
@@ -13,7 +14,10 @@ use serde::{Deserialize, Serialize};
 pub use fast::{FastModel, FastModelConfig};
 pub use vanilla::{VanillaModel, VanillaModelConfig};
 
-use crate::nn::ParamLayout;
+use crate::data::pixels::PixelSampling;
+use crate::data::Dataset;
+use crate::nn::{GradBuffer, ParamLayout};
+use crate::stage::{RayBatch, RayOutput};
 
 /// Which model, with its shape; saved in a run's `config.json` under `"kind"`. Configs
 /// written before there were two models have no `"kind"` and read as vanilla.
@@ -58,6 +62,16 @@ impl ModelConfig {
         }
     }
 
+    /// The density grid `nerf mesh` samples by default: points per axis, and the half-extent
+    /// of the box (a contracted model's inner cube, the part of its box that is undistorted).
+    pub fn mesh_defaults(&self) -> (usize, f32) {
+        match self {
+            ModelConfig::Fast(m) if m.contract => (256, 0.5 * m.field.bound),
+            ModelConfig::Fast(m) => (256, m.field.bound),
+            ModelConfig::Vanilla(_) => (128, 1.5),
+        }
+    }
+
     /// One line for logs: the model's shape.
     pub fn describe(&self) -> String {
         match self {
@@ -89,85 +103,104 @@ impl ModelConfig {
     }
 }
 
-/// One per run, long-lived: the size difference of the variants costs nothing.
-#[allow(clippy::large_enum_variant)]
-#[derive(Clone, Debug)]
-pub enum Model {
-    Vanilla(VanillaModel),
-    Fast(FastModel),
-}
+/// A model on the CPU engine: how it initialises, trains a step, renders and answers
+/// density queries. Engines other than the CPU one implement the same models with their own
+/// kernels; this trait is the CPU side of the engine seam.
+pub trait Model: Send + Sync + 'static {
+    /// One thread's reusable buffers (training and rendering).
+    type Workspace: Default + Send + Sync;
+    /// Reusable buffers a whole training step shares.
+    type StepBuffers: Default + Send + Sync;
 
-/// A non-trainable tensor a model keeps in its checkpoint (the occupancy grid).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Buffer {
-    pub name: String,
-    pub shape: Vec<usize>,
-    pub values: Vec<f32>,
-}
-
-const OCCUPANCY: &str = "occupancy.thickness";
-
-impl Model {
-    pub fn new(config: ModelConfig) -> Self {
-        match config {
-            ModelConfig::Vanilla(c) => Model::Vanilla(VanillaModel::new(c)),
-            ModelConfig::Fast(c) => Model::Fast(FastModel::new(c)),
-        }
-    }
-
-    pub fn layout(&self) -> &ParamLayout {
-        match self {
-            Model::Vanilla(m) => &m.layout,
-            Model::Fast(m) => &m.field.layout,
-        }
-    }
+    fn layout(&self) -> &ParamLayout;
 
     /// Fresh weights, deterministic in `seed`.
-    pub fn init_params(&self, seed: u64) -> Vec<f32> {
-        match self {
-            Model::Vanilla(m) => m.init_params(seed),
-            Model::Fast(m) => m.field.init_params(seed),
-        }
+    fn init_params(&self, seed: u64) -> Vec<f32>;
+
+    /// Names and shapes of the non-trainable state kept in checkpoints.
+    fn buffer_layout(&self) -> ParamLayout {
+        ParamLayout::default()
+    }
+    /// That state, laid out by [`buffer_layout`](Self::buffer_layout).
+    fn buffers(&self) -> Vec<f32> {
+        Vec::new()
+    }
+    /// Restores state saved by [`buffers`](Self::buffers).
+    fn load_buffers(&mut self, _values: Vec<f32>) {}
+
+    /// The forward and backward passes of one step, spread over `workers` (one per
+    /// thread): gradients of the summed squared error go into each worker's buffer.
+    fn train_pass(
+        &self,
+        input: &StepInput,
+        shared: &mut Self::StepBuffers,
+        workers: &mut [Worker<Self::Workspace>],
+    ) -> PassTotals;
+
+    /// How Adam treats the parameters.
+    fn update_rule(&self) -> UpdateRule {
+        UpdateRule::default()
     }
 
-    /// Names and shapes of the non-trainable state, in checkpoint order.
-    pub fn buffer_layout(&self) -> ParamLayout {
-        let mut l = ParamLayout::default();
-        if let Model::Fast(m) = self {
-            let r = m.grid.resolution;
-            l.push(OCCUPANCY, &[r, r, r]);
-        }
-        l
-    }
+    /// Called after each optimiser step, with the steps completed (occupancy refreshes).
+    fn after_step(&mut self, _params: &[f32], _steps_done: u64, _seed: u64) {}
 
-    /// Non-trainable state to checkpoint, laid out by [`buffer_layout`](Self::buffer_layout).
-    pub fn buffers(&self) -> Vec<Buffer> {
-        self.buffer_layout()
-            .tensors
-            .into_iter()
-            .map(|t| Buffer {
-                values: match self {
-                    Model::Fast(m) => m.grid.thickness.clone(),
-                    Model::Vanilla(_) => Vec::new(),
-                },
-                name: t.name,
-                shape: t.shape,
-            })
-            .collect()
-    }
+    /// Renders a chunk of rays into `out` (one per ray).
+    fn render_chunk(
+        &self,
+        params: &[f32],
+        rays: &RayBatch,
+        ws: &mut Self::Workspace,
+        out: &mut [RayOutput],
+    );
 
-    /// Restores state saved by [`buffers`](Self::buffers) (values in layout order).
-    pub fn load_buffers(&mut self, values: Vec<f32>) {
-        if let Model::Fast(m) = self {
-            let (r, b) = (m.grid.resolution, m.grid.bound);
-            m.grid = crate::render::occupancy::OccupancyGrid::from_thickness(
-                r,
-                b,
-                values,
-                m.config.occupancy.threshold,
-            );
-        }
+    /// Densities at world `positions` (`n x 3`) into `out` (`n`).
+    fn density(&self, params: &[f32], positions: &[f32], ws: &mut Self::Workspace, out: &mut [f32]);
+
+    /// Fraction of the scene box marked occupied, for models that skip empty space.
+    fn occupancy(&self) -> Option<f64> {
+        None
     }
+}
+
+/// What every worker of a training step reads.
+#[derive(Clone, Copy)]
+pub struct StepInput<'a> {
+    pub data: &'a Dataset,
+    pub params: &'a [f32],
+    /// Which rays the step draws.
+    pub sampling: PixelSampling,
+    /// Vanilla model: rays per step.
+    pub batch_rays: usize,
+    /// Rays per work unit.
+    pub chunk_rays: usize,
+}
+
+/// One thread's share of a training step.
+pub struct Worker<W> {
+    pub ws: W,
+    pub grads: GradBuffer,
+}
+
+/// What the workers of one step produced, before the optimiser runs.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct PassTotals {
+    /// Summed squared errors of every pass (coarse + fine for the vanilla model).
+    pub sse: f64,
+    /// Summed squared errors of the final rendering (fine pass, else the only one).
+    pub final_sse: f64,
+    pub rays: usize,
+    pub samples: usize,
+}
+
+/// How Adam updates a model's parameters.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct UpdateRule {
+    /// Parameters before this index update lazily (hash tables: only entries with a
+    /// gradient), the rest densely.
+    pub lazy_end: usize,
+    /// L2 penalty on the densely updated parameters.
+    pub weight_decay: f32,
 }
 
 #[cfg(test)]

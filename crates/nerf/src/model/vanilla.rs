@@ -1,11 +1,19 @@
 //! The vanilla NeRF model: a coarse and (optionally) a fine network of the same shape with
 //! separate weights, sharing one flat parameter vector `[coarse | fine]`.
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::field::{VanillaConfig, VanillaNet};
-use crate::nn::ParamLayout;
+use super::{Model, PassTotals, StepInput, Worker};
+use crate::data::pixels::TrainingRays;
+use crate::field::{VanillaConfig, VanillaNet, VanillaWorkspace};
+use crate::math::{length, scale};
+use crate::nn::{GradBuffer, Grads, ParamLayout};
+use crate::render::loss::squared_error;
+use crate::render::sampling::{merge_sorted, sample_pdf, stratified};
+use crate::render::volume::{composite_packed, composite_packed_bwd, depth_deltas};
 use crate::rng::Rng;
+use crate::stage::{Field, FieldGrad, FieldOutput, PackedSamples, RayBatch, RayOutput};
 
 /// Network shape and samples per ray.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -77,5 +85,383 @@ impl VanillaModel {
     /// Forward multiply-adds per ray.
     pub fn macs_per_ray(&self) -> usize {
         self.coarse.macs_per_sample() * self.config.evals_per_ray()
+    }
+}
+
+// ---------------------------------------------------------------------------------------
+// The paper's two-pass renderer for a chunk of rays: stratified samples through the coarse
+// network, importance samples from its weights, then the fine network on the sorted union.
+//
+// Work mapping: a chunk of `r` rays is processed by one thread start to finish, in its own
+// [`ChunkWorkspace`]; in training the coarse pass runs forward and backward before the fine
+// pass runs, so both share one set of activation buffers. Every ray carries its own random
+// stream, so results do not depend on how rays are grouped into chunks or threads.
+
+/// Reused buffers of one thread.
+#[derive(Default, Debug)]
+pub struct ChunkWorkspace {
+    /// Training: the chunk's rays, targets and random streams.
+    pub rays: TrainingRays,
+    net: VanillaWorkspace,
+    samples: PackedSamples,
+    t_coarse: Vec<f32>,
+    t_fine: Vec<f32>,
+    t_new: Vec<f32>,
+    weights: Vec<f32>,
+    cdf: Vec<f32>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+    outputs: Vec<RayOutput>,
+    d_out: Vec<[f32; 3]>,
+}
+
+/// Stratified depths of every ray (`r x n`, bin midpoints without random streams).
+fn coarse_samples(
+    ws: &mut ChunkWorkspace,
+    rays: &RayBatch,
+    n: usize,
+    mut rngs: Option<&mut [Rng]>,
+) {
+    ws.t_coarse.resize(rays.len() * n, 0.0);
+    for (k, t) in ws.t_coarse.chunks_exact_mut(n).enumerate() {
+        stratified(
+            rays.near,
+            rays.far,
+            rngs.as_deref_mut().map(|g| &mut g[k]),
+            t,
+        );
+    }
+}
+
+/// Draws the importance samples from the coarse weights (in `ws.weights`) and merges them
+/// with the coarse samples into `ws.t_fine`.
+fn fine_samples(
+    ws: &mut ChunkWorkspace,
+    r: usize,
+    n_c: usize,
+    n_f: usize,
+    mut rngs: Option<&mut [Rng]>,
+) {
+    ws.t_fine.resize(r * (n_c + n_f), 0.0);
+    ws.t_new.resize(n_f, 0.0);
+    for k in 0..r {
+        let tc = &ws.t_coarse[k * n_c..][..n_c];
+        sample_pdf(
+            tc,
+            &ws.weights[k * n_c..][..n_c],
+            rngs.as_deref_mut().map(|g| &mut g[k]),
+            &mut ws.t_new,
+            &mut ws.cdf,
+        );
+        ws.t_new.sort_unstable_by(f32::total_cmp);
+        merge_sorted(
+            tc,
+            &ws.t_new,
+            &mut ws.t_fine[k * (n_c + n_f)..][..n_c + n_f],
+        );
+    }
+}
+
+/// Packs depths `t` (`r x spr`) of `rays` as samples: positions `o + t d`, the paper's
+/// deltas, one unit view direction per ray.
+fn pack(samples: &mut PackedSamples, rays: &RayBatch, t: &[f32], spr: usize) {
+    let r = rays.len();
+    samples.clear();
+    samples.samples_per_dir = spr;
+    samples.t.extend_from_slice(&t[..r * spr]);
+    samples.dt.resize(r * spr, 0.0);
+    for k in 0..r {
+        let (o, d) = (rays.origins[k], rays.dirs[k]);
+        let tk = &t[k * spr..][..spr];
+        depth_deltas(tk, length(d), &mut samples.dt[k * spr..][..spr]);
+        for &tt in tk {
+            samples
+                .positions
+                .push([o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
+        }
+        let v = rays.view_dirs[k];
+        samples.dirs.push(scale(v, 1.0 / length(v)));
+        samples.offsets.push((k + 1) * spr);
+    }
+}
+
+/// Evaluates `net` at depths `t` (`r x spr`) and composites each ray into `ws.outputs`,
+/// leaving the weights in `ws.weights` and the activations (the context) in `ws.net`.
+fn pass_forward(
+    net: &VanillaNet,
+    params: &[f32],
+    rays: &RayBatch,
+    t: &[f32],
+    spr: usize,
+    ws: &mut ChunkWorkspace,
+) {
+    let r = rays.len();
+    pack(&mut ws.samples, rays, t, spr);
+    ws.weights.resize(r * spr, 0.0);
+    ws.outputs.resize(r, RayOutput::default());
+    let field = net.forward(params, ws.samples.field_input(), &mut ws.net);
+    composite_packed(
+        &ws.samples,
+        field,
+        &rays.backgrounds,
+        &mut ws.weights,
+        &mut ws.outputs,
+    );
+}
+
+/// Loss of the last pass against `targets`, its backward through compositing and the
+/// network (gradients of the summed squared error into `grads`). Returns the pass's sum of
+/// squared errors.
+fn pass_backward(
+    net: &VanillaNet,
+    params: &[f32],
+    rays: &RayBatch,
+    targets: &[[f32; 3]],
+    ws: &mut ChunkWorkspace,
+    grads: &mut Grads,
+) -> f64 {
+    let (r, n) = (rays.len(), ws.samples.len());
+    ws.d_out.resize(r, [0.0; 3]);
+    ws.d_sigma.resize(n, 0.0);
+    ws.d_rgb.resize(n * 3, 0.0);
+    let sse = squared_error(&ws.outputs[..r], targets, &mut ws.d_out);
+    let field = FieldOutput {
+        sigma: &ws.net.sigma[..n],
+        rgb: &ws.net.rgb[..n * 3],
+    };
+    composite_packed_bwd(
+        &ws.samples,
+        field,
+        &rays.backgrounds,
+        &ws.outputs,
+        &ws.d_out,
+        &mut ws.d_sigma,
+        &mut ws.d_rgb,
+    );
+    let d = FieldGrad {
+        d_sigma: &ws.d_sigma[..n],
+        d_rgb: &ws.d_rgb[..n * 3],
+    };
+    net.backward(params, &mut ws.net, d, grads);
+    sse
+}
+
+impl VanillaModel {
+    fn coarse_range(&self) -> std::ops::Range<usize> {
+        0..self.coarse.num_params()
+    }
+    fn fine_range(&self) -> std::ops::Range<usize> {
+        self.coarse.num_params()..self.layout.total
+    }
+
+    /// One training chunk (the rays in `ws.rays`): forward and backward of both passes,
+    /// gradients of the summed squared errors into `grads`. Returns the squared-error sums
+    /// of the coarse and the fine pass.
+    pub fn train_chunk(
+        &self,
+        params: &[f32],
+        ws: &mut ChunkWorkspace,
+        grads: &mut GradBuffer,
+    ) -> (f64, f64) {
+        let (n_c, n_f) = (self.config.n_coarse, self.config.n_fine);
+        let (p_coarse, p_fine) = self.split(params);
+        let mut batch = std::mem::take(&mut ws.rays);
+        let r = batch.len();
+        coarse_samples(ws, &batch.rays, n_c, Some(&mut batch.rngs));
+        let t = std::mem::take(&mut ws.t_coarse);
+        pass_forward(&self.coarse, p_coarse, &batch.rays, &t, n_c, ws);
+        let coarse_sse = pass_backward(
+            &self.coarse,
+            p_coarse,
+            &batch.rays,
+            &batch.targets,
+            ws,
+            &mut grads.window(self.coarse_range()),
+        );
+        ws.t_coarse = t;
+        let mut fine_sse = 0.0;
+        if let Some(fine) = &self.fine {
+            fine_samples(ws, r, n_c, n_f, Some(&mut batch.rngs));
+            let t = std::mem::take(&mut ws.t_fine);
+            pass_forward(fine, p_fine, &batch.rays, &t, n_c + n_f, ws);
+            fine_sse = pass_backward(
+                fine,
+                p_fine,
+                &batch.rays,
+                &batch.targets,
+                ws,
+                &mut grads.window(self.fine_range()),
+            );
+            ws.t_fine = t;
+        }
+        ws.rays = batch;
+        (coarse_sse, fine_sse)
+    }
+}
+
+impl Model for VanillaModel {
+    type Workspace = ChunkWorkspace;
+    type StepBuffers = ();
+
+    fn layout(&self) -> &ParamLayout {
+        &self.layout
+    }
+
+    fn init_params(&self, seed: u64) -> Vec<f32> {
+        VanillaModel::init_params(self, seed)
+    }
+
+    /// The paper's step: `batch_rays` rays in chunks of `chunk_rays`, chunk `k` on worker
+    /// `k mod W`; ray `g` of the step is the same ray whatever the chunking.
+    fn train_pass(
+        &self,
+        input: &StepInput,
+        _: &mut (),
+        workers: &mut [Worker<ChunkWorkspace>],
+    ) -> PassTotals {
+        let batch = input.batch_rays;
+        let chunk = input.chunk_rays.min(batch).max(1);
+        let n_chunks = batch.div_ceil(chunk);
+        let n_workers = workers.len();
+        let sums: Vec<(f64, f64)> = workers
+            .par_iter_mut()
+            .enumerate()
+            .map(|(w, worker)| {
+                let (mut coarse, mut fine) = (0.0, 0.0);
+                for c in (w..n_chunks).step_by(n_workers) {
+                    let rays = (c * chunk) as u64..((c + 1) * chunk).min(batch) as u64;
+                    worker.ws.rays.draw(input.data, &input.sampling, rays);
+                    let (a, b) = self.train_chunk(input.params, &mut worker.ws, &mut worker.grads);
+                    coarse += a;
+                    fine += b;
+                }
+                (coarse, fine)
+            })
+            .collect();
+        let (coarse, fine) = sums.iter().fold((0.0, 0.0), |(c, f), s| (c + s.0, f + s.1));
+        PassTotals {
+            sse: coarse + fine,
+            final_sse: if self.fine.is_some() { fine } else { coarse },
+            rays: batch,
+            samples: batch * self.config.evals_per_ray(),
+        }
+    }
+
+    /// Bin-midpoint coarse samples, evenly spaced importance samples, the fine network's
+    /// result (the coarse one without a fine network).
+    fn render_chunk(
+        &self,
+        params: &[f32],
+        rays: &RayBatch,
+        ws: &mut ChunkWorkspace,
+        out: &mut [RayOutput],
+    ) {
+        let r = rays.len();
+        let (n_c, n_f) = (self.config.n_coarse, self.config.n_fine);
+        let (p_coarse, p_fine) = self.split(params);
+        coarse_samples(ws, rays, n_c, None);
+        let t = std::mem::take(&mut ws.t_coarse);
+        pass_forward(&self.coarse, p_coarse, rays, &t, n_c, ws);
+        ws.t_coarse = t;
+        if let Some(fine) = &self.fine {
+            fine_samples(ws, r, n_c, n_f, None);
+            let t = std::mem::take(&mut ws.t_fine);
+            pass_forward(fine, p_fine, rays, &t, n_c + n_f, ws);
+            ws.t_fine = t;
+        }
+        out[..r].copy_from_slice(&ws.outputs[..r]);
+    }
+
+    /// The fine network's density (the coarse one's without a fine network).
+    fn density(&self, params: &[f32], positions: &[f32], ws: &mut ChunkWorkspace, out: &mut [f32]) {
+        let (coarse, fine) = self.split(params);
+        match &self.fine {
+            Some(f) => f.density(fine, positions, &mut ws.net, out),
+            None => self.coarse.density(coarse, positions, &mut ws.net, out),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tiny_model() -> VanillaModel {
+        let (mut config, _) = crate::presets::build("demo").expect("preset");
+        config.net.width = 16;
+        config.net.view_width = 8;
+        config.n_coarse = 8;
+        config.n_fine = 8;
+        VanillaModel::new(config)
+    }
+
+    fn rays(n: usize) -> TrainingRays {
+        let mut rng = Rng::new(9);
+        let mut t = TrainingRays {
+            rays: RayBatch::new(2.0, 6.0),
+            ..TrainingRays::default()
+        };
+        for k in 0..n {
+            let dir = [rng.range(-0.3, 0.3), 1.0, rng.range(-0.3, 0.3)];
+            let bg = [rng.uniform(), rng.uniform(), rng.uniform()];
+            let ray = crate::camera::Ray {
+                origin: [0.0, -4.0, 0.5],
+                dir,
+            };
+            t.rays.push(ray, dir, bg, k as u64);
+            t.targets
+                .push([(k % 5) as f32 * 0.2, (k % 3) as f32 * 0.3, 0.5]);
+            t.rngs.push(Rng::for_stream(1, 2, k as u64));
+        }
+        t
+    }
+
+    /// Chunking is an implementation detail: one chunk of 8 rays and two of 4 give the same
+    /// loss and gradients, in training and in rendering.
+    #[test]
+    fn results_do_not_depend_on_chunking() {
+        let model = tiny_model();
+        let params = model.init_params(3);
+        let all = rays(8);
+        let run = |ranges: &[std::ops::Range<usize>]| {
+            let mut grads = GradBuffer::new(params.len());
+            let mut ws = ChunkWorkspace::default();
+            let mut sse = 0.0;
+            let mut rendered = vec![RayOutput::default(); 8];
+            for r in ranges {
+                ws.rays = TrainingRays {
+                    rays: all.rays.slice(r.clone()),
+                    targets: all.targets[r.clone()].to_vec(),
+                    rngs: all.rngs[r.clone()].to_vec(),
+                };
+                let (c, f) = model.train_chunk(&params, &mut ws, &mut grads);
+                sse += c + f;
+                let chunk = all.rays.slice(r.clone());
+                model.render_chunk(&params, &chunk, &mut ws, &mut rendered[r.clone()]);
+            }
+            (sse, grads.values, rendered)
+        };
+        let (sse_a, grads_a, out_a) = run(std::slice::from_ref(&(0..8)));
+        let (sse_b, grads_b, out_b) = run(&[0..4, 4..8]);
+        assert!(
+            (sse_a - sse_b).abs() < 1e-6 * sse_a.max(1.0),
+            "{sse_a} vs {sse_b}"
+        );
+        let norm: f32 = grads_a.iter().map(|g| g * g).sum::<f32>().sqrt();
+        let diff: f32 = grads_a
+            .iter()
+            .zip(&grads_b)
+            .map(|(x, y)| (x - y) * (x - y))
+            .sum::<f32>()
+            .sqrt();
+        assert!(
+            norm > 0.0 && diff <= 1e-5 * norm,
+            "gradient differs by {diff} (norm {norm})"
+        );
+        for (x, y) in out_a.iter().zip(&out_b) {
+            for c in 0..3 {
+                assert!((x.rgb[c] - y.rgb[c]).abs() < 1e-6);
+            }
+        }
     }
 }

@@ -105,6 +105,54 @@ impl Segment<'_> {
     }
 }
 
+/// A stage's view of a [`GradBuffer`]: the values of one parameter range (indices are
+/// relative to its start) with the dirty flags of the whole buffer, so a stage accumulates
+/// into its own parameters wherever they sit in the model's vector.
+pub struct Grads<'a> {
+    values: &'a mut [f32],
+    dirty: &'a mut [bool],
+    base: usize,
+}
+
+impl Grads<'_> {
+    pub fn len(&self) -> usize {
+        self.values.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.values.is_empty()
+    }
+
+    /// `values[at] += g[0]; values[at + 1] += g[1]`, marking the block, for an even
+    /// `base + at` (a pair never straddles a block).
+    #[inline(always)]
+    pub fn add_pair(&mut self, at: usize, g: [f32; 2]) {
+        debug_assert!((self.base + at) % 2 == 0);
+        self.values[at] += g[0];
+        self.values[at + 1] += g[1];
+        self.dirty[(self.base + at) / BLOCK] = true;
+    }
+
+    /// Marks `range` (relative) written.
+    pub fn mark(&mut self, range: std::ops::Range<usize>) {
+        if range.is_empty() {
+            return;
+        }
+        let last = (self.base + range.end - 1) / BLOCK;
+        self.dirty[(self.base + range.start) / BLOCK..=last].fill(true);
+    }
+
+    /// The values, for a stage that writes a part it marks with [`mark`](Self::mark).
+    pub fn values_mut(&mut self) -> &mut [f32] {
+        self.values
+    }
+
+    /// All values, marked written (for stages whose every parameter gets a gradient).
+    pub fn dense(&mut self) -> &mut [f32] {
+        self.mark(0..self.values.len());
+        self.values
+    }
+}
+
 #[derive(Clone, Debug)]
 pub struct GradBuffer {
     pub values: Vec<f32>,
@@ -133,6 +181,20 @@ impl GradBuffer {
         self.values[at] += g[0];
         self.values[at + 1] += g[1];
         self.dirty[at / BLOCK] = true;
+    }
+
+    /// The whole buffer as a stage's gradient view.
+    pub fn all(&mut self) -> Grads<'_> {
+        self.window(0..self.values.len())
+    }
+
+    /// The gradients of the parameters in `range`.
+    pub fn window(&mut self, range: std::ops::Range<usize>) -> Grads<'_> {
+        Grads {
+            base: range.start,
+            values: &mut self.values[range],
+            dirty: &mut self.dirty,
+        }
     }
 
     /// Marks `range` written (for dense parts such as MLP weights).

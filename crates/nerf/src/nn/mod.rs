@@ -8,5 +8,5 @@ pub mod linalg;
 pub mod params;
 
 pub use adam::Adam;
-pub use grads::GradBuffer;
+pub use grads::{GradBuffer, Grads};
 pub use params::{ParamLayout, Tensor};

@@ -1,11 +1,14 @@
-//! From a field to pixels: where to sample along rays ([`sampling`]) and how samples combine
-//! into a colour ([`volume`]), with the coarse-to-fine pipeline of the paper in
-//! [`pipeline`] and the fast field's occupancy-grid ray marching in [`occupancy`] and
-//! [`marched`].
+//! Pure rendering stages, from rays to pixels, for any [`Field`](crate::stage::Field):
+//! where to sample along rays ([`sampling`]: the paper's stratified and hierarchical
+//! samplers; [`march`] with [`occupancy`]: Instant-NGP's occupancy-grid marcher, with
+//! [`contraction`] for unbounded scenes), how samples combine into a colour ([`volume`]:
+//! compositing and its backward, the volume renderer), and what the colour is compared
+//! with ([`loss`]). Nothing here knows a model: each model's pass (`model::*`) strings
+//! these stages together.
 
 pub mod contraction;
-pub mod marched;
+pub mod loss;
+pub mod march;
 pub mod occupancy;
-pub mod pipeline;
 pub mod sampling;
 pub mod volume;

@@ -14,13 +14,8 @@
 /// Distance that stands for "to infinity" after the last sample (the reference's 1e10).
 pub const LAST_DELTA: f32 = 1e10;
 
-/// What one ray renders to.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct RayOutput {
-    pub rgb: [f32; 3],
-    pub depth: f32,
-    pub opacity: f32,
-}
+pub use crate::stage::RayOutput;
+use crate::stage::{FieldOutput, PackedSamples};
 
 /// The paper's sample lengths: gaps between depths `t`, scaled by `|d|`, the last one
 /// "infinite".
@@ -136,6 +131,56 @@ pub fn composite_bwd(
             d_rgb[i * 3 + c] = w * d_rgb_out[c];
         }
         d_sigma[i] = dl * ds;
+    }
+}
+
+/// Compositing as a stage over packed samples (forward): every ray of `samples` with its
+/// field output (`sigma`: `n`, `rgb`: `n x 3`) over its background (`rays x 3`) into `out`
+/// (`rays`), depth in the units of `samples.t`. Its context is the field output itself:
+/// the backward recomputes transmittance instead of storing it.
+pub fn composite_packed(
+    samples: &PackedSamples,
+    field: FieldOutput,
+    backgrounds: &[[f32; 3]],
+    weights: &mut [f32],
+    out: &mut [RayOutput],
+) {
+    for (r, o) in out.iter_mut().enumerate().take(samples.rays()) {
+        let s = samples.ray(r);
+        *o = composite(
+            &samples.t[s.clone()],
+            &samples.dt[s.clone()],
+            &field.sigma[s.clone()],
+            &field.rgb[s.start * 3..s.end * 3],
+            backgrounds[r],
+            &mut weights[s],
+        );
+    }
+}
+
+/// Backward of [`composite_packed`]: from `d_out` (`dL/dC`, `rays x 3`) writes `d_sigma`
+/// (`n`) and `d_rgb` (`n x 3`), the field's `d_output`.
+pub fn composite_packed_bwd(
+    samples: &PackedSamples,
+    field: FieldOutput,
+    backgrounds: &[[f32; 3]],
+    rendered: &[RayOutput],
+    d_out: &[[f32; 3]],
+    d_sigma: &mut [f32],
+    d_rgb: &mut [f32],
+) {
+    for r in 0..samples.rays() {
+        let s = samples.ray(r);
+        composite_bwd(
+            &samples.dt[s.clone()],
+            &field.sigma[s.clone()],
+            &field.rgb[s.start * 3..s.end * 3],
+            backgrounds[r],
+            rendered[r].rgb,
+            d_out[r],
+            &mut d_sigma[s.clone()],
+            &mut d_rgb[s.start * 3..s.end * 3],
+        );
     }
 }
 

@@ -1,32 +1,30 @@
-//! The optimisation loop: random rays from all training pixels, photometric MSE, Adam with
-//! an exponentially decaying learning rate. The vanilla model follows the paper (coarse +
-//! fine loss, a fixed number of rays, a central-crop warm-up); the fast model follows
+//! The optimisation schedule: random rays from all training pixels, photometric MSE, Adam
+//! with an exponentially decaying learning rate. The vanilla model follows the paper
+//! (coarse and fine loss, a fixed number of rays, a central-crop warm-up); the fast model follows
 //! Instant-NGP (a fixed number of field samples, random backgrounds, lazy updates of the
 //! hash tables, occupancy-grid refreshes every few steps).
 //!
-//! Work mapping: each rayon thread owns a worker with its own workspaces and gradient
-//! buffer. Vanilla: a step's rays are cut into chunks of `chunk_rays`, chunk `k` on worker
-//! `k mod W`. Fast: worker `w` draws rays from its own streams until it holds its share of
-//! the step's samples. Buffers are summed in worker order, so a run is reproducible for a
-//! given seed and thread count. Once the workspaces have grown, a step allocates no buffer
-//! that scales with the batch (only a few bookkeeping vectors).
+//! The [`Trainer`] decides what each step does (learning rate, crop, background) and hands
+//! the step to an engine (`engine`), which owns the parameters and runs the passes. The
+//! rays of a step are a function of the seed and the step alone (`data::pixels`), so a run
+//! gives the same rays and samples for any thread count; [`run`] adds the run folder.
 
+pub mod folder;
 pub mod run;
 
 use std::path::PathBuf;
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::data::pixels::PixelSampling;
 use crate::data::scene::{Scene, SceneOptions};
 use crate::data::{Background, Dataset};
+use crate::engine::{self, Engine, EngineOptions, StepSpec};
 use crate::error::{NerfError, Result};
-use crate::model::{FastModel, FastModelConfig, Model, ModelConfig, VanillaModel};
-use crate::nn::adam::{Adam, AdamConfig, DirtyStep};
-use crate::nn::grads::GradBuffer;
-use crate::render::marched::{train_batch, MarchBatch, MarchWorkspace};
-use crate::render::pipeline::{train_chunk, ChunkLoss, ChunkWorkspace, Rays, Targets};
-use crate::rng::Rng;
+use crate::model::{FastModelConfig, ModelConfig};
+use crate::nn::adam::AdamConfig;
+
+pub use crate::engine::StepStats;
 
 /// Everything that defines a training run; saved as `config.json` in the run folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -181,110 +179,42 @@ impl TrainConfig {
     }
 }
 
-/// What one step did.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
-pub struct StepStats {
-    /// Steps completed, this one included.
-    pub step: u64,
-    /// coarse MSE + fine MSE (the paper's loss).
-    pub loss: f32,
-    /// PSNR of the final (fine, else coarse) pass on this batch.
-    pub psnr: f32,
-    pub lr: f32,
-    /// Rays and field samples in the step.
-    pub rays: usize,
-    pub samples: usize,
-}
-
-struct Worker {
-    vanilla: ChunkWorkspace,
-    march: MarchWorkspace,
-    batch: MarchBatch,
-    grads: GradBuffer,
-    origins: Vec<f32>,
-    dirs: Vec<f32>,
-    view_dirs: Vec<f32>,
-    backgrounds: Vec<f32>,
-    targets: Vec<f32>,
-    rngs: Vec<Rng>,
-    loss: ChunkLoss,
-    rays: usize,
-    samples: usize,
-}
-
-/// Model, optimiser and data of a run in memory.
+/// A run in memory: its configuration, its engine (model, parameters, optimiser) and its
+/// training data.
 pub struct Trainer {
     pub config: TrainConfig,
-    pub model: Model,
-    pub params: Vec<f32>,
-    pub adam: Adam,
+    pub engine: Box<dyn Engine>,
     /// Steps completed.
     pub step: u64,
     pub data: Dataset,
-    /// Fraction of gradient blocks the last step wrote (the rest skipped reduction and Adam).
-    pub touched_fraction: f64,
-    workers: Vec<Worker>,
 }
 
-/// A training ray: a random pixel, its colour over the ray's background, and the ray's
-/// random stream (which also draws its sample positions).
-struct DrawnRay {
-    /// Origin and direction in ray space (warped for NDC scenes).
-    origin: [f32; 3],
-    dir: [f32; 3],
-    /// The world direction, which colour is conditioned on.
-    view_dir: [f32; 3],
-    background: [f32; 3],
-    target: [f32; 3],
-    rng: Rng,
-}
-
-/// Ray `stream` of step `step`: a uniformly random training pixel (inside the central
-/// `crop` fraction while warming up; among the pixels its mask keeps, if it has one),
-/// warped into the scene's ray space.
-fn draw_ray(data: &Dataset, cfg: &TrainConfig, step: u64, stream: u64, crop: f32) -> DrawnRay {
-    let mut rng = Rng::for_stream(cfg.seed, step, stream);
-    let view = &data.views[rng.below(data.views.len())];
-    let (w, h) = (view.image.width, view.image.height);
-    let (cw, ch) = (
-        ((w as f32 * crop) as usize).max(1),
-        ((h as f32 * crop) as usize).max(1),
-    );
-    let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
-    let (i, j) = match &view.kept_pixels {
-        Some(kept) => {
-            let p = kept[rng.below(kept.len())] as usize;
-            (p % w, p / w)
+impl TrainConfig {
+    /// How the engine is set up for this run.
+    pub fn engine_options(&self) -> EngineOptions {
+        EngineOptions {
+            adam: self.adam,
+            chunk_rays: self.chunk_rays,
         }
-        None => (x0 + rng.below(cw), y0 + rng.below(ch)),
-    };
-    let ray = view.camera.ray(i, j);
-    let (origin, dir) = data.space.warp(ray.origin, ray.dir);
-    let background = match cfg.background {
-        Background::White => [1.0; 3],
-        Background::Black => [0.0; 3],
-        Background::Random => [rng.uniform(), rng.uniform(), rng.uniform()],
-    };
-    DrawnRay {
-        origin,
-        dir,
-        view_dir: ray.dir,
-        background,
-        target: view.image.composite_pixel(j * w + i, background),
-        rng,
     }
-}
 
-/// What the workers of one step produced, before the optimiser runs.
-struct PassTotals {
-    /// The loss of the step.
-    loss: f64,
-    /// MSE of the final rendering (fine pass for the vanilla model).
-    final_mse: f64,
-    /// Factor that turns the workers' summed gradients into the gradient of `loss`.
-    grad_scale: f32,
-    rays: usize,
-    samples: usize,
+    /// What step `step` (0-based) does.
+    pub fn step_spec(&self, step: u64) -> StepSpec {
+        StepSpec {
+            sampling: PixelSampling {
+                seed: self.seed,
+                step,
+                crop: if step < self.precrop_steps {
+                    self.precrop_fraction
+                } else {
+                    1.0
+                },
+                background: self.background,
+            },
+            lr: self.learning_rate(step),
+            batch_rays: self.batch_rays,
+        }
+    }
 }
 
 impl Trainer {
@@ -294,294 +224,20 @@ impl Trainer {
         if data.views.is_empty() {
             return Err(NerfError::Config("no training views".into()));
         }
-        let model = Model::new(config.model.clone());
-        let params = model.init_params(config.seed);
-        let adam = Adam::new(config.adam, params.len());
-        let workers = (0..rayon::current_num_threads().max(1))
-            .map(|_| Worker {
-                vanilla: ChunkWorkspace::default(),
-                march: MarchWorkspace::default(),
-                batch: MarchBatch::default(),
-                grads: GradBuffer::new(params.len()),
-                origins: Vec::new(),
-                dirs: Vec::new(),
-                view_dirs: Vec::new(),
-                backgrounds: Vec::new(),
-                targets: Vec::new(),
-                rngs: Vec::new(),
-                loss: ChunkLoss::default(),
-                rays: 0,
-                samples: 0,
-            })
-            .collect();
+        let engine = engine::open(&config.model, config.engine_options(), config.seed);
         Ok(Trainer {
             config,
-            model,
-            params,
-            adam,
+            engine,
             step: 0,
             data,
-            touched_fraction: 0.0,
-            workers,
         })
     }
 
     /// One optimisation step. Fails (leaving the parameters untouched) if the loss is not finite.
     pub fn step(&mut self) -> Result<StepStats> {
-        let step = self.step;
-        for w in &mut self.workers {
-            w.grads.clear();
-            w.loss = ChunkLoss::default();
-            w.rays = 0;
-            w.samples = 0;
-        }
-        let ctx = PassContext {
-            cfg: &self.config,
-            data: &self.data,
-            params: &self.params,
-            step,
-            crop: if step < self.config.precrop_steps {
-                self.config.precrop_fraction
-            } else {
-                1.0
-            },
-        };
-        let totals = match &self.model {
-            Model::Vanilla(m) => vanilla_pass(m, &ctx, &mut self.workers),
-            Model::Fast(m) => fast_pass(m, &ctx, &mut self.workers),
-        };
-        let mut buffers: Vec<GradBuffer> = self
-            .workers
-            .iter_mut()
-            .map(|w| std::mem::replace(&mut w.grads, GradBuffer::new(0)))
-            .collect();
-        let finite = GradBuffer::reduce_into_first(&mut buffers);
-        for (w, b) in self.workers.iter_mut().zip(buffers) {
-            w.grads = b;
-        }
-        self.touched_fraction = self.workers[0].grads.dirty_fraction();
-        let loss = totals.loss as f32;
-        if !loss.is_finite() || !finite {
-            return Err(NerfError::Diverged {
-                step: step + 1,
-                loss,
-            });
-        }
-        let lr = self.config.learning_rate(step);
-        self.apply_gradients(lr, totals.grad_scale);
+        let spec = self.config.step_spec(self.step);
+        let stats = self.engine.train_step(&self.data, self.step, &spec)?;
         self.step += 1;
-        if let Model::Fast(m) = &mut self.model {
-            let every = m.config.occupancy.update_every.max(1);
-            if self.step % every == 0 {
-                refresh_occupancy(m, &self.params, self.step, self.config.seed);
-            }
-        }
-        Ok(StepStats {
-            step: self.step,
-            loss,
-            psnr: crate::eval::psnr_from_mse(totals.final_mse),
-            lr,
-            rays: totals.rays,
-            samples: totals.samples,
-        })
-    }
-
-    /// Adam on the parameters the reduced gradient (in worker 0) touched, scaled by
-    /// `scale`; clears the gradient. Hash-table entries update lazily, MLP weights densely
-    /// with weight decay.
-    fn apply_gradients(&mut self, lr: f32, scale: f32) {
-        let (lazy_end, weight_decay) = match &self.model {
-            Model::Vanilla(_) => (0, 0.0),
-            Model::Fast(m) => (m.field.mlp_range().start, m.config.weight_decay),
-        };
-        self.adam.step_dirty(
-            &mut self.params,
-            &mut self.workers[0].grads,
-            lr,
-            DirtyStep {
-                scale,
-                lazy_end,
-                weight_decay,
-            },
-        );
-    }
-}
-
-/// What every worker of a step reads.
-struct PassContext<'a> {
-    cfg: &'a TrainConfig,
-    data: &'a Dataset,
-    params: &'a [f32],
-    step: u64,
-    crop: f32,
-}
-
-/// The paper's step: `batch_rays` rays in chunks, chunk `k` on worker `k mod W`.
-fn vanilla_pass(model: &VanillaModel, ctx: &PassContext, workers: &mut [Worker]) -> PassTotals {
-    let PassContext {
-        cfg,
-        data,
-        params,
-        step,
-        crop,
-    } = *ctx;
-    let batch = cfg.batch_rays;
-    let chunk = cfg.chunk_rays.min(batch);
-    let n_chunks = batch.div_ceil(chunk);
-    let n_workers = workers.len();
-    let loss_scale = 1.0 / (3 * batch) as f32;
-    workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
-        for c in (w..n_chunks).step_by(n_workers) {
-            let rays = (c * chunk)..((c + 1) * chunk).min(batch);
-            worker.draw_rays(data, cfg, step, rays, crop);
-            let r = Rays {
-                origins: &worker.origins,
-                dirs: &worker.dirs,
-                view_dirs: Some(&worker.view_dirs),
-                backgrounds: &worker.backgrounds,
-                near: data.near,
-                far: data.far,
-            };
-            let l = train_chunk(
-                model,
-                params,
-                &r,
-                Targets {
-                    rgb: &worker.targets,
-                    loss_scale,
-                },
-                &mut worker.rngs,
-                &mut worker.vanilla,
-                &mut worker.grads.values,
-            );
-            worker.loss.coarse_sse += l.coarse_sse;
-            worker.loss.fine_sse += l.fine_sse;
-        }
-        worker.grads.mark(0..worker.grads.len());
-    });
-    let (c, f) = workers.iter().fold((0.0, 0.0), |(c, f), w| {
-        (c + w.loss.coarse_sse, f + w.loss.fine_sse)
-    });
-    let denom = (3 * batch) as f64;
-    let (mse_c, mse_f) = (c / denom, f / denom);
-    PassTotals {
-        loss: mse_c + mse_f,
-        final_mse: if model.fine.is_some() { mse_f } else { mse_c },
-        grad_scale: 1.0,
-        rays: batch,
-        samples: batch * model.config.evals_per_ray(),
-    }
-}
-
-/// The fast model's step: each worker draws rays from its own streams and marches them
-/// until it holds its share of `samples_per_step`, evaluating the field every
-/// `batch_samples`. Gradients are of the summed squared error, scaled to the mean once
-/// the number of rays is known.
-fn fast_pass(model: &FastModel, ctx: &PassContext, workers: &mut [Worker]) -> PassTotals {
-    let PassContext {
-        cfg,
-        data,
-        params,
-        step,
-        crop,
-    } = *ctx;
-    let n_workers = workers.len();
-    let budget = model.config.samples_per_step.div_ceil(n_workers);
-    // Rays that find no occupied cell add no samples: this bound ends the step when the
-    // grid is (nearly) empty instead of drawing rays forever.
-    let max_rays = budget.max(64);
-    let marcher = model.marcher(data.near, data.far);
-    workers.par_iter_mut().enumerate().for_each(|(w, worker)| {
-        let mut sse = 0.0;
-        worker.batch.clear();
-        let mut flush = |worker: &mut Worker| {
-            sse += train_batch(
-                &model.field,
-                params,
-                &marcher,
-                &worker.batch,
-                1.0,
-                &mut worker.march,
-                &mut worker.grads,
-            );
-            worker.batch.clear();
-        };
-        while worker.samples < budget && worker.rays < max_rays {
-            let stream = ((w as u64) << 32) | worker.rays as u64;
-            let mut ray = draw_ray(data, cfg, step, stream, crop);
-            let jitter = ray.rng.uniform();
-            worker.samples += worker.batch.push(
-                &model.grid,
-                &marcher,
-                ray.origin,
-                ray.dir,
-                ray.view_dir,
-                ray.background,
-                ray.target,
-                jitter,
-            );
-            worker.rays += 1;
-            if worker.batch.samples() >= model.config.batch_samples {
-                flush(worker);
-            }
-        }
-        if worker.batch.rays() > 0 {
-            flush(worker);
-        }
-        worker.loss.coarse_sse = sse;
-    });
-    let rays: usize = workers.iter().map(|w| w.rays).sum();
-    let sse: f64 = workers.iter().map(|w| w.loss.coarse_sse).sum();
-    let mse = sse / (3 * rays.max(1)) as f64;
-    PassTotals {
-        loss: mse,
-        final_mse: mse,
-        grad_scale: 1.0 / (3 * rays.max(1)) as f32,
-        rays,
-        samples: workers.iter().map(|w| w.samples).sum(),
-    }
-}
-
-/// Re-evaluates the occupancy grid with the current weights.
-fn refresh_occupancy(model: &mut FastModel, params: &[f32], step: u64, seed: u64) {
-    let dt = model.config.step_length();
-    let FastModel {
-        config,
-        field,
-        grid,
-    } = model;
-    let density = |points: &[f32], out: &mut [f32]| field.density_into(params, points, out);
-    grid.update(&config.occupancy, step, seed, dt, &density);
-}
-
-impl Worker {
-    /// Draws the rays `range` of this step for the vanilla model, packed.
-    fn draw_rays(
-        &mut self,
-        data: &Dataset,
-        cfg: &TrainConfig,
-        step: u64,
-        range: std::ops::Range<usize>,
-        crop: f32,
-    ) {
-        for v in [
-            &mut self.origins,
-            &mut self.dirs,
-            &mut self.view_dirs,
-            &mut self.backgrounds,
-            &mut self.targets,
-        ] {
-            v.clear();
-        }
-        self.rngs.clear();
-        for g in range {
-            let ray = draw_ray(data, cfg, step, g as u64, crop);
-            self.origins.extend_from_slice(&ray.origin);
-            self.dirs.extend_from_slice(&ray.dir);
-            self.view_dirs.extend_from_slice(&ray.view_dir);
-            self.backgrounds.extend_from_slice(&ray.background);
-            self.targets.extend_from_slice(&ray.target);
-            self.rngs.push(ray.rng);
-        }
+        Ok(stats)
     }
 }

@@ -8,15 +8,12 @@ use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
 
+use super::folder::{load_checkpoint, save_checkpoint};
+pub use super::folder::{LoadedRun, CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE};
 use super::{StepStats, TrainConfig, Trainer};
-use crate::checkpoint::{self, Checkpoint};
 use crate::data::{image::save_rgb_png, Split, View};
 use crate::error::{NerfError, Result};
-use crate::model::Model;
-
-pub const CONFIG_FILE: &str = "config.json";
-pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
-pub const METRICS_FILE: &str = "metrics.jsonl";
+use crate::views::RenderSettings;
 
 /// How to run (beyond the config that defines the run).
 #[derive(Clone, Debug)]
@@ -71,33 +68,6 @@ pub struct RunSummary {
     pub reason: StopReason,
     pub seconds: f64,
     pub last_psnr: f32,
-}
-
-/// A trained model loaded from a run folder, for evaluation and rendering.
-pub struct LoadedRun {
-    pub config: TrainConfig,
-    pub model: Model,
-    pub params: Vec<f32>,
-    pub step: u64,
-}
-
-impl LoadedRun {
-    pub fn open(dir: &Path) -> Result<LoadedRun> {
-        let config: TrainConfig = crate::io::read_json(&dir.join(CONFIG_FILE))?;
-        let mut model = Model::new(config.model.clone());
-        let ckpt = checkpoint::load(
-            &dir.join(CHECKPOINT_FILE),
-            model.layout(),
-            &model.buffer_layout(),
-        )?;
-        model.load_buffers(ckpt.buffers);
-        Ok(LoadedRun {
-            config,
-            model,
-            params: ckpt.params,
-            step: ckpt.step,
-        })
-    }
 }
 
 #[derive(Serialize)]
@@ -155,16 +125,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let mut elapsed_before = 0.0;
     let mut resumed_from = None;
     if opts.resume {
-        let ckpt = checkpoint::load(
-            &ckpt_path,
-            trainer.model.layout(),
-            &trainer.model.buffer_layout(),
-        )?;
-        trainer.model.load_buffers(ckpt.buffers);
-        trainer.params = ckpt.params;
-        trainer.adam.m = ckpt.adam_m;
-        trainer.adam.v = ckpt.adam_v;
-        trainer.adam.t = ckpt.adam_t;
+        let ckpt = load_checkpoint(&ckpt_path, trainer.engine.as_mut())?;
         trainer.step = ckpt.step;
         elapsed_before = ckpt.elapsed_seconds;
         resumed_from = Some(ckpt.step);
@@ -175,7 +136,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         views,
         width,
         height,
-        params: trainer.params.len(),
+        params: trainer.engine.param_layout().total,
         resumed_from,
     });
 
@@ -189,25 +150,12 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let budget = opts.minutes.map(|m| m * 60.0);
     let mut last_psnr = f32::NAN;
     let save = |trainer: &Trainer, elapsed: f64| -> Result<()> {
-        checkpoint::save(
+        save_checkpoint(
             &ckpt_path,
-            trainer.model.layout(),
-            &trainer.model.buffer_layout(),
-            &Checkpoint {
-                step: trainer.step,
-                seed: trainer.config.seed,
-                elapsed_seconds: elapsed,
-                params: trainer.params.clone(),
-                adam_m: trainer.adam.m.clone(),
-                adam_v: trainer.adam.v.clone(),
-                adam_t: trainer.adam.t,
-                buffers: trainer
-                    .model
-                    .buffers()
-                    .into_iter()
-                    .flat_map(|b| b.values)
-                    .collect(),
-            },
+            trainer.engine.as_ref(),
+            trainer.step,
+            trainer.config.seed,
+            elapsed,
         )
     };
     let reason = loop {
@@ -293,19 +241,13 @@ fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
 
 fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
     let bg = trainer.config.background.eval_colour();
-    let settings = trainer.data.render_settings(bg, trainer.config.chunk_rays);
-    let r = crate::renderer::render_view(
-        &trainer.model,
-        &trainer.params,
-        &view.camera,
-        &settings,
-        &|_| {},
-    );
+    let settings = RenderSettings::of_dataset(&trainer.data, bg);
+    let r = crate::views::render_view(trainer.engine.as_ref(), &view.camera, &settings, &|_| {});
     if let Some(dir) = path.parent() {
         crate::io::create_dir(dir)?;
     }
     save_rgb_png(path, r.width, r.height, &r.rgb)?;
-    Ok(crate::eval::psnr(&r.rgb, &view.image.composite(bg)))
+    Ok(crate::metrics::psnr(&r.rgb, &view.image.composite(bg)))
 }
 
 fn append_line<T: Serialize>(file: &mut std::fs::File, path: &Path, value: &T) -> Result<()> {

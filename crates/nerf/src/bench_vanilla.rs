@@ -134,9 +134,10 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
     config.batch_rays = opts.rays;
     config.precrop_steps = 0;
     let mut trainer = Trainer::new(config, data)?;
-    let crate::model::Model::Vanilla(vanilla) = &trainer.model else {
+    let crate::model::ModelConfig::Vanilla(vanilla) = trainer.config.model.clone() else {
         unreachable!("presets build vanilla models");
     };
+    let vanilla = crate::model::VanillaModel::new(vanilla);
     let macs_per_ray = vanilla.macs_per_ray() as f64;
     let evals_per_ray = vanilla.config.evals_per_ray() as f64;
     trainer.step()?;
@@ -170,15 +171,14 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
         cy: full.cy - (size - rows) as f32 / 2.0,
         ..full
     };
-    let settings = crate::renderer::RenderSettings {
+    let settings = crate::views::RenderSettings {
         near: 2.0,
         far: 6.0,
         background: [1.0; 3],
-        chunk_rays: trainer.config.chunk_rays,
         space: Default::default(),
     };
     let t = Instant::now();
-    crate::renderer::render_view(&trainer.model, &trainer.params, &band, &settings, &|_| {});
+    crate::views::render_view(trainer.engine.as_ref(), &band, &settings, &|_| {});
     let render_s = t.elapsed().as_secs_f64();
     let render_rays = (size * rows) as f64;
     let render_gflops = render_rays * macs_per_ray * 2.0 / render_s / 1e9;

@@ -1,0 +1,91 @@
+//! Training rays: uniformly random pixels of the training views, as a [`RayBatch`] with
+//! their target colours.
+//!
+//! Ray `k` of step `s` is a pure function of `(seed, s, k)` (see [`crate::rng`]): which
+//! pixel, its background colour, and the random stream its samples are drawn from. So the
+//! rays of a step do not depend on how many threads draw them, a resumed run draws what the
+//! uninterrupted one would have, and another engine can draw the very same rays.
+
+use crate::data::{Background, Dataset};
+use crate::rng::Rng;
+use crate::stage::RayBatch;
+
+/// How a step draws its rays.
+#[derive(Clone, Copy, Debug)]
+pub struct PixelSampling {
+    pub seed: u64,
+    pub step: u64,
+    /// Rays come from the central `crop` fraction of each image (1: everywhere).
+    pub crop: f32,
+    pub background: Background,
+}
+
+/// Training rays with what they are compared to, and each ray's random stream (which also
+/// draws its samples' positions).
+#[derive(Clone, Debug, Default)]
+pub struct TrainingRays {
+    pub rays: RayBatch,
+    /// `n x 3`: the pixel's colour over the ray's background.
+    pub targets: Vec<[f32; 3]>,
+    pub rngs: Vec<Rng>,
+}
+
+impl TrainingRays {
+    pub fn len(&self) -> usize {
+        self.rays.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.rays.is_empty()
+    }
+
+    /// Replaces the batch with rays `range` of the step.
+    pub fn draw(&mut self, data: &Dataset, how: &PixelSampling, range: std::ops::Range<u64>) {
+        self.rays.clear();
+        self.rays.near = data.near;
+        self.rays.far = data.far;
+        self.targets.clear();
+        self.rngs.clear();
+        for k in range {
+            self.push(data, how, k);
+        }
+    }
+
+    /// Appends ray `k` of the step: a uniformly random training pixel (inside the central
+    /// `crop` fraction while warming up; among the pixels its mask keeps, if it has one),
+    /// warped into the scene's ray space.
+    pub fn push(&mut self, data: &Dataset, how: &PixelSampling, k: u64) {
+        let mut rng = Rng::for_stream(how.seed, how.step, k);
+        let v = rng.below(data.views.len());
+        let view = &data.views[v];
+        let (w, h) = (view.image.width, view.image.height);
+        let (cw, ch) = (
+            ((w as f32 * how.crop) as usize).max(1),
+            ((h as f32 * how.crop) as usize).max(1),
+        );
+        let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
+        let (i, j) = match &view.kept_pixels {
+            Some(kept) => {
+                let p = kept[rng.below(kept.len())] as usize;
+                (p % w, p / w)
+            }
+            None => (x0 + rng.below(cw), y0 + rng.below(ch)),
+        };
+        let world = view.camera.ray(i, j);
+        let (origin, dir) = data.space.warp(world.origin, world.dir);
+        let background = match how.background {
+            Background::White => [1.0; 3],
+            Background::Black => [0.0; 3],
+            Background::Random => [rng.uniform(), rng.uniform(), rng.uniform()],
+        };
+        let pixel = j * w + i;
+        self.rays.push(
+            crate::camera::Ray { origin, dir },
+            world.dir,
+            background,
+            ((v as u64) << 32) | pixel as u64,
+        );
+        self.targets
+            .push(view.image.composite_pixel(pixel, background));
+        self.rngs.push(rng);
+    }
+}

@@ -1,0 +1,293 @@
+//! The CPU engine: any [`Model`] on the rayon threads.
+//!
+//! Work mapping: each rayon thread owns a [`Worker`] (its workspace and its gradient
+//! buffer); the model's pass spreads a step's rays over them. Buffers are summed in worker
+//! order (only the dirty blocks), scaled once by the loss's mean (`render::loss`), and fed to
+//! Adam. Rendering cuts a batch of rays into chunks of `chunk_rays`; rayon hands chunks to
+//! threads, each with a workspace from a small pool, and every chunk writes only its own
+//! slice of the output.
+
+use rayon::prelude::*;
+
+use super::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
+use crate::data::Dataset;
+use crate::error::{NerfError, Result};
+use crate::model::{FastModel, Model, ModelConfig, StepInput, VanillaModel, Worker};
+use crate::nn::adam::{Adam, DirtyStep};
+use crate::nn::{GradBuffer, ParamLayout};
+use crate::render::loss::mean_scale;
+use crate::stage::{RayBatch, RayOutput};
+
+/// Points per work unit of density queries.
+const DENSITY_CHUNK: usize = 4096;
+
+/// A model, its parameters and optimiser state, and the workers that train it.
+pub struct CpuEngine<M: Model> {
+    config: ModelConfig,
+    model: M,
+    params: Vec<f32>,
+    adam: Adam,
+    chunk_rays: usize,
+    workers: Vec<Worker<M::Workspace>>,
+    step_buffers: M::StepBuffers,
+    /// Workspaces for rendering and queries, handed to whichever thread takes a chunk.
+    pool: std::sync::Mutex<Vec<M::Workspace>>,
+    touched_fraction: f64,
+}
+
+/// The CPU engine for `config`: the one place that turns a model's configuration into a
+/// model type.
+pub fn open(config: &ModelConfig, options: EngineOptions, seed: u64) -> Box<dyn Engine> {
+    match config {
+        ModelConfig::Vanilla(c) => Box::new(CpuEngine::new(
+            config.clone(),
+            VanillaModel::new(c.clone()),
+            options,
+            seed,
+        )),
+        ModelConfig::Fast(c) => Box::new(CpuEngine::new(
+            config.clone(),
+            FastModel::new(c.clone()),
+            options,
+            seed,
+        )),
+    }
+}
+
+impl<M: Model> CpuEngine<M> {
+    pub fn new(config: ModelConfig, model: M, options: EngineOptions, seed: u64) -> Self {
+        let params = model.init_params(seed);
+        let adam = Adam::new(options.adam, params.len());
+        let workers = (0..rayon::current_num_threads().max(1))
+            .map(|_| Worker {
+                ws: M::Workspace::default(),
+                grads: GradBuffer::new(params.len()),
+            })
+            .collect();
+        CpuEngine {
+            config,
+            model,
+            params,
+            adam,
+            chunk_rays: options.chunk_rays.max(1),
+            workers,
+            step_buffers: M::StepBuffers::default(),
+            pool: std::sync::Mutex::new(Vec::new()),
+            touched_fraction: 0.0,
+        }
+    }
+
+    /// Runs `f` with a workspace from the pool (a fresh one when none is free).
+    fn with_workspace<R>(&self, f: impl FnOnce(&mut M::Workspace) -> R) -> R {
+        let mut ws = self
+            .pool
+            .lock()
+            .ok()
+            .and_then(|mut p| p.pop())
+            .unwrap_or_default();
+        let r = f(&mut ws);
+        if let Ok(mut p) = self.pool.lock() {
+            p.push(ws);
+        }
+        r
+    }
+}
+
+impl<M: Model> Engine for CpuEngine<M> {
+    fn describe(&self) -> String {
+        format!("cpu, {} threads", rayon::current_num_threads())
+    }
+
+    fn model_config(&self) -> &ModelConfig {
+        &self.config
+    }
+
+    fn param_layout(&self) -> &ParamLayout {
+        self.model.layout()
+    }
+
+    fn buffer_layout(&self) -> ParamLayout {
+        self.model.buffer_layout()
+    }
+
+    fn train_step(&mut self, data: &Dataset, step: u64, spec: &StepSpec) -> Result<StepStats> {
+        for w in &mut self.workers {
+            w.grads.clear();
+        }
+        let input = StepInput {
+            data,
+            params: &self.params,
+            sampling: spec.sampling,
+            batch_rays: spec.batch_rays,
+            chunk_rays: self.chunk_rays,
+        };
+        let totals = self
+            .model
+            .train_pass(&input, &mut self.step_buffers, &mut self.workers);
+        let mut buffers: Vec<GradBuffer> = self
+            .workers
+            .iter_mut()
+            .map(|w| std::mem::replace(&mut w.grads, GradBuffer::new(0)))
+            .collect();
+        let finite = GradBuffer::reduce_into_first(&mut buffers);
+        for (w, b) in self.workers.iter_mut().zip(buffers) {
+            w.grads = b;
+        }
+        self.touched_fraction = self.workers[0].grads.dirty_fraction();
+        let scale = mean_scale(totals.rays);
+        let loss = (totals.sse * scale) as f32;
+        if !loss.is_finite() || !finite {
+            for w in &mut self.workers {
+                w.grads.clear();
+            }
+            return Err(NerfError::Diverged {
+                step: step + 1,
+                loss,
+            });
+        }
+        let rule = self.model.update_rule();
+        self.adam.step_dirty(
+            &mut self.params,
+            &mut self.workers[0].grads,
+            spec.lr,
+            DirtyStep {
+                scale: scale as f32,
+                lazy_end: rule.lazy_end,
+                weight_decay: rule.weight_decay,
+            },
+        );
+        self.model
+            .after_step(&self.params, step + 1, spec.sampling.seed);
+        Ok(StepStats {
+            step: step + 1,
+            loss,
+            psnr: crate::metrics::psnr_from_mse(totals.final_sse * scale),
+            lr: spec.lr,
+            rays: totals.rays,
+            samples: totals.samples,
+        })
+    }
+
+    fn render_rays(
+        &self,
+        rays: &RayBatch,
+        out: &mut [RayOutput],
+        on_progress: &(dyn Fn(usize) + Sync),
+    ) {
+        let chunk = self.chunk_rays;
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        out[..rays.len()]
+            .par_chunks_mut(chunk)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let part = rays.slice(c * chunk..c * chunk + out.len());
+                self.with_workspace(|ws| self.model.render_chunk(&self.params, &part, ws, out));
+                let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
+                on_progress(n);
+            });
+    }
+
+    fn density(&self, positions: &[f32], out: &mut [f32]) {
+        assert_eq!(positions.len(), out.len() * 3);
+        out.par_chunks_mut(DENSITY_CHUNK)
+            .zip(positions.par_chunks(DENSITY_CHUNK * 3))
+            .for_each(|(out, pos)| {
+                self.with_workspace(|ws| self.model.density(&self.params, pos, ws, out))
+            });
+    }
+
+    fn state(&self) -> EngineState {
+        EngineState {
+            params: self.params.clone(),
+            adam_m: self.adam.m.clone(),
+            adam_v: self.adam.v.clone(),
+            adam_t: self.adam.t,
+            buffers: self.model.buffers(),
+        }
+    }
+
+    fn set_state(&mut self, state: EngineState) -> Result<()> {
+        let n = self.params.len();
+        let buffers = self.model.buffer_layout().total;
+        if state.params.len() != n
+            || state.adam_m.len() != n
+            || state.adam_v.len() != n
+            || state.buffers.len() != buffers
+        {
+            return Err(NerfError::Config(format!(
+                "state does not fit this model: {} parameters and {} buffer values expected, \
+                 got {} and {}",
+                n,
+                buffers,
+                state.params.len(),
+                state.buffers.len()
+            )));
+        }
+        self.params = state.params;
+        self.adam.m = state.adam_m;
+        self.adam.v = state.adam_v;
+        self.adam.t = state.adam_t;
+        self.model.load_buffers(state.buffers);
+        Ok(())
+    }
+
+    fn occupancy(&self) -> Option<f64> {
+        self.model.occupancy()
+    }
+
+    fn touched_fraction(&self) -> f64 {
+        self.touched_fraction
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::FastModelConfig;
+    use crate::nn::adam::AdamConfig;
+
+    fn engines() -> Vec<Box<dyn Engine>> {
+        let (vanilla, _) = crate::presets::build("demo").expect("preset");
+        let options = EngineOptions {
+            adam: AdamConfig::default(),
+            chunk_rays: 64,
+        };
+        [
+            ModelConfig::Vanilla(vanilla),
+            ModelConfig::Fast(FastModelConfig::default()),
+        ]
+        .iter()
+        .map(|c| open(c, options, 1))
+        .collect()
+    }
+
+    #[test]
+    fn density_is_the_same_in_any_chunk_for_both_models() {
+        let pos: Vec<f32> = (0..5000 * 3)
+            .map(|i| ((i % 17) as f32 - 8.0) * 0.1)
+            .collect();
+        for engine in engines() {
+            let mut sigma = vec![0.0; 5000];
+            engine.density(&pos, &mut sigma);
+            // The last point, evaluated alone, gives the same value.
+            let mut one = [0.0];
+            engine.density(&pos[4999 * 3..], &mut one);
+            assert!((one[0] - sigma[4999]).abs() <= 1e-5 * (1.0 + one[0].abs()));
+            assert!(sigma.iter().all(|s| s.is_finite() && *s >= 0.0));
+        }
+    }
+
+    #[test]
+    fn state_round_trips_and_wrong_sizes_are_refused() {
+        for mut engine in engines() {
+            let mut state = engine.state();
+            state.params[0] += 1.0;
+            state.adam_t = 7;
+            engine.set_state(state.clone()).expect("same sizes");
+            assert_eq!(engine.state(), state);
+            state.params.pop();
+            let err = engine.set_state(state).expect_err("short parameters");
+            assert!(err.to_string().contains("parameters"), "{err}");
+        }
+    }
+}

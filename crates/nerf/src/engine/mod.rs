@@ -1,0 +1,113 @@
+//! The engine seam: everything above it (the trainer, checkpoints, evaluation, view
+//! rendering, meshes, the CLI) talks to a model through [`Engine`], one step or one batch
+//! of rays at a time, and never sees its parameters' home or its kernels.
+//!
+//! An engine owns a model's parameters, optimiser state and buffers (a GPU engine keeps them
+//! on the device) and runs whole stages: a training step, rendering a [`RayBatch`], density
+//! queries. State crosses the seam only as host copies ([`EngineState`]) for checkpoints,
+//! so every engine reads and writes the same checkpoint files. [`cpu::CpuEngine`] is the
+//! reference engine; a second engine implements this trait and [`open`] picks it.
+
+pub mod cpu;
+
+use serde::{Deserialize, Serialize};
+
+use crate::data::pixels::PixelSampling;
+use crate::data::Dataset;
+use crate::error::Result;
+use crate::model::ModelConfig;
+use crate::nn::adam::AdamConfig;
+use crate::nn::ParamLayout;
+use crate::stage::{RayBatch, RayOutput};
+
+/// How an engine is set up for a run.
+#[derive(Clone, Copy, Debug)]
+pub struct EngineOptions {
+    pub adam: AdamConfig,
+    /// Rays per work unit (bounds a thread's activation memory).
+    pub chunk_rays: usize,
+}
+
+/// One training step, as the trainer schedules it.
+#[derive(Clone, Copy, Debug)]
+pub struct StepSpec {
+    /// Which rays the step draws (seed, step, crop, background).
+    pub sampling: PixelSampling,
+    pub lr: f32,
+    /// Vanilla model: rays per step (the fast model fixes samples per step in its config).
+    pub batch_rays: usize,
+}
+
+/// What one step did.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+pub struct StepStats {
+    /// Steps completed, this one included.
+    pub step: u64,
+    /// coarse MSE + fine MSE (the paper's loss).
+    pub loss: f32,
+    /// PSNR of the final (fine, else coarse) pass on this batch.
+    pub psnr: f32,
+    pub lr: f32,
+    /// Rays and field samples in the step.
+    pub rays: usize,
+    pub samples: usize,
+}
+
+/// An engine's state as host copies: what a checkpoint holds besides the step.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct EngineState {
+    pub params: Vec<f32>,
+    pub adam_m: Vec<f32>,
+    pub adam_v: Vec<f32>,
+    /// Adam steps taken.
+    pub adam_t: u64,
+    /// Non-trainable buffers (the occupancy grid), laid out by `buffer_layout`.
+    pub buffers: Vec<f32>,
+}
+
+/// A model behind an engine.
+pub trait Engine: Send + Sync {
+    /// Which engine and device, for logs ("cpu, 2 threads").
+    fn describe(&self) -> String;
+
+    fn model_config(&self) -> &ModelConfig;
+
+    /// Names and shapes of the parameters, in checkpoint order.
+    fn param_layout(&self) -> &ParamLayout;
+
+    /// Names and shapes of the non-trainable buffers.
+    fn buffer_layout(&self) -> ParamLayout;
+
+    /// One optimisation step on rays drawn from `data` (the same dataset every step: an
+    /// engine may keep it on its device). `step` is the index of the step (steps done so
+    /// far). Fails, leaving the state untouched, when the loss or a gradient is not finite.
+    fn train_step(&mut self, data: &Dataset, step: u64, spec: &StepSpec) -> Result<StepStats>;
+
+    /// Renders `rays` into `out` (one per ray); `on_progress` gets the rays done so far.
+    fn render_rays(
+        &self,
+        rays: &RayBatch,
+        out: &mut [RayOutput],
+        on_progress: &(dyn Fn(usize) + Sync),
+    );
+
+    /// Densities at world `positions` (`n x 3`) into `out` (`n`).
+    fn density(&self, positions: &[f32], out: &mut [f32]);
+
+    /// Host copies of the state.
+    fn state(&self) -> EngineState;
+
+    /// Replaces the state (sizes must match the layouts).
+    fn set_state(&mut self, state: EngineState) -> Result<()>;
+
+    /// Fraction of the scene box marked occupied, for models that skip empty space.
+    fn occupancy(&self) -> Option<f64>;
+
+    /// Fraction of gradient blocks the last step wrote (the rest skipped the optimiser).
+    fn touched_fraction(&self) -> f64;
+}
+
+/// The engine for `model`, with fresh weights from `seed`.
+pub fn open(model: &ModelConfig, options: EngineOptions, seed: u64) -> Box<dyn Engine> {
+    cpu::open(model, options, seed)
+}

@@ -1,0 +1,190 @@
+//! The values passed between stages, struct-of-arrays, with their shapes. `[f32; 3]`
+//! vectors are laid out exactly as flat `n x 3` buffers (`as_flattened`), the form a GPU
+//! kernel reads.
+
+use crate::camera::Ray;
+
+/// A batch of `n` rays: what a camera (or the training-pixel sampler) hands the sampler.
+///
+/// Example: one ray from `(0, -4, 0)` looking along `+y` over a white background,
+/// between depths 2 and 6: `origins = [[0, -4, 0]]`, `dirs = [[0, 1, 0]]`,
+/// `view_dirs = [[0, 1, 0]]`, `backgrounds = [[1, 1, 1]]`, `near = 2`, `far = 6`.
+#[derive(Clone, Debug, Default)]
+pub struct RayBatch {
+    /// `n x 3`: origins in ray space (NDC for forward-facing LLFF scenes, else world).
+    pub origins: Vec<[f32; 3]>,
+    /// `n x 3`: directions in ray space, unnormalised (depth `t` runs along them: for a
+    /// pinhole camera, `t` is the depth along the optical axis).
+    pub dirs: Vec<[f32; 3]>,
+    /// `n x 3`: the world directions colour is conditioned on (unnormalised). Equal to
+    /// `dirs` in world space; NDC rays march along warped directions but are seen from
+    /// their world ones, as in the paper's code.
+    pub view_dirs: Vec<[f32; 3]>,
+    /// `n x 3`: the colour behind each ray.
+    pub backgrounds: Vec<[f32; 3]>,
+    /// `n`: where each ray came from: `view << 32 | pixel` for training rays, the ray's
+    /// index in its image (or list) when rendering.
+    pub pixels: Vec<u64>,
+    /// Bounds of `t` along `dirs`, shared by the batch (see `Dataset::near`).
+    pub near: f32,
+    pub far: f32,
+}
+
+impl RayBatch {
+    /// An empty batch between `near` and `far`.
+    pub fn new(near: f32, far: f32) -> Self {
+        RayBatch {
+            near,
+            far,
+            ..RayBatch::default()
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.origins.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.origins.is_empty()
+    }
+
+    /// Empties the batch, keeping its buffers and bounds.
+    pub fn clear(&mut self) {
+        self.origins.clear();
+        self.dirs.clear();
+        self.view_dirs.clear();
+        self.backgrounds.clear();
+        self.pixels.clear();
+    }
+
+    /// Appends a ray already in ray space, seen from `view_dir`.
+    pub fn push(&mut self, ray: Ray, view_dir: [f32; 3], background: [f32; 3], pixel: u64) {
+        self.origins.push(ray.origin);
+        self.dirs.push(ray.dir);
+        self.view_dirs.push(view_dir);
+        self.backgrounds.push(background);
+        self.pixels.push(pixel);
+    }
+
+    /// Rays `range` of this batch as a new batch (for tests and chunked callers).
+    pub fn slice(&self, range: std::ops::Range<usize>) -> RayBatch {
+        RayBatch {
+            origins: self.origins[range.clone()].to_vec(),
+            dirs: self.dirs[range.clone()].to_vec(),
+            view_dirs: self.view_dirs[range.clone()].to_vec(),
+            backgrounds: self.backgrounds[range.clone()].to_vec(),
+            pixels: self.pixels[range].to_vec(),
+            near: self.near,
+            far: self.far,
+        }
+    }
+}
+
+/// Samples of many rays packed one after another (CSR, as nerfacc packs them): the samples
+/// of ray `r` are `offsets[r]..offsets[r + 1]`. Rays may hold any number of samples,
+/// including none.
+#[derive(Clone, Debug, Default)]
+pub struct PackedSamples {
+    /// `rays + 1` offsets into the per-sample arrays, starting at 0.
+    pub offsets: Vec<usize>,
+    /// `n`: depth of each sample along its ray's (unit, for marched rays) direction.
+    pub t: Vec<f32>,
+    /// `n`: length of the ray segment each sample stands for (compositing's `delta`).
+    pub dt: Vec<f32>,
+    /// `n x 3`: where the field is evaluated (field space: contracted where the scene is).
+    pub positions: Vec<[f32; 3]>,
+    /// `n / samples_per_dir x 3`: unit view directions, each shared by `samples_per_dir`
+    /// consecutive samples (1: one per sample; the paper's sampler gives every sample of a
+    /// ray one direction).
+    pub dirs: Vec<[f32; 3]>,
+    pub samples_per_dir: usize,
+}
+
+impl PackedSamples {
+    pub fn rays(&self) -> usize {
+        self.offsets.len().saturating_sub(1)
+    }
+    pub fn len(&self) -> usize {
+        self.t.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.t.is_empty()
+    }
+    /// The samples of ray `r`.
+    pub fn ray(&self, r: usize) -> std::ops::Range<usize> {
+        self.offsets[r]..self.offsets[r + 1]
+    }
+
+    /// Empties the batch (keeping its buffers) for samples with one direction each.
+    pub fn clear(&mut self) {
+        self.offsets.clear();
+        self.offsets.push(0);
+        self.t.clear();
+        self.dt.clear();
+        self.positions.clear();
+        self.dirs.clear();
+        self.samples_per_dir = 1;
+    }
+
+    /// Closes the current ray (its samples are those pushed since the last close).
+    pub fn end_ray(&mut self) {
+        self.offsets.push(self.t.len());
+    }
+
+    /// What the field reads.
+    pub fn field_input(&self) -> FieldInput<'_> {
+        FieldInput {
+            positions: self.positions.as_flattened(),
+            dirs: self.dirs.as_flattened(),
+            samples_per_dir: self.samples_per_dir.max(1),
+        }
+    }
+}
+
+/// A field's input: `n` sample positions and their view directions.
+#[derive(Clone, Copy, Debug)]
+pub struct FieldInput<'a> {
+    /// `n x 3`, in the field's space.
+    pub positions: &'a [f32],
+    /// `n / samples_per_dir x 3`, unit length.
+    pub dirs: &'a [f32],
+    /// Consecutive samples that share one direction (`n` must be a multiple of it).
+    pub samples_per_dir: usize,
+}
+
+impl FieldInput<'_> {
+    pub fn len(&self) -> usize {
+        self.positions.len() / 3
+    }
+    pub fn is_empty(&self) -> bool {
+        self.positions.is_empty()
+    }
+}
+
+/// A field's output, borrowed from its context.
+#[derive(Clone, Copy, Debug)]
+pub struct FieldOutput<'a> {
+    /// `n`: volume density, non-negative.
+    pub sigma: &'a [f32],
+    /// `n x 3`: colour in [0, 1].
+    pub rgb: &'a [f32],
+}
+
+/// `dL/d output` of a field.
+#[derive(Clone, Copy, Debug)]
+pub struct FieldGrad<'a> {
+    /// `n`
+    pub d_sigma: &'a [f32],
+    /// `n x 3`
+    pub d_rgb: &'a [f32],
+}
+
+/// What one ray renders to.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct RayOutput {
+    /// Colour composited over the ray's background.
+    pub rgb: [f32; 3],
+    /// Expected depth `sum w_i t_i` along the ray's camera direction (0 where empty).
+    pub depth: f32,
+    /// `sum w_i`.
+    pub opacity: f32,
+}

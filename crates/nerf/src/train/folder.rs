@@ -1,0 +1,79 @@
+//! A run folder on disk: `config.json` (the whole configuration), `checkpoint.safetensors`
+//! (an engine's state, see `checkpoint`), `metrics.jsonl` and validation images. Loading a
+//! run gives an engine ready to render, whichever engine wrote it.
+
+use std::path::Path;
+
+use super::TrainConfig;
+use crate::checkpoint::{self, Checkpoint};
+use crate::engine::{self, Engine, EngineState};
+use crate::error::Result;
+
+pub const CONFIG_FILE: &str = "config.json";
+pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
+pub const METRICS_FILE: &str = "metrics.jsonl";
+
+/// A trained model loaded from a run folder, for evaluation and rendering.
+pub struct LoadedRun {
+    pub config: TrainConfig,
+    pub engine: Box<dyn Engine>,
+    pub step: u64,
+}
+
+impl LoadedRun {
+    pub fn open(dir: &Path) -> Result<LoadedRun> {
+        let config: TrainConfig = crate::io::read_json(&dir.join(CONFIG_FILE))?;
+        let mut engine = engine::open(&config.model, config.engine_options(), config.seed);
+        let ckpt = load_checkpoint(&dir.join(CHECKPOINT_FILE), engine.as_mut())?;
+        Ok(LoadedRun {
+            config,
+            engine,
+            step: ckpt.step,
+        })
+    }
+}
+
+/// Writes `engine`'s state with the run's step, seed and elapsed time to `path`.
+pub fn save_checkpoint(
+    path: &Path,
+    engine: &dyn Engine,
+    step: u64,
+    seed: u64,
+    elapsed_seconds: f64,
+) -> Result<()> {
+    let EngineState {
+        params,
+        adam_m,
+        adam_v,
+        adam_t,
+        buffers,
+    } = engine.state();
+    checkpoint::save(
+        path,
+        engine.param_layout(),
+        &engine.buffer_layout(),
+        &Checkpoint {
+            step,
+            seed,
+            elapsed_seconds,
+            params,
+            adam_m,
+            adam_v,
+            adam_t,
+            buffers,
+        },
+    )
+}
+
+/// Reads the checkpoint at `path` into `engine`; returns it (its state moved out).
+pub fn load_checkpoint(path: &Path, engine: &mut dyn Engine) -> Result<Checkpoint> {
+    let mut ckpt = checkpoint::load(path, engine.param_layout(), &engine.buffer_layout())?;
+    engine.set_state(EngineState {
+        params: std::mem::take(&mut ckpt.params),
+        adam_m: std::mem::take(&mut ckpt.adam_m),
+        adam_v: std::mem::take(&mut ckpt.adam_v),
+        adam_t: ckpt.adam_t,
+        buffers: std::mem::take(&mut ckpt.buffers),
+    })?;
+    Ok(ckpt)
+}

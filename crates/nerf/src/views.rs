@@ -1,0 +1,132 @@
+//! Rendering whole views (and arbitrary world rays) through an engine: a camera's pixels
+//! become a [`RayBatch`] in the scene's ray space, the engine renders it, and the results
+//! are laid out as images (colour, depth, opacity).
+
+use rayon::prelude::*;
+
+use crate::camera::{Camera, Ray};
+use crate::data::scene::Scene;
+use crate::data::Dataset;
+use crate::engine::Engine;
+use crate::ray_space::RaySpace;
+use crate::stage::{RayBatch, RayOutput};
+
+/// How to render: marching bounds, background colour, and the space rays are marched in
+/// (world rays are warped into it, e.g. NDC for LLFF scenes).
+#[derive(Clone, Copy, Debug)]
+pub struct RenderSettings {
+    /// Bounds in ray space (see `Dataset::near`).
+    pub near: f32,
+    pub far: f32,
+    pub background: [f32; 3],
+    pub space: RaySpace,
+}
+
+impl RenderSettings {
+    /// Settings to render a loaded split's rays over `background`.
+    pub fn of_dataset(data: &Dataset, background: [f32; 3]) -> Self {
+        RenderSettings {
+            near: data.near,
+            far: data.far,
+            background,
+            space: data.space,
+        }
+    }
+
+    /// Settings to render a scene's rays over `background`.
+    pub fn of_scene(scene: &Scene, background: [f32; 3]) -> Self {
+        let (near, far) = scene.ray_bounds();
+        RenderSettings {
+            near,
+            far,
+            background,
+            space: scene.space,
+        }
+    }
+
+    /// World rays as a batch in ray space, seen from their world directions.
+    pub fn ray_batch(&self, world: &[Ray]) -> RayBatch {
+        let mut batch = RayBatch::new(self.near, self.far);
+        let warped: Vec<([f32; 3], [f32; 3])> = world
+            .par_iter()
+            .map(|r| self.space.warp(r.origin, r.dir))
+            .collect();
+        for (k, (r, (origin, dir))) in world.iter().zip(warped).enumerate() {
+            batch.push(Ray { origin, dir }, r.dir, self.background, k as u64);
+        }
+        batch
+    }
+}
+
+/// Per-pixel results of one view.
+#[derive(Clone, Debug)]
+pub struct RenderedView {
+    pub width: usize,
+    pub height: usize,
+    /// Packed RGB in [0, 1], composited over the background.
+    pub rgb: Vec<f32>,
+    /// Expected depth `sum w_i t_i` (0 where nothing was hit).
+    pub depth: Vec<f32>,
+    pub opacity: Vec<f32>,
+}
+
+/// Renders `camera`'s view; `on_progress` is called with the number of rays finished so far.
+pub fn render_view(
+    engine: &dyn Engine,
+    camera: &Camera,
+    settings: &RenderSettings,
+    on_progress: &(dyn Fn(usize) + Sync),
+) -> RenderedView {
+    let (w, h) = (camera.width, camera.height);
+    let world: Vec<Ray> = (0..w * h)
+        .into_par_iter()
+        .map(|p| camera.ray(p % w, p / w))
+        .collect();
+    let rays = settings.ray_batch(&world);
+    let mut out = vec![RayOutput::default(); w * h];
+    engine.render_rays(&rays, &mut out, on_progress);
+    RenderedView {
+        width: w,
+        height: h,
+        rgb: out.iter().flat_map(|o| o.rgb).collect(),
+        depth: out.iter().map(|o| o.depth).collect(),
+        opacity: out.iter().map(|o| o.opacity).collect(),
+    }
+}
+
+/// Renders arbitrary world rays (packed `n x 3` origins and directions) with `settings`.
+pub fn render_rays(
+    engine: &dyn Engine,
+    origins: &[f32],
+    dirs: &[f32],
+    settings: &RenderSettings,
+) -> Vec<RayOutput> {
+    let world: Vec<Ray> = origins
+        .chunks_exact(3)
+        .zip(dirs.chunks_exact(3))
+        .map(|(o, d)| Ray {
+            origin: [o[0], o[1], o[2]],
+            dir: [d[0], d[1], d[2]],
+        })
+        .collect();
+    let rays = settings.ray_batch(&world);
+    let mut out = vec![RayOutput::default(); rays.len()];
+    engine.render_rays(&rays, &mut out, &|_| {});
+    out
+}
+
+impl RenderedView {
+    /// Depth as a grey image: near is white, far is dark, empty pixels black (scaled by
+    /// opacity so soft edges stay soft).
+    pub fn depth_image(&self, near: f32, far: f32) -> Vec<f32> {
+        self.depth
+            .iter()
+            .zip(&self.opacity)
+            .flat_map(|(&d, &a)| {
+                let z = if a > 1e-4 { d / a } else { far };
+                let v = (1.0 - (z - near) / (far - near)).clamp(0.0, 1.0) * a.clamp(0.0, 1.0);
+                [v, v, v]
+            })
+            .collect()
+    }
+}
