@@ -1,13 +1,11 @@
-//! `nerf`: train and render neural radiance fields from the command line.
+//! `nerf`: train and render neural radiance fields from the command line. Each subcommand
+//! lives in its own file under `commands/`; the options of training, rendering, capture,
+//! scenes and the demo are declared once, in the library, with their `--help`.
 
-mod capture_cmd;
 mod commands;
-mod mesh_cmd;
 mod progress;
 
-use std::path::PathBuf;
-
-use clap::{builder::PossibleValue, Parser, Subcommand};
+use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
 #[command(
@@ -26,42 +24,25 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Render a built-in scene (procedural furniture) as a Blender-format dataset.
-    Synth(commands::SynthArgs),
+    Synth(commands::synth::SynthArgs),
     /// Photos or a video -> camera poses with COLMAP -> a trainable scene folder.
-    Capture(capture_cmd::CaptureArgs),
+    Capture(nerf::capture::CaptureOptions),
     /// What a scene folder holds, as training reads it (format, splits, bounds, box).
-    Scene(capture_cmd::SceneArgs),
+    Scene(commands::scene::SceneArgs),
     /// Train a radiance field on a scene (Blender, instant-ngp / nerfstudio, LLFF, COLMAP).
-    Train(commands::TrainArgs),
+    Train(nerf::train::options::TrainOptions),
     /// Render a split of the scene and report PSNR / SSIM per view and on average.
-    Eval(commands::EvalArgs),
+    Eval(commands::eval::EvalArgs),
     /// Render the test views or an orbit around the object to PNGs.
-    Render(commands::RenderArgs),
+    Render(commands::render::RenderArgs),
     /// A coloured triangle mesh of a trained run (.ply, .obj or .glb).
-    Mesh(mesh_cmd::MeshArgs),
+    Mesh(commands::mesh::MeshArgs),
     /// A coloured point cloud (.ply) from rendered depth of the training views.
-    Points(mesh_cmd::PointsArgs),
+    Points(commands::points::PointsArgs),
     /// Built-in scene -> train -> evaluate -> orbit, no data needed.
-    Demo(commands::DemoArgs),
+    Demo(nerf::demo::DemoOptions),
     /// Throughput of the training step and of rendering on this machine.
-    Bench(commands::BenchArgs),
-}
-
-/// `--preset` values with their one-line descriptions (for `--help`).
-pub fn preset_values() -> Vec<PossibleValue> {
-    nerf::presets::PRESETS
-        .iter()
-        .map(|p| PossibleValue::new(p.name).help(p.help))
-        .collect()
-}
-
-/// `PathBuf` of the default run folder for a scene.
-pub fn default_run(data: &std::path::Path, preset: &str) -> PathBuf {
-    let scene = data
-        .file_name()
-        .map(|s| s.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "scene".into());
-    PathBuf::from("runs").join(format!("{scene}-{preset}"))
+    Bench(commands::bench::BenchArgs),
 }
 
 fn main() {
@@ -75,16 +56,16 @@ fn main() {
         }
     }
     let result = match cli.command {
-        Command::Synth(a) => commands::synth(a),
-        Command::Capture(a) => capture_cmd::capture(a),
-        Command::Scene(a) => capture_cmd::scene(a),
-        Command::Train(a) => commands::train(a),
-        Command::Eval(a) => commands::eval(a),
-        Command::Render(a) => commands::render(a),
-        Command::Mesh(a) => mesh_cmd::mesh(a),
-        Command::Points(a) => mesh_cmd::points(a),
-        Command::Demo(a) => commands::demo(a),
-        Command::Bench(a) => commands::bench(a),
+        Command::Synth(a) => commands::synth::run(a),
+        Command::Capture(a) => commands::capture::run(a),
+        Command::Scene(a) => commands::scene::run(a),
+        Command::Train(a) => commands::train::run(a),
+        Command::Eval(a) => commands::eval::run(a),
+        Command::Render(a) => commands::render::run(a),
+        Command::Mesh(a) => commands::mesh::run(a),
+        Command::Points(a) => commands::points::run(a),
+        Command::Demo(a) => commands::demo::run(a),
+        Command::Bench(a) => commands::bench::run(a),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -7,7 +7,7 @@
 //! 3. `colmap exhaustive_matcher` for small sets, `sequential_matcher` for video frames;
 //! 4. `colmap mapper`: the sparse reconstruction, in `<out>/colmap/sparse/N/`;
 //! 5. the largest model becomes `<out>/transforms.json` (instant-ngp format, poses already
-//!    placed by [`crate::data::colmap_scene`]: `scale` 1, `offset` 0.5, `aabb_scale` the
+//!    placed by [`crate::data::colmap::scene`]: `scale` 1, `offset` 0.5, `aabb_scale` the
 //!    box from the points), and is kept as text in `<out>/sparse/0/`.
 //!
 //! Images COLMAP could not register are reported with the fixes that usually work.
@@ -17,11 +17,12 @@ use std::process::Command;
 
 use serde_json::json;
 
-use crate::data::{colmap, colmap_scene, llff::list_images};
+use crate::data::colmap::{self, scene as colmap_scene};
+use crate::data::llff::list_images;
 use crate::error::{NerfError, Result};
 
 /// How images are matched against each other.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum Matching {
     /// Exhaustive for up to [`EXHAUSTIVE_LIMIT`] images, sequential above (and for video).
     Auto,
@@ -32,18 +33,32 @@ pub enum Matching {
 /// Above this many images, exhaustive matching (quadratic) gives way to sequential.
 pub const EXHAUSTIVE_LIMIT: usize = 150;
 
-#[derive(Clone, Debug)]
+#[derive(Clone, Debug, clap::Args)]
 pub struct CaptureOptions {
-    /// Folder of photos (JPEG or PNG).
+    /// Folder of photos (JPEG or PNG) of the object or scene.
+    #[arg(long, conflicts_with = "video", required_unless_present = "video")]
     pub images: Option<PathBuf>,
-    /// Or a video, sampled at `fps` frames per second.
+    /// A video to sample frames from instead (needs ffmpeg).
+    #[arg(long)]
     pub video: Option<PathBuf>,
+    /// Frames per second taken from --video.
+    #[arg(long, default_value_t = 2.0)]
     pub fps: f32,
+    /// Output scene folder: images/, colmap/ (database, logs, models), sparse/0/ and
+    /// transforms.json, ready for `nerf train --data`.
+    #[arg(long)]
     pub out: PathBuf,
+    /// How photos are matched: auto is exhaustive up to 150 photos, sequential for more and
+    /// for video frames.
+    #[arg(long, value_enum, default_value = "auto")]
     pub matching: Matching,
-    /// COLMAP camera model (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV).
+    /// COLMAP camera model shared by all photos (SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL,
+    /// RADIAL, OPENCV): OPENCV suits phone and DSLR photos; PINHOLE suits undistorted or
+    /// synthetic images.
+    #[arg(long, default_value = "OPENCV")]
     pub camera_model: String,
-    /// Longest image side SIFT sees (COLMAP's default is 3200).
+    /// Longest image side used for features (smaller is faster; COLMAP's default is 3200).
+    #[arg(long, default_value_t = 1600)]
     pub max_image_size: usize,
 }
 
@@ -102,6 +117,11 @@ fn arg(s: impl Into<String>) -> String {
 /// Runs the whole capture; `on_stage` hears each step's name as it starts.
 pub fn capture(opts: &CaptureOptions, on_stage: &mut dyn FnMut(&str)) -> Result<CaptureReport> {
     colmap_available()?;
+    // COLMAP's model names are upper case; accept `opencv` as well.
+    let opts = &CaptureOptions {
+        camera_model: opts.camera_model.to_ascii_uppercase(),
+        ..opts.clone()
+    };
     if !matches!(
         colmap::CameraModel::from_name(&opts.camera_model),
         Some(m) if !matches!(m, colmap::CameraModel::Other(_))
@@ -335,7 +355,7 @@ fn write_transforms(model: &colmap::Model, out: &Path, path: &Path) -> Result<()
                 "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
                 "w": c.width, "h": c.height,
                 "k1": d.k[0], "k2": d.k[1], "k3": d.k[2], "k4": d.k[3], "p1": d.p[0], "p2": d.p[1],
-                "camera_model": if d.model == crate::distortion::LensModel::Fisheye { "OPENCV_FISHEYE" } else { "OPENCV" },
+                "camera_model": if d.model == crate::camera::distortion::LensModel::Fisheye { "OPENCV_FISHEYE" } else { "OPENCV" },
             })
         })
         .collect();

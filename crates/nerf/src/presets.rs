@@ -87,6 +87,14 @@ pub fn paper() -> VanillaModelConfig {
 }
 
 /// Finds a preset by name.
+/// The preset names with their one-line descriptions, for `--preset` (its `--help`).
+pub fn possible_values() -> Vec<clap::builder::PossibleValue> {
+    PRESETS
+        .iter()
+        .map(|p| clap::builder::PossibleValue::new(p.name).help(p.help))
+        .collect()
+}
+
 pub fn find(name: &str) -> Result<&'static Preset> {
     PRESETS.iter().find(|p| p.name == name).ok_or_else(|| {
         let names: Vec<&str> = PRESETS.iter().map(|p| p.name).collect();

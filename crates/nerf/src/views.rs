@@ -4,11 +4,11 @@
 
 use rayon::prelude::*;
 
+use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Ray};
 use crate::data::scene::Scene;
 use crate::data::Dataset;
 use crate::engine::Engine;
-use crate::ray_space::RaySpace;
 use crate::stage::{RayBatch, RayOutput};
 
 /// How to render: marching bounds, background colour, and the space rays are marched in

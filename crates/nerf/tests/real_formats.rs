@@ -6,6 +6,7 @@ mod common;
 
 use std::path::Path;
 
+use nerf::camera::ray_space::RaySpace;
 use nerf::camera::{look_at, Camera, Pose};
 use nerf::data::colmap::{self, CameraModel, Model};
 use nerf::data::image::save_rgb_png;
@@ -14,7 +15,6 @@ use nerf::data::scene::{Format, Scene, SceneOptions};
 use nerf::data::synth::{self, SceneKind};
 use nerf::data::{llff, npy, Split};
 use nerf::math::{length, normalize_or_zero, sub};
-use nerf::ray_space::RaySpace;
 
 /// A rendered view: camera, opaque RGB over grey, per-pixel depth (0 = background).
 struct Shot {

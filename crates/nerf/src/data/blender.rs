@@ -13,9 +13,9 @@ use serde::{Deserialize, Serialize};
 
 use super::scene::{Format, Frame as SceneFrame, Parsed, Scene, SceneOptions};
 use super::{Dataset, Split};
+use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
-use crate::ray_space::RaySpace;
 
 /// The JSON document of one split.
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -21,9 +21,9 @@ use std::path::{Path, PathBuf};
 use super::npy;
 use super::poses::{average_pose, into_frame_of, inward_frame, Similarity};
 use super::scene::{image_dimensions, Frame, Parsed, SceneOptions};
+use crate::camera::ray_space::{Ndc, RaySpace};
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
-use crate::ray_space::{Ndc, RaySpace};
 
 /// LLFF scales scenes so the nearest bound is `1 / BD_FACTOR`.
 const BD_FACTOR: f32 = 0.75;
@@ -180,7 +180,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
     let (near, far) = (0.9 * near * sc * frame.scale, far * sc * frame.scale);
     let (space, bound) = if opts.spherify {
         (RaySpace::World, SPHERIFY_BOUND)
-    } else if opts.ndc.unwrap_or(true) {
+    } else if opts.ndc {
         let c = &cameras[0];
         let space = RaySpace::Ndc(Ndc {
             ax: 2.0 * c.fx / c.width as f32,

@@ -6,7 +6,6 @@
 
 pub mod blender;
 pub mod colmap;
-pub mod colmap_scene;
 pub mod image;
 pub mod llff;
 pub mod npy;
@@ -41,7 +40,7 @@ pub struct Dataset {
     pub near: f32,
     pub far: f32,
     /// The space rays are marched in.
-    pub space: crate::ray_space::RaySpace,
+    pub space: crate::camera::ray_space::RaySpace,
 }
 
 impl Dataset {
@@ -72,7 +71,7 @@ impl Dataset {
 }
 
 /// Which part of a scene to load.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Split {
     Train,
@@ -91,7 +90,7 @@ impl Split {
 }
 
 /// The colour seen through transparent pixels.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Background {
     White,

@@ -19,13 +19,14 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{Dataset, RgbaImage, Split, View};
+use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
-use crate::ray_space::RaySpace;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Format {
+    /// `transforms_{train,val,test}.json`.
     Blender,
     /// instant-ngp's or nerfstudio's `transforms.json`.
     Transforms,
@@ -34,7 +35,7 @@ pub enum Format {
 }
 
 /// Axis and scale conventions of a `transforms.json` (see `data::transforms`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
 pub enum Convention {
     /// instant-ngp when the file has `aabb_scale`, `scale` or `offset`; else nerfstudio.
@@ -44,21 +45,29 @@ pub enum Convention {
     Nerfstudio,
 }
 
-/// How to read a scene; saved in the run's config so evaluation reads it the same way.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// How to read a scene; saved in the run's config so evaluation reads it the same way, and
+/// the scene options of the command line (the doc comments are their `--help`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
 #[serde(default)]
 pub struct SceneOptions {
-    /// Force a format instead of detecting it.
+    /// Read the scene as this format instead of detecting it.
+    #[arg(long, value_enum)]
     pub format: Option<Format>,
-    /// LLFF: an inward-facing (360-degree) capture, trained in world space around the
-    /// cameras' focus point.
+    /// LLFF: the capture circles the object (inward-facing 360); train in world space
+    /// centred on what the cameras look at, not in NDC.
+    #[arg(long)]
     pub spherify: bool,
-    /// Train in NDC space (`None`: yes for forward-facing LLFF scenes, no otherwise).
-    pub ndc: Option<bool>,
-    /// Real captures: every `holdout`-th image (0, holdout, 2 holdout, ...) is held out
-    /// for testing (8 in the paper's LLFF experiments).
+    /// LLFF: train a forward-facing scene in world space instead of NDC (the paper's
+    /// choice; `"ndc": false` in config.json).
+    #[arg(long = "no-ndc", action = clap::ArgAction::SetFalse, conflicts_with = "spherify")]
+    #[serde(deserialize_with = "ndc_or_default")]
+    pub ndc: bool,
+    /// Real captures: hold out every N-th image for testing (the paper's LLFF setting: 8).
+    #[arg(long, default_value_t = 8, value_parser = at_least_two)]
     pub holdout: usize,
-    /// `transforms.json` conventions.
+    /// transforms.json: whose world placement to follow (auto: instant-ngp when the file
+    /// has aabb_scale, scale or offset, else nerfstudio).
+    #[arg(long, value_enum, default_value = "auto")]
     pub convention: Convention,
 }
 
@@ -67,10 +76,23 @@ impl Default for SceneOptions {
         SceneOptions {
             format: None,
             spherify: false,
-            ndc: None,
+            ndc: true,
             holdout: 8,
             convention: Convention::Auto,
         }
+    }
+}
+
+/// `ndc` of configs written before it was a plain flag: `null` meant the default (NDC).
+fn ndc_or_default<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<bool, D::Error> {
+    Ok(Option::<bool>::deserialize(d)?.unwrap_or(true))
+}
+
+fn at_least_two(s: &str) -> std::result::Result<usize, String> {
+    match s.parse::<usize>() {
+        Ok(n) if n >= 2 => Ok(n),
+        Ok(n) => Err(format!("{n} is too small: at least 2")),
+        Err(e) => Err(e.to_string()),
     }
 }
 
@@ -166,7 +188,7 @@ impl Scene {
             Format::Blender => super::blender::parse(dir)?,
             Format::Transforms => super::transforms::parse(dir, opts)?,
             Format::Llff => super::llff::parse(dir, opts, downscale)?,
-            Format::Colmap => super::colmap_scene::parse(dir, opts)?,
+            Format::Colmap => super::colmap::scene::parse(dir, opts)?,
         };
         if parsed.frames.is_empty() {
             return Err(NerfError::format(dir, "the scene lists no images"));

@@ -35,10 +35,10 @@ use super::poses::{centred_frame, Similarity};
 use super::scene::{
     bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, SceneOptions,
 };
+use crate::camera::distortion::{Distortion, LensModel};
+use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
-use crate::distortion::{Distortion, LensModel};
 use crate::error::{NerfError, Result};
-use crate::ray_space::RaySpace;
 
 /// Intrinsics that may appear at the top level and in each frame.
 #[derive(Clone, Debug, Default, Deserialize)]

@@ -203,7 +203,7 @@ impl HashGrid {
 
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
-    pub fn backward(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
+    pub fn encode_bwd(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
         let d = self.dims();
         let n = points.len() / 3;
         let mut corners = Corners::default();
@@ -366,7 +366,7 @@ mod tests {
             out.iter().zip(&d_out).map(|(a, b)| (a * b) as f64).sum()
         };
         let mut grads = crate::nn::GradBuffer::new(layout.total);
-        grid.backward(&pts, &d_out, &mut grads.all());
+        grid.encode_bwd(&pts, &d_out, &mut grads.all());
         let mut checked = 0;
         for i in 0..layout.total {
             let g = grads.values[i];

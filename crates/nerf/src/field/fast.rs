@@ -159,7 +159,7 @@ impl FastField {
     }
 
     /// Density network only: leaves `ws.sigma` (and `ws.geo`) for `n` positions.
-    fn density_ws(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
+    fn eval_density(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
         let n = positions.len() / 3;
         let (w, g, e) = (
             self.config.hidden,
@@ -200,14 +200,14 @@ impl FastField {
         }
         WS.with(|ws| {
             let ws = &mut ws.borrow_mut();
-            self.density_ws(params, positions, ws);
+            self.eval_density(params, positions, ws);
             out.copy_from_slice(&ws.sigma[..out.len()]);
         })
     }
 
     /// Density and colour of `n` samples at `positions` (`n x 3`) seen along unit `dirs`
     /// (one per `spd` consecutive samples), into `ws.sigma` and `ws.rgb`.
-    fn forward_ws(
+    fn eval_samples(
         &self,
         params: &[f32],
         positions: &[f32],
@@ -221,7 +221,7 @@ impl FastField {
             self.config.geo_features,
             self.colour_in_dims(),
         );
-        self.density_ws(params, positions, ws);
+        self.eval_density(params, positions, ws);
         grow(&mut ws.colour_in, n * ci);
         grow(&mut ws.c1, n * w);
         grow(&mut ws.c2, n * w);
@@ -260,7 +260,7 @@ impl FastField {
 
     /// Backward of the forward that filled `ws` (over the same `n` samples): given
     /// `d_sigma` (`n`) and `d_rgb` (`n x 3`), accumulates parameter gradients into `grads`.
-    fn backward_ws(
+    fn eval_samples_bwd(
         &self,
         params: &[f32],
         ws: &mut FastWorkspace,
@@ -352,7 +352,7 @@ impl FastField {
         matmul(&mut ws.d_enc, d_h, self.weight(params, 0, e, w).t(), false);
         grads.mark(self.mlp_range());
         self.grid
-            .backward(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
+            .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
     }
 }
 
@@ -370,7 +370,7 @@ impl Field for FastField {
         ctx: &'c mut FastWorkspace,
     ) -> FieldOutput<'c> {
         let n = input.len();
-        self.forward_ws(
+        self.eval_samples(
             params,
             input.positions,
             input.dirs,
@@ -393,11 +393,11 @@ impl Field for FastField {
         if d_output.d_sigma.is_empty() {
             return;
         }
-        self.backward_ws(params, ctx, d_output.d_sigma, d_output.d_rgb, grads);
+        self.eval_samples_bwd(params, ctx, d_output.d_sigma, d_output.d_rgb, grads);
     }
 
     fn density(&self, params: &[f32], positions: &[f32], ctx: &mut FastWorkspace, out: &mut [f32]) {
-        self.density_ws(params, positions, ctx);
+        self.eval_density(params, positions, ctx);
         out.copy_from_slice(&ctx.sigma[..out.len()]);
     }
 }

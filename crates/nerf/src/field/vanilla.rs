@@ -164,8 +164,8 @@ impl VanillaNet {
 
     /// Evaluates `n = dirs.len() / 3 * samples_per_ray` samples. `positions` is `n x 3`,
     /// `dirs` is one unit direction per ray (`r x 3`). Fills `ws.sigma` (`n`, after ReLU)
-    /// and `ws.rgb` (`n x 3`, after sigmoid) and keeps what [`Self::backward_ws`] needs.
-    pub fn forward_ws(
+    /// and `ws.rgb` (`n x 3`, after sigmoid) and keeps what [`Self::eval_rays_bwd`] needs.
+    pub fn eval_rays(
         &self,
         params: &[f32],
         positions: &[f32],
@@ -301,9 +301,9 @@ impl VanillaNet {
         }
     }
 
-    /// Backward of the last [`Self::forward_ws`] on `ws`: given `d_sigma` (`n`) and `d_rgb`
+    /// Backward of the last [`Self::eval_rays`] on `ws`: given `d_sigma` (`n`) and `d_rgb`
     /// (`n x 3`), accumulates parameter gradients into `grads` (same layout as `params`).
-    pub fn backward_ws(
+    pub fn eval_rays_bwd(
         &self,
         params: &[f32],
         ws: &mut VanillaWorkspace,
@@ -541,7 +541,7 @@ impl Field for VanillaNet {
         ctx: &'c mut VanillaWorkspace,
     ) -> FieldOutput<'c> {
         let n = input.len();
-        self.forward_ws(
+        self.eval_rays(
             params,
             input.positions,
             input.dirs,
@@ -561,7 +561,7 @@ impl Field for VanillaNet {
         d_output: FieldGrad,
         grads: &mut Grads,
     ) {
-        self.backward_ws(params, ctx, d_output.d_sigma, d_output.d_rgb, grads.dense());
+        self.eval_rays_bwd(params, ctx, d_output.d_sigma, d_output.d_rgb, grads.dense());
     }
 
     fn density(
@@ -572,7 +572,7 @@ impl Field for VanillaNet {
         out: &mut [f32],
     ) {
         // Density does not depend on the direction: one "ray" of all the points.
-        self.forward_ws(params, positions, &[0.0, 0.0, 1.0], out.len(), ctx);
+        self.eval_rays(params, positions, &[0.0, 0.0, 1.0], out.len(), ctx);
         out.copy_from_slice(&ctx.sigma[..out.len()]);
     }
 }
@@ -704,7 +704,7 @@ mod tests {
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let mut ws = VanillaWorkspace::default();
         let loss = |p: &[f32], ws: &mut VanillaWorkspace| -> f64 {
-            net.forward_ws(p, &pos, &dirs, spr, ws);
+            net.eval_rays(p, &pos, &dirs, spr, ws);
             let s: f64 = ws.sigma[..n]
                 .iter()
                 .zip(&a)
@@ -718,7 +718,7 @@ mod tests {
         };
         loss(&params, &mut ws);
         let mut grads = vec![0.0; params.len()];
-        net.backward_ws(&params, &mut ws, &a, &b, &mut grads);
+        net.eval_rays_bwd(&params, &mut ws, &a, &b, &mut grads);
         // Small step: a larger one lets some ReLU input cross zero and spoils the difference.
         let h = 1e-4f32;
         let (mut err2, mut norm2) = (0.0f64, 0.0f64);
@@ -769,9 +769,9 @@ mod tests {
             let params = net.layout.init_glorot(&mut Rng::new(2));
             let mut ws = VanillaWorkspace::default();
             let pos = [0.1, 0.2, 0.3];
-            net.forward_ws(&params, &pos, &[1.0, 0.0, 0.0], 1, &mut ws);
+            net.eval_rays(&params, &pos, &[1.0, 0.0, 0.0], 1, &mut ws);
             let c1 = ws.rgb[..3].to_vec();
-            net.forward_ws(&params, &pos, &[0.0, 1.0, 0.0], 1, &mut ws);
+            net.eval_rays(&params, &pos, &[0.0, 1.0, 0.0], 1, &mut ws);
             assert_eq!(c1 != ws.rgb[..3], vd);
         }
     }

@@ -150,7 +150,7 @@ pub fn colour_vertices(engine: &dyn Engine, mesh: &Mesh, offset: f32) -> Vec<[f3
         far: 2.0 * offset,
         background: [0.0; 3],
         // The mesh lives in the model's own space already.
-        space: crate::ray_space::RaySpace::World,
+        space: crate::camera::ray_space::RaySpace::World,
     };
     render_rays(engine, &origins, &dirs, &settings)
         .iter()

@@ -19,6 +19,16 @@ use crate::data::Dataset;
 use crate::nn::{GradBuffer, ParamLayout};
 use crate::stage::{RayBatch, RayOutput};
 
+/// Which model, by name (the command line's `--model`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ModelKind {
+    /// Hash grid + occupancy grid (after Instant-NGP): minutes on a CPU.
+    Fast,
+    /// The paper's MLPs: days on a CPU.
+    Vanilla,
+}
+
 /// Which model, with its shape; saved in a run's `config.json` under `"kind"`. Configs
 /// written before there were two models have no `"kind"` and read as vanilla.
 #[derive(Clone, Debug, PartialEq, Serialize)]

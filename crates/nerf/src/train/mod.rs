@@ -10,6 +10,7 @@
 //! gives the same rays and samples for any thread count; [`run`] adds the run folder.
 
 pub mod folder;
+pub mod options;
 pub mod run;
 
 use std::path::PathBuf;

@@ -12,7 +12,7 @@ pub struct Part {
 }
 
 /// Which built-in scene.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum SceneKind {
     Chair,
     Table,

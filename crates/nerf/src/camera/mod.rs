@@ -3,10 +3,17 @@
 //! A pose is camera-to-world: the camera looks down its own -Z axis, +Y is up, +X right.
 //! Pixel (i, j) (column, row) has camera-space direction
 //! `((i + 0.5 - cx) / fx, -(j + 0.5 - cy) / fy, -1)`, rotated into the world by the pose.
-//! Real lenses are undistorted first (see [`crate::distortion`]).
+//! Real lenses are undistorted first (see [`crate::camera::distortion`]).
 //! Directions are *not* normalised, so the marching parameter `t` is depth along -Z.
+//!
+//! Beside the pinhole model: [`distortion`] (real lenses), [`ray_space`] (where rays are
+//! marched: world or NDC), and [`path`] (camera paths for videos).
 
-use crate::distortion::Distortion;
+pub mod distortion;
+pub mod path;
+pub mod ray_space;
+
+use crate::camera::distortion::Distortion;
 use crate::math::{cross, normalize_or_zero, scale, sub, V3};
 
 /// Camera-to-world transform: rotation columns are the camera's X, Y, Z axes in the world.

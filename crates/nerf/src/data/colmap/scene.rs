@@ -9,13 +9,13 @@
 
 use std::path::Path;
 
-use super::colmap::{self, CameraModel, Model};
-use super::poses::{inward_frame, Similarity};
-use super::scene::{bounds_around_box, Frame, Parsed, SceneOptions};
+use super::model::{self as colmap, CameraModel, Model};
+use crate::camera::distortion::{Distortion, LensModel};
+use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
-use crate::distortion::{Distortion, LensModel};
+use crate::data::poses::{inward_frame, Similarity};
+use crate::data::scene::{bounds_around_box, Frame, Parsed, SceneOptions};
 use crate::error::{NerfError, Result};
-use crate::ray_space::RaySpace;
 
 /// RMS distance of the cameras from the scene centre after placement.
 pub const CAMERA_RADIUS: f32 = 1.0;

@@ -1,14 +1,14 @@
-//! `nerf mesh` and `nerf points`: coloured geometry of a trained run.
+//! `nerf mesh`: a coloured triangle mesh of a trained run.
 
 use std::path::PathBuf;
 use std::time::Instant;
 
 use anyhow::{bail, Result};
 use clap::Args;
+use nerf::camera::ray_space::RaySpace;
 use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
-use nerf::ray_space::RaySpace;
-use nerf::train::run::LoadedRun;
+use nerf::train::folder::LoadedRun;
 
 use crate::progress::bar;
 
@@ -38,7 +38,7 @@ pub struct MeshArgs {
     bound: Option<f32>,
 }
 
-pub fn mesh(a: MeshArgs) -> Result<()> {
+pub fn run(a: MeshArgs) -> Result<()> {
     if a.resolution.is_some_and(|r| !(2..=2048).contains(&r)) {
         bail!("--resolution must be between 2 and 2048");
     }
@@ -101,83 +101,6 @@ pub fn mesh(a: MeshArgs) -> Result<()> {
         a.threshold,
         a.keep_largest
             .map_or(String::new(), |n| format!(", largest {n} piece(s)")),
-        a.out.display()
-    );
-    Ok(())
-}
-
-#[derive(Args)]
-pub struct PointsArgs {
-    /// Run folder written by `nerf train`.
-    #[arg(long)]
-    run: PathBuf,
-    /// Output file (.ply, binary, coloured vertices).
-    #[arg(long)]
-    out: PathBuf,
-    /// Use every K-th training view.
-    #[arg(long, default_value_t = 10)]
-    every: usize,
-    /// Render the views at 1/N of the training resolution.
-    #[arg(long, default_value_t = 2)]
-    downscale: usize,
-    /// Keep pixels at least this opaque (drops background and soft edges).
-    #[arg(long, default_value_t = 0.95)]
-    min_opacity: f32,
-}
-
-pub fn points(a: PointsArgs) -> Result<()> {
-    if a.every == 0 || a.downscale == 0 {
-        bail!("--every and --downscale must be at least 1");
-    }
-    if !a
-        .out
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("ply"))
-    {
-        bail!("{}: point clouds are written as .ply", a.out.display());
-    }
-    let run = LoadedRun::open(&a.run)?;
-    let config = &run.config;
-    let scene = config.open_scene(a.downscale)?;
-    let cameras: Vec<_> = scene
-        .cameras(nerf::data::Split::Train)
-        .into_iter()
-        .step_by(a.every)
-        .collect();
-    let settings = nerf::views::RenderSettings::of_scene(&scene, config.background.eval_colour());
-    let t0 = Instant::now();
-    let pb = bar(cameras.len() as u64, "views");
-    let (points, colours) = nerf::mesh::points::from_views(
-        run.engine.as_ref(),
-        &cameras,
-        &settings,
-        a.min_opacity,
-        &mut |done| pb.set_position(done as u64),
-    );
-    pb.finish_and_clear();
-    if points.is_empty() {
-        bail!(
-            "no pixel reached opacity {}; lower --min-opacity",
-            a.min_opacity
-        );
-    }
-    let cloud = nerf::mesh::Mesh {
-        vertices: points,
-        triangles: Vec::new(),
-    };
-    if !a
-        .out
-        .extension()
-        .is_some_and(|e| e.eq_ignore_ascii_case("ply"))
-    {
-        bail!("{}: point clouds are written as .ply", a.out.display());
-    }
-    write_mesh(&a.out, &cloud, &colours)?;
-    println!(
-        "{} points from {} views in {:.1} s -> {}",
-        cloud.vertices.len(),
-        cameras.len(),
-        t0.elapsed().as_secs_f64(),
         a.out.display()
     );
     Ok(())

@@ -1,0 +1,123 @@
+//! `nerf bench`: throughput figures of this machine (training steps, rendering, memory).
+
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::Args;
+use nerf::model::ModelKind;
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Which model to measure.
+    #[arg(long, value_enum, default_value = "fast")]
+    model: ModelKind,
+    /// Timed training steps (the median is reported). Default: 32 fast, 3 vanilla.
+    #[arg(long)]
+    steps: Option<usize>,
+    /// Size of the rendered view (square; fast: unless --data has a test camera).
+    #[arg(long, default_value_t = 400)]
+    render_size: usize,
+    /// Print the figures as JSON.
+    #[arg(long)]
+    json: bool,
+    /// Fast: a Blender-format scene to train on (default: the built-in chair).
+    #[arg(long)]
+    data: Option<PathBuf>,
+    /// Fast: untimed steps first, so the occupancy grid takes shape.
+    #[arg(long, default_value_t = 300)]
+    warmup_steps: u64,
+    /// Fast: field samples per step.
+    #[arg(long)]
+    samples: Option<usize>,
+    /// Fast: log2 of the hash-table entries per level.
+    #[arg(long)]
+    table_log2: Option<u32>,
+    /// Vanilla: rays per training step.
+    #[arg(long, default_value_t = 1024)]
+    rays: usize,
+    /// Vanilla: rows of the view actually rendered; the full-view time is extrapolated.
+    #[arg(long, default_value_t = 8)]
+    render_rows: usize,
+    /// Vanilla: model preset to measure.
+    #[arg(long, default_value = "paper", value_parser = nerf::presets::possible_values())]
+    preset: String,
+}
+
+pub fn run(a: BenchArgs) -> Result<()> {
+    if a.model == ModelKind::Fast {
+        return bench_fast(a);
+    }
+    let opts = nerf::bench_vanilla::BenchOptions {
+        rays: a.rays,
+        steps: a.steps.unwrap_or(3).max(1),
+        render_size: a.render_size,
+        render_rows: a.render_rows,
+        preset: a.preset,
+    };
+    let report = nerf::bench_vanilla::run(&opts, &mut |line| println!("{line}"))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    let r = &report;
+    println!("\n{} threads, preset {}", r.threads, r.preset);
+    println!(
+        "GEMM peak (gemm crate, 16384x256x256): {:.1} GFLOP/s ({:.1} on one thread)",
+        r.gemm_peak_gflops, r.gemm_gflops_one_thread
+    );
+    println!(
+        "training step, {} rays: {:.3} s (median), {:.0} rays/s, {:.0} samples/s, {:.1} GFLOP/step, {:.1} GFLOP/s = {:.1}% of the GEMM peak",
+        r.train_rays, r.train_step_seconds_median, r.train_rays_per_second, r.train_samples_per_second, r.train_gflop_per_step, r.train_gflops, r.train_percent_of_gemm_peak
+    );
+    println!(
+        "rendering {0}x{0} (from {1} rows): {2:.1} s per view, {3:.0} rays/s, {4:.0} samples/s, {5:.1} GFLOP/s = {6:.1}% of the GEMM peak",
+        r.render_size, r.render_rows_measured, r.render_seconds_full_view, r.render_rays_per_second, r.render_samples_per_second, r.render_gflops, r.render_percent_of_gemm_peak
+    );
+    println!("peak resident memory: {:.0} MiB", r.peak_resident_mib);
+    Ok(())
+}
+
+fn bench_fast(a: BenchArgs) -> Result<()> {
+    let mut model = nerf::model::FastModelConfig::default();
+    model.samples_per_step = a.samples.unwrap_or(model.samples_per_step);
+    model.field.grid.log2_table_size = a.table_log2.unwrap_or(model.field.grid.log2_table_size);
+    let opts = nerf::bench_fast::FastBenchOptions {
+        data: a.data,
+        warmup_steps: a.warmup_steps,
+        steps: a.steps.unwrap_or(32).max(1),
+        render_size: a.render_size,
+        model,
+    };
+    let r = nerf::bench_fast::run(&opts, &mut |line| println!("{line}"))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+        return Ok(());
+    }
+    println!(
+        "\n{} threads, fast model on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        r.threads,
+        r.scene,
+        r.warmup_steps,
+        100.0 * r.occupied_fraction
+    );
+    println!(
+        "training step, {} samples ({:.0} rays): {:.3} s (median), {:.3} s with an occupancy refresh, {:.3} s amortised",
+        r.samples_per_step, r.rays_per_step_median, r.step_seconds_median, r.refresh_step_seconds_median, r.step_seconds_amortised
+    );
+    println!(
+        "  {:.2} M samples/s, {:.0} rays/s, {:.0} M hash-grid lookups/s (forward + backward)",
+        r.train_samples_per_second / 1e6,
+        r.train_rays_per_second,
+        r.hash_lookups_per_second / 1e6
+    );
+    println!(
+        "  {:.1}% of the gradient blocks touched per step (reduction and Adam skip the rest)",
+        100.0 * r.touched_fraction
+    );
+    println!(
+        "rendering {}x{}: {:.2} s per view, {:.0} rays/s",
+        r.render_width, r.render_height, r.render_seconds, r.render_rays_per_second
+    );
+    println!("peak resident memory: {:.0} MiB", r.peak_resident_mib);
+    Ok(())
+}

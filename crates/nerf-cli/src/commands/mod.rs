@@ -1,0 +1,12 @@
+//! One file per subcommand: argument glue between the command line and the library.
+
+pub mod bench;
+pub mod capture;
+pub mod demo;
+pub mod eval;
+pub mod mesh;
+pub mod points;
+pub mod render;
+pub mod scene;
+pub mod synth;
+pub mod train;

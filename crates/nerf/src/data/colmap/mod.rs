@@ -1,0 +1,8 @@
+//! COLMAP sparse models: [`model`] reads and writes the files (`cameras`, `images`,
+//! `points3D`, binary or text), [`scene`] places a model as a trainable scene. Running
+//! COLMAP itself on photos is `crate::capture`.
+
+pub mod model;
+pub mod scene;
+
+pub use model::*;

@@ -1,0 +1,133 @@
+//! The demo pipeline (`nerf demo`): the built-in chair -> the fast model -> evaluation on
+//! the test views -> an orbit video, all under one folder, no data needed. Front ends show
+//! progress through [`DemoHooks`].
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use crate::data::synth::{self, SceneKind, SynthOptions};
+use crate::data::{blender, Split};
+use crate::error::{NerfError, Result};
+use crate::eval::EvalReport;
+use crate::frames::{FrameProgress, FramesOptions, FramesReport};
+use crate::train::folder::LoadedRun;
+use crate::train::run::{self, Event, RunOptions, RunSummary, CHECKPOINT_FILE};
+use crate::train::TrainConfig;
+
+#[derive(Clone, Debug, clap::Args)]
+pub struct DemoOptions {
+    /// Folder for the scene and the run.
+    #[arg(long, default_value = "demo")]
+    pub out: PathBuf,
+    /// Training steps of the fast model.
+    #[arg(long, default_value_t = 1500)]
+    pub steps: u64,
+    /// Image size of the built-in scene.
+    #[arg(long, default_value_t = 128)]
+    pub size: usize,
+}
+
+/// What a front end hears while the demo runs.
+pub trait DemoHooks: Sync {
+    /// A line for the user.
+    fn say(&self, line: &str);
+    fn synth_progress(&self, done: usize, total: usize);
+    fn train_event(&mut self, event: Event);
+    fn eval_progress(&self, rays_done: usize, rays_total: usize);
+    fn frames_progress(&self, progress: FrameProgress);
+}
+
+/// Where the demo put everything, and what it measured.
+#[derive(Clone, Debug)]
+pub struct DemoReport {
+    pub scene: PathBuf,
+    pub run: PathBuf,
+    pub training: RunSummary,
+    pub eval_dir: PathBuf,
+    pub eval: EvalReport,
+    pub orbit_dir: PathBuf,
+    pub orbit: FramesReport,
+    pub seconds: f64,
+}
+
+/// The built-in scene of the demo: the chair, 100 training and 20 test views.
+pub fn scene_options(size: usize) -> SynthOptions {
+    SynthOptions {
+        scene: SceneKind::Chair,
+        size,
+        train_views: 100,
+        val_views: 4,
+        test_views: 20,
+        supersample: 2,
+        seed: 0,
+    }
+}
+
+/// The fast model for `steps` steps, validating at full resolution every 500.
+pub fn train_config(data: PathBuf, steps: u64) -> TrainConfig {
+    let mut config = TrainConfig::fast(data);
+    config.steps = steps;
+    config.val_every = 500;
+    config.val_downscale = 1;
+    config.checkpoint_every = 500;
+    config
+}
+
+/// Runs the demo (reusing the scene when it is already there; refusing to overwrite a
+/// trained run).
+pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> {
+    let t0 = Instant::now();
+    let scene = opts.out.join("chair");
+    if !blender::transforms_path(&scene, Split::Test).exists() {
+        let synth = scene_options(opts.size);
+        let n = synth::generate(&synth, &scene, &mut |done, total| {
+            hooks.synth_progress(done, total)
+        })?;
+        hooks.say(&format!(
+            "wrote {n} views of the chair ({0}x{0}) to {1}",
+            opts.size,
+            scene.display()
+        ));
+    } else {
+        hooks.say(&format!("using the existing scene in {}", scene.display()));
+    }
+    let run_dir = opts.out.join("run");
+    if run_dir.join(CHECKPOINT_FILE).exists() {
+        return Err(NerfError::Config(format!(
+            "{} already holds a trained run: delete it, or use `nerf eval --run {}`",
+            run_dir.display(),
+            run_dir.display()
+        )));
+    }
+    hooks.say(&format!(
+        "training the fast model (hash grid + occupancy grid, after Instant-NGP) for {} steps",
+        opts.steps
+    ));
+    let run_options = RunOptions {
+        out: run_dir.clone(),
+        config: train_config(scene.clone(), opts.steps),
+        minutes: None,
+        resume: false,
+        pause_at: None,
+    };
+    let training = run::train(&run_options, &mut |e| hooks.train_event(e))?;
+    let loaded = LoadedRun::open(&run_dir)?;
+    let eval_dir = run_dir.join("eval_test");
+    let eval = crate::eval::evaluate(&loaded, Split::Test, 1, &eval_dir, &|done, total| {
+        hooks.eval_progress(done, total)
+    })?;
+    let orbit_dir = run_dir.join("render_orbit");
+    let frames = FramesOptions::orbit(36, 4.0, run_dir.join("orbit.gif"));
+    let orbit =
+        crate::frames::render_frames(&loaded, &frames, &orbit_dir, &|p| hooks.frames_progress(p))?;
+    Ok(DemoReport {
+        scene,
+        run: run_dir,
+        training,
+        eval_dir,
+        eval,
+        orbit_dir,
+        orbit,
+        seconds: t0.elapsed().as_secs_f64(),
+    })
+}

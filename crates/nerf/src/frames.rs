@@ -1,0 +1,306 @@
+//! Rendering a camera path to PNG frames (RGB, turbo-coloured depth, opacity) and a video:
+//! the test views, an orbit, an LLFF spiral, a loop through the training cameras, or a
+//! nerfstudio `camera_path.json`. What `nerf render` and the demo run.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use crate::camera::{Camera, Pose};
+use crate::data::image::save_rgb_png;
+use crate::data::scene::Scene;
+use crate::data::Split;
+use crate::error::{NerfError, Result};
+use crate::train::folder::LoadedRun;
+use crate::views::{render_view, RenderSettings};
+
+/// Which cameras to render.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum PathKind {
+    /// The test split's cameras.
+    Test,
+    /// A circle around the object, like the paper's videos.
+    Orbit,
+    /// A spiral in front of the average training camera (forward-facing scenes, LLFF style).
+    Spiral,
+    /// A smooth loop through the training cameras.
+    Interpolate,
+    /// The cameras of a nerfstudio camera_path.json (--camera-path).
+    File,
+}
+
+impl PathKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            PathKind::Test => "test",
+            PathKind::Orbit => "orbit",
+            PathKind::Spiral => "spiral",
+            PathKind::Interpolate => "interpolate",
+            PathKind::File => "file",
+        }
+    }
+}
+
+/// What to render and how (the options of `nerf render`).
+#[derive(Clone, Debug, clap::Args)]
+pub struct FramesOptions {
+    #[arg(long, value_enum, default_value = "orbit")]
+    pub path: PathKind,
+    /// Frames of an orbit, spiral or interpolated path.
+    #[arg(long, default_value_t = 40)]
+    pub frames: usize,
+    /// nerfstudio camera_path.json to render with `--path file`.
+    #[arg(long)]
+    pub camera_path: Option<PathBuf>,
+    /// Orbit elevation in degrees.
+    #[arg(long, default_value_t = 30.0)]
+    pub elevation: f32,
+    /// Orbit radius in scene units (default: the training cameras' mean distance from the
+    /// scene centre).
+    #[arg(long)]
+    pub radius: Option<f32>,
+    /// Output size: the width for generated paths (the height keeps the scene's aspect
+    /// ratio), the height for --path file (default: the training resolution, or the
+    /// file's).
+    #[arg(long)]
+    pub size: Option<usize>,
+    /// Also write the RGB frames as a video: .gif (built in) or .mp4 (H.264 through
+    /// ffmpeg, which must be on PATH).
+    #[arg(long)]
+    pub video: Option<PathBuf>,
+    /// Frames per second of the video.
+    #[arg(long, default_value_t = 24.0)]
+    pub fps: f32,
+    /// Fixed depth range NEAR,FAR for the colour map (default: the first frame's 2nd-98th
+    /// percentile of opaque pixels, kept for all frames).
+    #[arg(long, value_parser = parse_range)]
+    pub depth_range: Option<(f32, f32)>,
+}
+
+impl FramesOptions {
+    /// An orbit of `frames` frames at `radius`, written as a GIF to `video`.
+    pub fn orbit(frames: usize, radius: f32, video: PathBuf) -> Self {
+        FramesOptions {
+            path: PathKind::Orbit,
+            frames,
+            camera_path: None,
+            elevation: 30.0,
+            radius: Some(radius),
+            size: None,
+            video: Some(video),
+            fps: 24.0,
+            depth_range: None,
+        }
+    }
+}
+
+/// `NEAR,FAR` with NEAR < FAR.
+pub fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
+    let (a, b) = s
+        .split_once(',')
+        .ok_or_else(|| format!("{s:?}: expected NEAR,FAR such as 2.5,5"))?;
+    let (a, b): (f32, f32) = (
+        a.trim().parse().map_err(|e| format!("{a:?}: {e}"))?,
+        b.trim().parse().map_err(|e| format!("{b:?}: {e}"))?,
+    );
+    if a.is_nan() || b.is_nan() || a >= b {
+        return Err(format!("{s:?}: NEAR must be less than FAR"));
+    }
+    Ok((a, b))
+}
+
+/// The cameras of `opts.path` in `scene`.
+pub fn cameras(scene: &Scene, opts: &FramesOptions) -> Result<Vec<Camera>> {
+    if opts.path == PathKind::File {
+        let file = opts
+            .camera_path
+            .as_ref()
+            .ok_or_else(|| NerfError::Config("--path file needs --camera-path FILE".into()))?;
+        return crate::camera::path::load_camera_path(file, opts.size);
+    }
+    if opts.path == PathKind::Test {
+        return Ok(scene.cameras(Split::Test));
+    }
+    let train = scene.cameras(Split::Train);
+    let reference = train
+        .first()
+        .ok_or_else(|| NerfError::Config("the scene has no training views".into()))?;
+    let poses: Vec<Pose> = train.iter().map(|c| c.c2w).collect();
+    let frames = opts.frames.max(1);
+    let path = match opts.path {
+        PathKind::Spiral => crate::camera::path::spiral(&poses, frames, 2.0),
+        PathKind::Interpolate => crate::camera::path::interpolate(&poses, 8, frames),
+        _ => {
+            let mean_distance = poses
+                .iter()
+                .map(|p| crate::math::length([p[0][3], p[1][3], p[2][3]]))
+                .sum::<f32>()
+                / poses.len() as f32;
+            let radius = opts.radius.unwrap_or(mean_distance);
+            crate::camera::orbit(frames, radius, opts.elevation.to_radians())
+        }
+    };
+    let template = match opts.size {
+        Some(width) => resized(reference, width),
+        None => reference.clone(),
+    };
+    Ok(path
+        .into_iter()
+        .map(|c2w| Camera {
+            c2w,
+            ..template.clone()
+        })
+        .collect())
+}
+
+/// `camera`'s pinhole view (no lens distortion: rendered views are ideal) at `width`
+/// pixels across, keeping its field of view and aspect ratio.
+pub fn resized(camera: &Camera, width: usize) -> Camera {
+    let s = width as f32 / camera.width as f32;
+    Camera {
+        width,
+        height: ((camera.height as f32 * s).round() as usize).max(1),
+        fx: camera.fx * s,
+        fy: camera.fy * s,
+        cx: camera.cx * s,
+        cy: camera.cy * s,
+        c2w: camera.c2w,
+        distortion: Default::default(),
+    }
+}
+
+/// How a video is written.
+#[derive(Clone, Debug, PartialEq)]
+pub struct VideoTarget {
+    pub path: PathBuf,
+    /// H.264 through ffmpeg; else a GIF encoded here.
+    pub mp4: bool,
+    /// Why the file differs from the one asked for (an MP4 without ffmpeg becomes a GIF).
+    pub fallback: Option<String>,
+}
+
+/// The video for `path`: `.gif`, or `.mp4` when ffmpeg is on PATH (a GIF beside it when
+/// it is not).
+pub fn video_target(path: &Path) -> Result<VideoTarget> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    match ext.as_deref() {
+        Some("gif") => Ok(VideoTarget {
+            path: path.to_path_buf(),
+            mp4: false,
+            fallback: None,
+        }),
+        Some("mp4") if crate::video::ffmpeg_available() => Ok(VideoTarget {
+            path: path.to_path_buf(),
+            mp4: true,
+            fallback: None,
+        }),
+        Some("mp4") => {
+            let gif = path.with_extension("gif");
+            Ok(VideoTarget {
+                fallback: Some(format!(
+                    "ffmpeg is not on PATH (Debian: apt-get install ffmpeg): writing {} instead of {}",
+                    gif.display(),
+                    path.display()
+                )),
+                path: gif,
+                mp4: false,
+            })
+        }
+        _ => Err(NerfError::Config(format!(
+            "{}: choose a .gif or .mp4 video file",
+            path.display()
+        ))),
+    }
+}
+
+/// Progress of [`render_frames`].
+#[derive(Clone, Copy, Debug)]
+pub struct FrameProgress {
+    /// The frame being rendered (0-based) of `frames`.
+    pub frame: usize,
+    pub frames: usize,
+    pub rays_done: usize,
+    pub rays_total: usize,
+    pub frames_per_second: f64,
+}
+
+/// What [`render_frames`] wrote.
+#[derive(Clone, Debug)]
+pub struct FramesReport {
+    pub frames: usize,
+    pub seconds: f64,
+    pub video: Option<VideoTarget>,
+}
+
+/// Renders `opts.path` of `run` into `out` (`frame_NNNN.png`, `_depth.png`,
+/// `_opacity.png`) and the video, if asked for.
+pub fn render_frames(
+    run: &LoadedRun,
+    opts: &FramesOptions,
+    out: &Path,
+    on_progress: &(dyn Fn(FrameProgress) + Sync),
+) -> Result<FramesReport> {
+    let cfg = &run.config;
+    let scene = cfg.open_scene(1)?;
+    let cameras = cameras(&scene, opts)?;
+    let video = opts.video.as_deref().map(video_target).transpose()?;
+    crate::io::create_dir(out)?;
+    let settings = RenderSettings::of_scene(&scene, cfg.background.eval_colour());
+    let rays_total: usize = cameras.iter().map(|c| c.width * c.height).sum();
+    let t0 = Instant::now();
+    let mut done = 0;
+    let mut depth_range = opts.depth_range;
+    let mut gif_frames = Vec::new();
+    for (k, cam) in cameras.iter().enumerate() {
+        let progress = |rays_done| FrameProgress {
+            frame: k,
+            frames: cameras.len(),
+            rays_done,
+            rays_total,
+            frames_per_second: k as f64 / t0.elapsed().as_secs_f64().max(1e-9),
+        };
+        let r = render_view(run.engine.as_ref(), cam, &settings, &|n| {
+            on_progress(progress(done + n))
+        });
+        done += cam.width * cam.height;
+        save_rgb_png(
+            &out.join(format!("frame_{k:04}.png")),
+            r.width,
+            r.height,
+            &r.rgb,
+        )?;
+        let (near, far) = *depth_range.get_or_insert_with(|| {
+            crate::video::auto_depth_range(&r.depth, &r.opacity)
+                .unwrap_or((settings.near, settings.far))
+        });
+        save_rgb_png(
+            &out.join(format!("frame_{k:04}_depth.png")),
+            r.width,
+            r.height,
+            &crate::video::depth_turbo(&r.depth, &r.opacity, near, far),
+        )?;
+        let opacity: Vec<f32> = r.opacity.iter().flat_map(|&o| [o; 3]).collect();
+        save_rgb_png(
+            &out.join(format!("frame_{k:04}_opacity.png")),
+            r.width,
+            r.height,
+            &opacity,
+        )?;
+        if video.as_ref().is_some_and(|v| !v.mp4) {
+            gif_frames.push(r.rgb);
+        }
+    }
+    if let Some(v) = &video {
+        if v.mp4 {
+            crate::video::write_mp4(&out.join("frame_%04d.png"), &v.path, opts.fps)?;
+        } else if let Some(c) = cameras.first() {
+            crate::video::write_gif(&v.path, c.width, c.height, &gif_frames, opts.fps)?;
+        }
+    }
+    Ok(FramesReport {
+        frames: cameras.len(),
+        seconds: t0.elapsed().as_secs_f64(),
+        video,
+    })
+}

@@ -1,0 +1,222 @@
+//! What a user sets for a training run (the command line's `nerf train` options, whose doc
+//! comments are its `--help`), merged into a [`TrainConfig`] in one place: the model's
+//! defaults come from its preset ([`TrainConfig::fast`], [`TrainConfig::from_preset`]) and
+//! every option given replaces one value.
+
+use std::path::{Path, PathBuf};
+
+use super::run::{RunOptions, CONFIG_FILE};
+use super::TrainConfig;
+use crate::data::scene::SceneOptions;
+use crate::data::Background;
+use crate::error::{NerfError, Result};
+use crate::model::{ModelConfig, ModelKind};
+
+#[derive(Clone, Debug, clap::Args)]
+pub struct TrainOptions {
+    /// Scene folder: Blender (transforms_train.json), instant-ngp / nerfstudio
+    /// (transforms.json), LLFF (poses_bounds.npy + images/) or COLMAP (sparse/0 + images/).
+    #[arg(long)]
+    pub data: PathBuf,
+    #[command(flatten)]
+    pub scene: SceneOptions,
+    /// Fast: half-extent of the scene box [-B, B]^3 the hash grid covers, in scene units
+    /// after the format's placement. Default: from the scene (Blender 1.5, NDC 1,
+    /// instant-ngp aabb_scale / 2, COLMAP from its points).
+    #[arg(long)]
+    pub bound: Option<f32>,
+    /// Fast: keep the whole scene in the box instead of contracting the space beyond its
+    /// inner half (contraction is the default for 360-degree real captures: LLFF
+    /// --spherify and COLMAP).
+    #[arg(long)]
+    pub no_contract: bool,
+    /// Run folder (config.json, checkpoint, metrics.jsonl, val/). Default: runs/<scene>-<preset>.
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Which model: `fast` (hash grid + occupancy grid, minutes) or `vanilla` (the paper's
+    /// MLPs, days). Default: fast, or vanilla when --preset is given.
+    #[arg(long, value_enum)]
+    pub model: Option<ModelKind>,
+    /// Vanilla model configuration: the paper's, one of its ablations, or a reduced demo
+    /// model (implies --model vanilla; default paper).
+    #[arg(long, value_parser = crate::presets::possible_values())]
+    pub preset: Option<String>,
+    /// Steps to train (the learning rate decays 10x over them). Default: 5000 fast,
+    /// 200000 vanilla.
+    #[arg(long)]
+    pub steps: Option<u64>,
+    /// Wall-clock budget in minutes: stop (with a checkpoint) when it runs out.
+    #[arg(long)]
+    pub minutes: Option<f64>,
+    /// Vanilla: rays per step (default 1024; paper: 4096).
+    #[arg(long)]
+    pub batch: Option<usize>,
+    /// Fast: field samples per step; the number of rays adapts (default 65536).
+    #[arg(long)]
+    pub samples: Option<usize>,
+    /// Fast: log2 of the hash-table entries per level (default 19).
+    #[arg(long)]
+    pub table_log2: Option<u32>,
+    /// Initial learning rate (default 1e-2 fast, 5e-4 vanilla).
+    #[arg(long)]
+    pub lr: Option<f32>,
+    /// Background behind transparent pixels; random = a new colour per ray while training.
+    /// Default: random for fast, white for vanilla.
+    #[arg(long, value_enum)]
+    pub background: Option<Background>,
+    /// Area-average downscale factor of the images.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: usize,
+    /// Steps of central-crop warm-up (rays from the central half of each image). Default:
+    /// 0 fast, 500 vanilla.
+    #[arg(long)]
+    pub precrop_steps: Option<u64>,
+    /// Use the paper's printed positional encoding (sin(2^k pi p), no identity term).
+    #[arg(long)]
+    pub paper_pe: bool,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Render a validation image every N steps (0: never). Default: 500 fast, 1000 vanilla.
+    #[arg(long)]
+    pub val_every: Option<u64>,
+    /// Save a checkpoint every N steps.
+    #[arg(long, default_value_t = 500)]
+    pub checkpoint_every: u64,
+    /// Rays per work unit per thread (vanilla memory: about 10 KB x 192 samples per ray).
+    /// Default: 1024 fast, 64 vanilla.
+    #[arg(long)]
+    pub chunk: Option<usize>,
+    /// Continue the run in --out from its last checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+    /// Stop this session after step N with a checkpoint (the learning-rate schedule still
+    /// spans --steps); continue later with --resume.
+    #[arg(long)]
+    pub pause_at: Option<u64>,
+}
+
+/// `runs/<scene>-<label>`: the default run folder of a scene.
+pub fn default_run(data: &Path, label: &str) -> PathBuf {
+    let scene = data
+        .file_name()
+        .map(|s| s.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene".into());
+    PathBuf::from("runs").join(format!("{scene}-{label}"))
+}
+
+fn refuse<T>(message: String) -> Result<T> {
+    Err(NerfError::Config(message))
+}
+
+impl TrainOptions {
+    /// The model: `--model`, else vanilla when a preset is named, else fast.
+    pub fn model(&self) -> Result<ModelKind> {
+        match (self.model, &self.preset) {
+            (Some(ModelKind::Fast), Some(p)) => refuse(format!(
+                "--preset {p} names a vanilla configuration; drop it or use --model vanilla"
+            )),
+            (Some(m), _) => Ok(m),
+            (None, Some(_)) => Ok(ModelKind::Vanilla),
+            (None, None) => Ok(ModelKind::Fast),
+        }
+    }
+
+    /// Name for the default run folder: `fast`, or the vanilla preset.
+    pub fn label(&self) -> Result<String> {
+        Ok(match self.model()? {
+            ModelKind::Fast => "fast".into(),
+            ModelKind::Vanilla => self.preset.clone().unwrap_or_else(|| "paper".into()),
+        })
+    }
+
+    /// The run folder: `--out`, else [`default_run`].
+    pub fn out(&self) -> Result<PathBuf> {
+        match &self.out {
+            Some(out) => Ok(out.clone()),
+            None => Ok(default_run(&self.data, &self.label()?)),
+        }
+    }
+
+    /// The whole configuration: the model's defaults with every given option applied.
+    /// Reads the scene (its box and contraction are the defaults of the fast model);
+    /// `on_warning` hears what the scene reader warns about.
+    pub fn config(&self, on_warning: &mut dyn FnMut(&str)) -> Result<TrainConfig> {
+        // Absolute, so `eval` and `render` find the scene from any working directory.
+        let data = std::fs::canonicalize(&self.data).unwrap_or_else(|_| self.data.clone());
+        let mut c = match self.model()? {
+            ModelKind::Fast => TrainConfig::fast(data),
+            ModelKind::Vanilla => {
+                TrainConfig::from_preset(data, self.preset.as_deref().unwrap_or("paper"))?
+            }
+        };
+        match &mut c.model {
+            ModelConfig::Vanilla(m) => {
+                m.net.position_encoding.paper_form = self.paper_pe;
+                if let Some(d) = &mut m.net.direction_encoding {
+                    d.paper_form = self.paper_pe;
+                }
+                if self.samples.is_some() || self.table_log2.is_some() {
+                    return refuse("--samples and --table-log2 apply to --model fast only".into());
+                }
+            }
+            ModelConfig::Fast(m) => {
+                if self.batch.is_some() || self.paper_pe {
+                    return refuse("--batch and --paper-pe apply to --model vanilla only".into());
+                }
+                m.samples_per_step = self.samples.unwrap_or(m.samples_per_step);
+                m.field.grid.log2_table_size =
+                    self.table_log2.unwrap_or(m.field.grid.log2_table_size);
+            }
+        }
+        c.steps = self.steps.unwrap_or(c.steps);
+        c.batch_rays = self.batch.unwrap_or(c.batch_rays);
+        if let Some(lr) = self.lr {
+            c.lr_final *= lr / c.lr_init;
+            c.lr_init = lr;
+        }
+        c.background = self.background.unwrap_or(c.background);
+        c.downscale = self.downscale;
+        c.scene = self.scene.clone();
+        let scene = c.open_scene(1)?;
+        if let Some(w) = scene.warning() {
+            on_warning(&w);
+        }
+        match &mut c.model {
+            ModelConfig::Fast(m) => {
+                m.field.bound = self.bound.unwrap_or(scene.bound);
+                m.contract = scene.contract && !self.no_contract;
+            }
+            ModelConfig::Vanilla(_) if self.bound.is_some() || self.no_contract => {
+                return refuse("--bound and --no-contract apply to --model fast only".into());
+            }
+            ModelConfig::Vanilla(_) => {}
+        }
+        c.precrop_steps = self.precrop_steps.unwrap_or(c.precrop_steps);
+        c.seed = self.seed;
+        c.val_every = self.val_every.unwrap_or(c.val_every);
+        c.checkpoint_every = self.checkpoint_every;
+        c.chunk_rays = self.chunk.unwrap_or(c.chunk_rays);
+        Ok(c)
+    }
+
+    /// How to run: the configuration and the session's budget. Resuming with `--steps`
+    /// records the new target in the run's config, so the schedule and later resumes agree.
+    pub fn run_options(&self, on_warning: &mut dyn FnMut(&str)) -> Result<RunOptions> {
+        let out = self.out()?;
+        if self.resume {
+            if let Some(steps) = self.steps {
+                let path = out.join(CONFIG_FILE);
+                let mut c: TrainConfig = crate::io::read_json(&path)?;
+                c.steps = steps;
+                crate::io::write_json(&path, &c)?;
+            }
+        }
+        Ok(RunOptions {
+            out,
+            config: self.config(on_warning)?,
+            minutes: self.minutes,
+            resume: self.resume,
+            pause_at: self.pause_at,
+        })
+    }
+}
