@@ -18,11 +18,11 @@ use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
 use crate::data::pixels::TrainingRays;
 use crate::field::{FastField, FastFieldConfig, FastWorkspace as FieldContext};
 use crate::nn::{GradBuffer, ParamLayout};
-use crate::render::loss::squared_error;
+use crate::render::loss::LossBackward;
 use crate::render::march::{render_marched, MarchWorkspace, Marcher};
 use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
-use crate::render::volume::{composite_packed, composite_packed_bwd};
-use crate::stage::{Field, FieldGrad, FieldOutput, PackedSamples, RayBatch, RayOutput};
+use crate::render::volume::composite_packed;
+use crate::stage::{Field, FieldOutput, PackedSamples, RayBatch, RayOutput};
 
 /// Rays per marching block of a training step.
 pub const BLOCK_RAYS: usize = 16;
@@ -123,9 +123,7 @@ pub struct FastWorkspace {
     targets: Vec<[f32; 3]>,
     weights: Vec<f32>,
     outputs: Vec<RayOutput>,
-    d_out: Vec<[f32; 3]>,
-    d_sigma: Vec<f32>,
-    d_rgb: Vec<f32>,
+    loss: LossBackward,
     march: MarchWorkspace<FieldContext>,
 }
 
@@ -225,9 +223,6 @@ impl FastModel {
         let (r, n) = (ws.samples.rays(), ws.samples.len());
         ws.weights.resize(n, 0.0);
         ws.outputs.resize(r, RayOutput::default());
-        ws.d_out.resize(r, [0.0; 3]);
-        ws.d_sigma.resize(n, 0.0);
-        ws.d_rgb.resize(n * 3, 0.0);
         let field = if n > 0 {
             self.field
                 .forward(params, ws.samples.field_input(), &mut ws.field)
@@ -244,22 +239,21 @@ impl FastModel {
             &mut ws.weights,
             &mut ws.outputs,
         );
-        let sse = squared_error(&ws.outputs, &ws.targets, &mut ws.d_out);
-        composite_packed_bwd(
+        let sse = ws.loss.run(
             &ws.samples,
             field,
             &ws.backgrounds,
             &ws.outputs,
-            &ws.d_out,
-            &mut ws.d_sigma,
-            &mut ws.d_rgb,
+            &ws.targets,
         );
-        let d = FieldGrad {
-            d_sigma: &ws.d_sigma[..n],
-            d_rgb: &ws.d_rgb[..n * 3],
-        };
-        self.field
-            .backward(params, &mut ws.field, d, &mut grads.all());
+        if n > 0 {
+            self.field.backward(
+                params,
+                &mut ws.field,
+                ws.loss.field_grad(),
+                &mut grads.all(),
+            );
+        }
         sse
     }
 }

@@ -9,11 +9,11 @@ use crate::data::pixels::TrainingRays;
 use crate::field::{VanillaConfig, VanillaNet, VanillaWorkspace};
 use crate::math::{length, scale};
 use crate::nn::{GradBuffer, Grads, ParamLayout};
-use crate::render::loss::squared_error;
+use crate::render::loss::LossBackward;
 use crate::render::sampling::{merge_sorted, sample_pdf, stratified};
-use crate::render::volume::{composite_packed, composite_packed_bwd, depth_deltas};
+use crate::render::volume::{composite_packed, depth_deltas};
 use crate::rng::Rng;
-use crate::stage::{Field, FieldGrad, FieldOutput, PackedSamples, RayBatch, RayOutput};
+use crate::stage::{Field, FieldOutput, PackedSamples, RayBatch, RayOutput};
 
 /// Network shape and samples per ray.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -109,10 +109,8 @@ pub struct ChunkWorkspace {
     t_new: Vec<f32>,
     weights: Vec<f32>,
     cdf: Vec<f32>,
-    d_sigma: Vec<f32>,
-    d_rgb: Vec<f32>,
     outputs: Vec<RayOutput>,
-    d_out: Vec<[f32; 3]>,
+    loss: LossBackward,
 }
 
 /// Stratified depths of every ray (`r x n`, bin midpoints without random streams).
@@ -220,29 +218,15 @@ fn pass_backward(
     ws: &mut ChunkWorkspace,
     grads: &mut Grads,
 ) -> f64 {
-    let (r, n) = (rays.len(), ws.samples.len());
-    ws.d_out.resize(r, [0.0; 3]);
-    ws.d_sigma.resize(n, 0.0);
-    ws.d_rgb.resize(n * 3, 0.0);
-    let sse = squared_error(&ws.outputs[..r], targets, &mut ws.d_out);
+    let n = ws.samples.len();
     let field = FieldOutput {
         sigma: &ws.net.sigma[..n],
         rgb: &ws.net.rgb[..n * 3],
     };
-    composite_packed_bwd(
-        &ws.samples,
-        field,
-        &rays.backgrounds,
-        &ws.outputs,
-        &ws.d_out,
-        &mut ws.d_sigma,
-        &mut ws.d_rgb,
-    );
-    let d = FieldGrad {
-        d_sigma: &ws.d_sigma[..n],
-        d_rgb: &ws.d_rgb[..n * 3],
-    };
-    net.backward(params, &mut ws.net, d, grads);
+    let sse = ws
+        .loss
+        .run(&ws.samples, field, &rays.backgrounds, &ws.outputs, targets);
+    net.backward(params, &mut ws.net, ws.loss.field_grad(), grads);
     sse
 }
 

@@ -5,7 +5,8 @@
 //! is taken once per step, by [`mean_scale`], on the value and on the reduced gradient:
 //! the only place the loss is normalised, so chunks and threads can split a step any way.
 
-use crate::stage::RayOutput;
+use crate::render::volume::composite_packed_bwd;
+use crate::stage::{FieldGrad, FieldOutput, PackedSamples, RayOutput};
 
 /// Sum over rays and channels of `(C - C_target)^2` (returned), with its gradient
 /// `dL/dC = 2 (C - C_target)` into `d_rgb` (`rays x 3`).
@@ -28,6 +29,53 @@ pub fn squared_error(rendered: &[RayOutput], targets: &[[f32; 3]], d_rgb: &mut [
 /// the mean squared error: `1 / (3 rays)`.
 pub fn mean_scale(rays: usize) -> f64 {
     1.0 / (3 * rays.max(1)) as f64
+}
+
+/// The backward from the loss to a field's outputs, with its reused buffers: `dL/dC` per
+/// ray from the loss stage, then `dL/dsigma` and `dL/drgb` per sample from compositing's
+/// backward (the field's `d_output`, [`field_grad`](Self::field_grad)).
+#[derive(Clone, Debug, Default)]
+pub struct LossBackward {
+    d_out: Vec<[f32; 3]>,
+    d_sigma: Vec<f32>,
+    d_rgb: Vec<f32>,
+}
+
+impl LossBackward {
+    /// Squared error of `rendered` (one per ray of `samples`) against `targets`, and its
+    /// gradient back to the field's outputs `field`. Returns the summed squared error.
+    pub fn run(
+        &mut self,
+        samples: &PackedSamples,
+        field: FieldOutput,
+        backgrounds: &[[f32; 3]],
+        rendered: &[RayOutput],
+        targets: &[[f32; 3]],
+    ) -> f64 {
+        let (r, n) = (samples.rays(), samples.len());
+        self.d_out.resize(r, [0.0; 3]);
+        self.d_sigma.resize(n, 0.0);
+        self.d_rgb.resize(n * 3, 0.0);
+        let sse = squared_error(&rendered[..r], &targets[..r], &mut self.d_out);
+        composite_packed_bwd(
+            samples,
+            field,
+            backgrounds,
+            rendered,
+            &self.d_out,
+            &mut self.d_sigma,
+            &mut self.d_rgb,
+        );
+        sse
+    }
+
+    /// The field's `d_output` of the last [`run`](Self::run).
+    pub fn field_grad(&self) -> FieldGrad<'_> {
+        FieldGrad {
+            d_sigma: &self.d_sigma,
+            d_rgb: &self.d_rgb,
+        }
+    }
 }
 
 #[cfg(test)]
