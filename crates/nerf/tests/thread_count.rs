@@ -1,7 +1,10 @@
-//! The same seed gives the same run for any thread count: the same rays and samples (ray
-//! `k` of step `s` is a function of the seed, `s` and `k`; the fast model's marching blocks
-//! and chunks are fixed), so losses agree step by step, and parameters agree up to the
-//! order in which the threads' gradients are summed (float reassociation).
+//! The same seed gives the same run for any thread count. From the same state a step draws
+//! the same rays and samples (ray `k` of step `s` is a function of the seed, `s` and `k`;
+//! the fast model's marching blocks are fixed) and computes the same loss, bit for bit
+//! (squared errors are summed per ray, in ray order). The gradients agree up to the order in
+//! which the threads' sums are added (float reassociation), so over many steps parameters
+//! and losses agree closely, and the fast model's sample counts agree exactly until an
+//! occupancy refresh thresholds densities that differ in their last bits.
 
 mod common;
 use common::{fast_config, small_scene};
@@ -47,36 +50,45 @@ fn relative_difference(a: &[f32], b: &[f32]) -> f64 {
     (diff / norm.max(1e-30)).sqrt()
 }
 
-fn assert_thread_count_independent(config: &TrainConfig, steps: usize) {
+/// `exact_until`: steps before which rays and samples must match exactly (the fast
+/// model's first occupancy refresh); after it they may differ by 1%.
+fn assert_thread_count_independent(config: &TrainConfig, steps: usize, exact_until: usize) {
     let (one, p1) = train_on(1, config, steps);
-    let (two, p2) = train_on(2, config, steps);
-    let (three, p3) = train_on(3, config, steps);
-    for (k, ((a, b), c)) in one.iter().zip(&two).zip(&three).enumerate() {
-        // Same rays and samples every step.
+    for threads in [2, 3] {
+        let (other, p) = train_on(threads, config, steps);
+        // The first step starts from the same weights: the same loss, bit for bit.
         assert_eq!(
-            (a.1, a.2),
-            (b.1, b.2),
-            "step {k}: rays / samples differ (1 vs 2 threads)"
+            one[0].0, other[0].0,
+            "first loss differs at {threads} threads"
         );
-        assert_eq!(
-            (a.1, a.2),
-            (c.1, c.2),
-            "step {k}: rays / samples differ (1 vs 3 threads)"
-        );
-        for (x, y) in [(a.0, b.0), (a.0, c.0)] {
-            assert!((x - y).abs() <= 1e-3 * x.abs(), "step {k}: loss {x} vs {y}");
+        for (k, (a, b)) in one.iter().zip(&other).enumerate() {
+            if k < exact_until {
+                assert_eq!(
+                    (a.1, a.2),
+                    (b.1, b.2),
+                    "step {k}: rays / samples differ (1 vs {threads} threads)"
+                );
+            } else {
+                let close = |x: usize, y: usize| x.abs_diff(y) * 100 <= x.max(1);
+                assert!(
+                    close(a.1, b.1) && close(a.2, b.2),
+                    "step {k}: rays / samples {a:?} vs {b:?}"
+                );
+            }
+            let tol = if k < exact_until { 1e-3 } else { 2e-2 };
+            assert!(
+                (a.0 - b.0).abs() <= tol * a.0.abs(),
+                "step {k}: loss {} vs {} ({threads} threads)",
+                a.0,
+                b.0
+            );
         }
-    }
-    // The first step starts from the same weights: its loss is bit-identical (losses are
-    // summed in a fixed order); later ones differ by reassociated gradient sums at most.
-    assert_eq!(one[0].0, two[0].0);
-    assert_eq!(one[0].0, three[0].0);
-    for (name, p) in [("2", &p2), ("3", &p3)] {
-        let d = relative_difference(&p1, p);
+        let d = relative_difference(&p1, &p);
         assert!(
-            d < 1e-3,
-            "parameters after {steps} steps differ by {d:e} (1 vs {name} threads)"
+            d < 1e-2,
+            "parameters after {steps} steps differ by {d:e} (1 vs {threads} threads)"
         );
+        eprintln!("{threads} threads: parameters after {steps} steps differ from 1 thread's by {d:.2e} (relative)");
     }
 }
 
@@ -90,7 +102,8 @@ fn fast_model_gives_the_same_run_for_any_thread_count() {
     if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
         m.batch_samples = 1 << 10;
     }
-    assert_thread_count_independent(&config, 50);
+    // The occupancy grid is first refreshed after step 16.
+    assert_thread_count_independent(&config, 50, 16);
 }
 
 #[test]
@@ -107,5 +120,6 @@ fn vanilla_model_gives_the_same_run_for_any_thread_count() {
     config.batch_rays = 128;
     config.chunk_rays = 16;
     config.val_every = 0;
-    assert_thread_count_independent(&config, 50);
+    // A fixed number of rays and samples per ray.
+    assert_thread_count_independent(&config, 50, 50);
 }

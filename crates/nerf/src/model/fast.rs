@@ -6,10 +6,11 @@
 //!    the step) and marched, in waves of blocks run in parallel; waves grow (4, 8, ... 64
 //!    blocks) until the rays marched so far hold `samples_per_step` samples. The step's rays
 //!    are those up to the first ray at which the running sample count reaches the budget.
-//! 2. The kept blocks are grouped, in order, into chunks of at least `batch_samples`
-//!    samples; chunk `c` runs forward, loss and backward on worker `c mod W`, into that
-//!    worker's gradient buffer. Losses are summed in chunk order, so they are identical for
-//!    any thread count; gradients differ only by the order of the workers' sums.
+//! 2. The kept rays are shared among the `W` workers in contiguous runs holding about as
+//!    many samples each; a worker runs forward, loss and backward over its run in chunks of
+//!    about `batch_samples` samples, into its own gradient buffer. Squared errors are kept
+//!    per ray and summed in ray order, so losses are the same for any thread count;
+//!    gradients differ only by the order in which they are summed.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -18,7 +19,7 @@ use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
 use crate::data::pixels::TrainingRays;
 use crate::field::{FastField, FastFieldConfig, FastWorkspace as FieldContext};
 use crate::nn::{GradBuffer, ParamLayout};
-use crate::render::loss::LossBackward;
+use crate::render::loss::{squared_error, LossBackward};
 use crate::render::march::{render_marched, MarchWorkspace, Marcher};
 use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
 use crate::render::volume::composite_packed;
@@ -187,38 +188,33 @@ impl FastModel {
         }
     }
 
-    /// Phase 2, one chunk: rays `used` of `blocks` copied into `ws`, then forward,
-    /// loss and backward. Returns the chunk's sum of squared errors.
+    /// Phase 2, one chunk: the step's rays `rays` (indices over all blocks) copied into
+    /// `ws`, then forward, loss and backward. Writes each ray's squared error into `sse`.
     fn train_chunk(
         &self,
         params: &[f32],
         blocks: &[MarchedBlock],
-        last_rays: usize,
+        rays: std::ops::Range<usize>,
         ws: &mut FastWorkspace,
         grads: &mut GradBuffer,
-    ) -> f64 {
+        sse: &mut [f64],
+    ) {
         ws.samples.clear();
         ws.backgrounds.clear();
         ws.targets.clear();
-        for (i, block) in blocks.iter().enumerate() {
-            let rays = if i + 1 == blocks.len() {
-                last_rays
-            } else {
-                block.rays.len()
-            };
-            let s = &block.samples;
-            let end = s.offsets[rays];
-            let base = ws.samples.len();
-            ws.samples.t.extend_from_slice(&s.t[..end]);
-            ws.samples.dt.extend_from_slice(&s.dt[..end]);
-            ws.samples.positions.extend_from_slice(&s.positions[..end]);
-            ws.samples.dirs.extend_from_slice(&s.dirs[..end]);
+        for g in rays {
+            let block = &blocks[g / BLOCK_RAYS];
+            let (s, r) = (&block.samples, g % BLOCK_RAYS);
+            let range = s.ray(r);
+            ws.samples.t.extend_from_slice(&s.t[range.clone()]);
+            ws.samples.dt.extend_from_slice(&s.dt[range.clone()]);
             ws.samples
-                .offsets
-                .extend(s.offsets[1..=rays].iter().map(|o| o + base));
-            ws.backgrounds
-                .extend_from_slice(&block.rays.rays.backgrounds[..rays]);
-            ws.targets.extend_from_slice(&block.rays.targets[..rays]);
+                .positions
+                .extend_from_slice(&s.positions[range.clone()]);
+            ws.samples.dirs.extend_from_slice(&s.dirs[range]);
+            ws.samples.end_ray();
+            ws.backgrounds.push(block.rays.rays.backgrounds[r]);
+            ws.targets.push(block.rays.targets[r]);
         }
         let (r, n) = (ws.samples.rays(), ws.samples.len());
         ws.weights.resize(n, 0.0);
@@ -239,7 +235,7 @@ impl FastModel {
             &mut ws.weights,
             &mut ws.outputs,
         );
-        let sse = ws.loss.run(
+        ws.loss.run(
             &ws.samples,
             field,
             &ws.backgrounds,
@@ -254,7 +250,14 @@ impl FastModel {
                 &mut grads.all(),
             );
         }
-        sse
+        // Per ray, so the step's total is summed in ray order whatever the chunking.
+        for ((e, out), target) in sse.iter_mut().zip(&ws.outputs).zip(&ws.targets) {
+            *e = squared_error(
+                std::slice::from_ref(out),
+                std::slice::from_ref(target),
+                &mut [[0.0; 3]],
+            );
+        }
     }
 }
 
@@ -295,61 +298,60 @@ impl Model for FastModel {
     ) -> PassTotals {
         let (used, last_rays) = self.march_step(input, &mut shared.blocks);
         let blocks = &shared.blocks[..used];
-        let rays_in = |b: usize| {
-            if b + 1 == used {
-                last_rays
-            } else {
-                blocks[b].rays.len()
-            }
-        };
-        let samples_in = |b: usize| blocks[b].samples.offsets[rays_in(b)];
-        // Chunks: consecutive blocks holding at least `batch_samples` samples.
-        let mut chunks = Vec::new();
-        let (mut start, mut held) = (0, 0);
-        for b in 0..used {
-            held += samples_in(b);
-            if held >= self.config.batch_samples || b + 1 == used {
-                chunks.push(start..b + 1);
-                start = b + 1;
-                held = 0;
+        let n_rays = (used - 1) * BLOCK_RAYS + last_rays;
+        let samples_of = |g: usize| blocks[g / BLOCK_RAYS].samples.ray(g % BLOCK_RAYS).len();
+        // Each worker takes a contiguous share of the rays holding about as many samples as
+        // the others' (the threads finish together), in chunks of `batch_samples`.
+        let n_workers = workers.len();
+        let total: usize = (0..n_rays).map(samples_of).sum();
+        let mut shares = Vec::with_capacity(n_workers + 1);
+        shares.push(0);
+        let mut held = 0;
+        for g in 0..n_rays {
+            held += samples_of(g);
+            while shares.len() < n_workers && held * n_workers >= total * shares.len() {
+                shares.push(g + 1);
             }
         }
-        let n_workers = workers.len();
-        let mut sse = vec![0.0f64; chunks.len()];
-        let per_worker: Vec<Vec<(usize, f64)>> = workers
+        shares.resize(n_workers + 1, n_rays);
+        let mut sse = vec![0.0f64; n_rays];
+        let mut parts = Vec::with_capacity(n_workers);
+        let mut rest = sse.as_mut_slice();
+        for w in 0..n_workers {
+            let (part, tail) = rest.split_at_mut(shares[w + 1] - shares[w]);
+            parts.push(part);
+            rest = tail;
+        }
+        let batch = self.config.batch_samples;
+        workers
             .par_iter_mut()
+            .zip(parts)
             .enumerate()
-            .map(|(w, worker)| {
-                (w..chunks.len())
-                    .step_by(n_workers)
-                    .map(|c| {
-                        let range = chunks[c].clone();
-                        let last = if range.end == used {
-                            last_rays
-                        } else {
-                            blocks[range.end - 1].rays.len()
-                        };
-                        let e = self.train_chunk(
+            .for_each(|(w, (worker, sse))| {
+                let first = shares[w];
+                let (mut start, mut held) = (first, 0);
+                for g in first..shares[w + 1] {
+                    held += samples_of(g);
+                    if held >= batch || g + 1 == shares[w + 1] {
+                        self.train_chunk(
                             input.params,
-                            &blocks[range],
-                            last,
+                            blocks,
+                            start..g + 1,
                             &mut worker.ws,
                             &mut worker.grads,
+                            &mut sse[start - first..g + 1 - first],
                         );
-                        (c, e)
-                    })
-                    .collect()
-            })
-            .collect();
-        for (c, e) in per_worker.into_iter().flatten() {
-            sse[c] = e;
-        }
-        let total: f64 = sse.iter().sum();
+                        start = g + 1;
+                        held = 0;
+                    }
+                }
+            });
+        let sse: f64 = sse.iter().sum();
         PassTotals {
-            sse: total,
-            final_sse: total,
-            rays: (0..used).map(rays_in).sum(),
-            samples: (0..used).map(samples_in).sum(),
+            sse,
+            final_sse: sse,
+            rays: n_rays,
+            samples: total,
         }
     }
 
@@ -490,7 +492,16 @@ mod tests {
         block.rays.targets = out.iter().map(|o| o.rgb).collect();
         block.rays.rays = rays;
         let mut grads = GradBuffer::new(model.field.num_params());
-        let sse = model.train_chunk(params, std::slice::from_ref(&block), n, &mut ws, &mut grads);
+        let mut per_ray = vec![0.0; n];
+        model.train_chunk(
+            params,
+            std::slice::from_ref(&block),
+            0..n,
+            &mut ws,
+            &mut grads,
+            &mut per_ray,
+        );
+        let sse: f64 = per_ray.iter().sum();
         RenderThenTrain {
             out,
             taken,
