@@ -44,15 +44,21 @@ impl RenderSettings {
         }
     }
 
-    /// World rays as a batch in ray space, seen from their world directions.
-    pub fn ray_batch(&self, world: &[Ray]) -> RayBatch {
+    /// World rays as a batch in ray space, seen from their world directions; their pixel
+    /// ids count from `first`.
+    pub fn ray_batch(&self, world: &[Ray], first: usize) -> RayBatch {
         let mut batch = RayBatch::new(self.near, self.far);
         let warped: Vec<([f32; 3], [f32; 3])> = world
             .par_iter()
             .map(|r| self.space.warp(r.origin, r.dir))
             .collect();
         for (k, (r, (origin, dir))) in world.iter().zip(warped).enumerate() {
-            batch.push(Ray { origin, dir }, r.dir, self.background, k as u64);
+            batch.push(
+                Ray { origin, dir },
+                r.dir,
+                self.background,
+                (first + k) as u64,
+            );
         }
         batch
     }
@@ -70,6 +76,10 @@ pub struct RenderedView {
     pub opacity: Vec<f32>,
 }
 
+/// Rays handed to the engine at a time: bounds the memory of big views (a 4K frame is 8 M
+/// rays) while keeping every thread busy.
+const SLAB_RAYS: usize = 1 << 16;
+
 /// Renders `camera`'s view; `on_progress` is called with the number of rays finished so far.
 pub fn render_view(
     engine: &dyn Engine,
@@ -78,13 +88,16 @@ pub fn render_view(
     on_progress: &(dyn Fn(usize) + Sync),
 ) -> RenderedView {
     let (w, h) = (camera.width, camera.height);
-    let world: Vec<Ray> = (0..w * h)
-        .into_par_iter()
-        .map(|p| camera.ray(p % w, p / w))
-        .collect();
-    let rays = settings.ray_batch(&world);
     let mut out = vec![RayOutput::default(); w * h];
-    engine.render_rays(&rays, &mut out, on_progress);
+    for (k, slab) in out.chunks_mut(SLAB_RAYS).enumerate() {
+        let first = k * SLAB_RAYS;
+        let world: Vec<Ray> = (first..first + slab.len())
+            .into_par_iter()
+            .map(|p| camera.ray(p % w, p / w))
+            .collect();
+        let rays = settings.ray_batch(&world, first);
+        engine.render_rays(&rays, slab, &|n| on_progress(first + n));
+    }
     RenderedView {
         width: w,
         height: h,
@@ -109,7 +122,7 @@ pub fn render_rays(
             dir: [d[0], d[1], d[2]],
         })
         .collect();
-    let rays = settings.ray_batch(&world);
+    let rays = settings.ray_batch(&world, 0);
     let mut out = vec![RayOutput::default(); rays.len()];
     engine.render_rays(&rays, &mut out, &|_| {});
     out

@@ -3,9 +3,10 @@
 //!
 //! Work mapping of a training step (the same rays and samples for any thread count):
 //! 1. Rays are drawn in blocks of [`BLOCK_RAYS`] (block `b` holds rays `b * BLOCK_RAYS..` of
-//!    the step) and marched, in waves of blocks run in parallel; waves grow (4, 8, ... 64
-//!    blocks) until the rays marched so far hold `samples_per_step` samples. The step's rays
-//!    are those up to the first ray at which the running sample count reaches the budget.
+//!    the step) and marched, in waves of blocks run in parallel (first as many blocks as the
+//!    previous step used, then 4, 8, ... 64 more) until the rays marched so far hold
+//!    `samples_per_step` samples. The step's rays are those up to the first ray at which the
+//!    running sample count reaches the budget, whatever the waves were.
 //! 2. The kept rays are shared among the `W` workers in contiguous runs holding about as
 //!    many samples each; a worker runs forward, loss and backward over its run in chunks of
 //!    about `batch_samples` samples, into its own gradient buffer. Squared errors are kept
@@ -132,6 +133,9 @@ pub struct FastWorkspace {
 #[derive(Default, Debug)]
 pub struct StepBlocks {
     blocks: Vec<MarchedBlock>,
+    /// Blocks the previous step used: the size of the first wave. Wave sizes decide only
+    /// how many rays are marched past the cut, never which rays are kept.
+    last_used: usize,
 }
 
 impl FastModel {
@@ -158,13 +162,26 @@ impl FastModel {
 
     /// Phase 1 of a step: marches blocks until the budget is reached. Returns the number of
     /// blocks used and the rays kept of the last one.
-    fn march_step(&self, input: &StepInput, blocks: &mut Vec<MarchedBlock>) -> (usize, usize) {
+    fn march_step(&self, input: &StepInput, shared: &mut StepBlocks) -> (usize, usize) {
+        let (used, last) = self.march_waves(input, &mut shared.blocks, shared.last_used.max(4));
+        shared.last_used = used;
+        (used, last)
+    }
+
+    /// Marches waves of blocks, `first` blocks then 4, 8, ... 64 more, until the budget is
+    /// reached.
+    fn march_waves(
+        &self,
+        input: &StepInput,
+        blocks: &mut Vec<MarchedBlock>,
+        first: usize,
+    ) -> (usize, usize) {
         let marcher = self.marcher(input.data.near, input.data.far);
         let budget = self.config.samples_per_step;
         // Rays that find no occupied cell add no samples: this bound ends the step when the
         // grid is (nearly) empty instead of drawing rays forever.
         let max_rays = budget.max(64);
-        let (mut marched, mut wave) = (0, 4);
+        let (mut marched, mut wave, mut next) = (0, first, 4);
         let (mut samples, mut rays) = (0, 0);
         loop {
             if blocks.len() < marched + wave {
@@ -184,7 +201,8 @@ impl FastModel {
                 }
             }
             marched += wave;
-            wave = (wave * 2).min(64);
+            wave = next;
+            next = (next * 2).min(64);
         }
     }
 
@@ -296,7 +314,7 @@ impl Model for FastModel {
         shared: &mut StepBlocks,
         workers: &mut [Worker<FastWorkspace>],
     ) -> PassTotals {
-        let (used, last_rays) = self.march_step(input, &mut shared.blocks);
+        let (used, last_rays) = self.march_step(input, shared);
         let blocks = &shared.blocks[..used];
         let n_rays = (used - 1) * BLOCK_RAYS + last_rays;
         let samples_of = |g: usize| blocks[g / BLOCK_RAYS].samples.ray(g % BLOCK_RAYS).len();
@@ -574,5 +592,60 @@ mod tests {
         assert!(r.block.samples.len() < 4 * r.marcher.max_samples);
         assert!(r.sse < 1e-9, "render and training disagree: sse {}", r.sse);
         assert!(r.out.iter().all(|o| o.opacity > 0.5), "{:?}", r.out);
+    }
+}
+
+#[cfg(test)]
+mod step_tests {
+    use super::*;
+    use crate::data::pixels::PixelSampling;
+    use crate::data::synth::{self, SynthOptions};
+    use crate::data::{Background, Split};
+
+    /// The waves only decide how far past the cut rays are marched: any first wave keeps
+    /// the same rays with the same samples.
+    #[test]
+    fn the_kept_rays_do_not_depend_on_the_waves() {
+        let opts = SynthOptions {
+            size: 16,
+            supersample: 1,
+            ..Default::default()
+        };
+        let data = synth::dataset(&opts, Split::Train, 4);
+        let config = FastModelConfig {
+            samples_per_step: 5000,
+            ..FastModelConfig::default()
+        };
+        let model = FastModel::new(config);
+        let params = model.init_params(3);
+        let input = StepInput {
+            data: &data,
+            params: &params,
+            sampling: PixelSampling {
+                seed: 7,
+                step: 2,
+                crop: 1.0,
+                background: Background::Random,
+            },
+            batch_rays: 0,
+            chunk_rays: 0,
+        };
+        let kept = |first: usize| {
+            let mut blocks = Vec::new();
+            let (used, last) = model.march_waves(&input, &mut blocks, first);
+            let t: Vec<f32> = (0..used)
+                .flat_map(|b| {
+                    let rays = if b + 1 == used { last } else { BLOCK_RAYS };
+                    let s = &blocks[b].samples;
+                    s.t[..s.offsets[rays]].to_vec()
+                })
+                .collect();
+            (used, last, t)
+        };
+        let reference = kept(1);
+        assert!(reference.2.len() >= 5000, "{} samples", reference.2.len());
+        for first in [4, 13, 64] {
+            assert_eq!(kept(first), reference, "first wave of {first} blocks");
+        }
     }
 }
