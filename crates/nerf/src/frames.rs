@@ -43,6 +43,7 @@ impl PathKind {
 /// What to render and how (the options of `nerf render`).
 #[derive(Clone, Debug, clap::Args)]
 pub struct FramesOptions {
+    /// Which cameras to render.
     #[arg(long, value_enum, default_value = "orbit")]
     pub path: PathKind,
     /// Frames of an orbit, spiral or interpolated path.

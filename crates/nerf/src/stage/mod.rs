@@ -7,8 +7,8 @@
 //!   gradients flow back the same way: d_rgb ▶ (d_sigma, d_rgb per sample) ▶ Grads
 //! ```
 //!
-//! Every differentiable stage (the encodings, the fields, compositing, the loss) has the
-//! same three operations, after tiny-cuda-nn's object model:
+//! Every differentiable stage has the same three operations, after tiny-cuda-nn's object
+//! model:
 //!
 //! - `forward(params, input, ctx) -> output`: the output, with everything the backward
 //!   needs kept in the explicit context `ctx`;
@@ -17,6 +17,13 @@
 //!   into `grads` (a [`Grads`] view of the model's gradient buffer);
 //! - `infer(params, input, ctx) -> output`: the same output, keeping no context for a
 //!   backward.
+//!
+//! Fields, the stage that varies, implement them as the [`Field`] trait. The fixed stages
+//! are functions of the same shape, side by side in one file each: compositing
+//! (`render::volume::composite_packed`, its context the field's output, and
+//! `composite_packed_bwd`), the loss (`render::loss::squared_error`, value and gradient;
+//! `LossBackward` carries the gradient on through compositing), and the encodings inside
+//! the fields (`encode` / `encode_bwd`). Backward functions end in `_bwd`.
 //!
 //! The context is owned by the caller and reused from call to call (a thread's workspace),
 //! so a training step allocates nothing once it has warmed up; outputs are borrowed from
