@@ -111,12 +111,16 @@ pub fn write_gif(
     crate::io::write_atomic(path, &bytes)
 }
 
-/// Whether an `ffmpeg` binary runs.
+/// Whether an `ffmpeg` binary runs (probed once per process: rendering, capture and the
+/// MP4 writer all ask).
 pub fn ffmpeg_available() -> bool {
-    Command::new("ffmpeg")
-        .arg("-version")
-        .output()
-        .is_ok_and(|o| o.status.success())
+    static AVAILABLE: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *AVAILABLE.get_or_init(|| {
+        Command::new("ffmpeg")
+            .arg("-version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    })
 }
 
 /// Encodes `pattern` (an ffmpeg input pattern such as `dir/frame_%04d.png`) to an H.264

@@ -110,7 +110,9 @@ impl<M: Model> Engine for CpuEngine<M> {
         self.model.buffer_layout()
     }
 
-    fn train_step(&mut self, data: &Dataset, step: u64, spec: &StepSpec) -> Result<StepStats> {
+    fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
+        let step = spec.sampling.step;
+        // Also clears what a failed step left behind.
         for w in &mut self.workers {
             w.grads.clear();
         }
@@ -137,9 +139,6 @@ impl<M: Model> Engine for CpuEngine<M> {
         let scale = mean_scale(totals.rays);
         let loss = (totals.sse * scale) as f32;
         if !loss.is_finite() || !finite {
-            for w in &mut self.workers {
-                w.grads.clear();
-            }
             return Err(NerfError::Diverged {
                 step: step + 1,
                 loss,

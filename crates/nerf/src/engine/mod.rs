@@ -79,9 +79,10 @@ pub trait Engine: Send + Sync {
     fn buffer_layout(&self) -> ParamLayout;
 
     /// One optimisation step on rays drawn from `data` (the same dataset every step: an
-    /// engine may keep it on its device). `step` is the index of the step (steps done so
-    /// far). Fails, leaving the state untouched, when the loss or a gradient is not finite.
-    fn train_step(&mut self, data: &Dataset, step: u64, spec: &StepSpec) -> Result<StepStats>;
+    /// engine may keep it on its device); `spec.sampling.step` is the index of the step
+    /// (steps done so far). Fails, leaving the state untouched, when the loss or a gradient
+    /// is not finite.
+    fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats>;
 
     /// Renders `rays` into `out` (one per ray); `on_progress` gets the rays done so far.
     fn render_rays(

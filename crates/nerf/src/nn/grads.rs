@@ -174,13 +174,10 @@ impl GradBuffer {
         self.values.is_empty()
     }
 
-    /// `values[at] += g[0]; values[at + 1] += g[1]` for an even `at` (a pair never straddles
-    /// a block).
+    /// `values[at] += g[0]; values[at + 1] += g[1]` for an even `at` (see [`Grads::add_pair`]).
     #[inline(always)]
     pub fn add_pair(&mut self, at: usize, g: [f32; 2]) {
-        self.values[at] += g[0];
-        self.values[at + 1] += g[1];
-        self.dirty[at / BLOCK] = true;
+        self.all().add_pair(at, g);
     }
 
     /// The whole buffer as a stage's gradient view.
@@ -199,11 +196,7 @@ impl GradBuffer {
 
     /// Marks `range` written (for dense parts such as MLP weights).
     pub fn mark(&mut self, range: std::ops::Range<usize>) {
-        if range.is_empty() {
-            return;
-        }
-        let last = (range.end - 1) / BLOCK;
-        self.dirty[range.start / BLOCK..=last].fill(true);
+        self.all().mark(range);
     }
 
     #[cfg(test)]

@@ -237,7 +237,7 @@ impl Trainer {
     /// One optimisation step. Fails (leaving the parameters untouched) if the loss is not finite.
     pub fn step(&mut self) -> Result<StepStats> {
         let spec = self.config.step_spec(self.step);
-        let stats = self.engine.train_step(&self.data, self.step, &spec)?;
+        let stats = self.engine.train_step(&self.data, &spec)?;
         self.step += 1;
         Ok(stats)
     }
