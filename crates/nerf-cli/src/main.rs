@@ -4,6 +4,8 @@
 
 mod commands;
 mod progress;
+mod report;
+mod signals;
 
 use clap::{Parser, Subcommand};
 
@@ -68,7 +70,7 @@ fn main() {
         Command::Bench(a) => commands::bench::run(a),
     };
     if let Err(e) = result {
-        eprintln!("error: {e:#}");
+        eprintln!("error: {}", report::message(&e));
         std::process::exit(1);
     }
 }

@@ -10,12 +10,38 @@ use nerf::train::run::Event;
 pub fn bar(total: u64, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(total);
     let template =
-        format!("{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{per_sec}} ETA {{eta}} {{msg}}");
+        format!("{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{rate}} ETA {{eta}} {{msg}}");
     if let Ok(style) = ProgressStyle::with_template(&template) {
+        let style = style.with_key(
+            "rate",
+            |state: &indicatif::ProgressState, w: &mut dyn std::fmt::Write| {
+                let _ = w.write_str(&rate(state.per_sec(), ""));
+            },
+        );
         pb.set_style(style.progress_chars("=> "));
     }
     pb
 }
+
+/// A rate in the one format every command prints: three significant figures at most
+/// below 1000, whole numbers above, no thousands separators (`26.8/s`, `46341 rays/s`).
+pub fn rate(per_second: f64, unit: &str) -> String {
+    let unit = if unit.is_empty() {
+        "/s".to_string()
+    } else {
+        format!(" {unit}/s")
+    };
+    match per_second {
+        v if !v.is_finite() => format!("-{unit}"),
+        v if v < 10.0 => format!("{v:.2}{unit}"),
+        v if v < 100.0 => format!("{v:.1}{unit}"),
+        v => format!("{v:.0}{unit}"),
+    }
+}
+
+/// Seconds over which the shown training rate is averaged: long enough that the slow step
+/// of an occupancy-grid refresh does not make it jump.
+const RATE_WINDOW_S: f64 = 5.0;
 
 /// The training display: a header, a bar with loss, PSNR and rays/s, validation lines, and
 /// a line every 30 s when there is no terminal (logs, CI).
@@ -67,6 +93,7 @@ impl TrainProgress {
                         ModelConfig::Fast(_) => String::new(),
                     }
                 );
+                self.rays_per_s = 0.0;
                 if let Some(step) = resumed_from {
                     println!("resuming from the checkpoint at step {step}");
                 }
@@ -81,32 +108,51 @@ impl TrainProgress {
                 let Some(p) = &self.pb else { return };
                 let dt = self.last.0.elapsed().as_secs_f64();
                 self.rays_since += s.rays;
-                if dt > 1.0 || s.step == self.last.1 + 1 {
-                    self.rays_per_s = self.rays_since as f64 / dt.max(1e-9);
+                if dt > 1.0 {
+                    // An exponential average over about RATE_WINDOW_S seconds.
+                    let now = self.rays_since as f64 / dt;
+                    let a = if self.rays_per_s == 0.0 {
+                        1.0
+                    } else {
+                        (dt / RATE_WINDOW_S).min(1.0)
+                    };
+                    self.rays_per_s += a * (now - self.rays_per_s);
                     self.rays_since = 0;
                     self.last = (Instant::now(), s.step);
                 }
                 p.set_position(s.step);
                 p.set_message(format!(
-                    "loss {:.4} psnr {:.2} {:.0} rays/s",
-                    s.loss, s.psnr, self.rays_per_s
+                    "loss {:.4} psnr {:.2} {}",
+                    s.loss,
+                    s.psnr,
+                    rate(self.rays_per_s, "rays")
                 ));
                 if p.is_hidden() && self.last_line.elapsed().as_secs_f64() >= 30.0 {
                     println!(
-                        "step {}: loss {:.4}, batch PSNR {:.2} dB, {:.0} rays/s",
-                        s.step, s.loss, s.psnr, self.rays_per_s
+                        "step {}: loss {:.4}, batch PSNR {:.2} dB, {}",
+                        s.step,
+                        s.loss,
+                        s.psnr,
+                        rate(self.rays_per_s, "rays")
                     );
                     self.last_line = Instant::now();
                 }
             }
             Event::Validation { step, psnr, image } => {
-                if let Some(p) = &self.pb {
-                    p.println(format!(
-                        "step {step}: validation PSNR {psnr:.2} dB ({})",
-                        image.display()
-                    ));
+                let line = format!(
+                    "step {step}: validation PSNR {psnr:.2} dB ({})",
+                    image.display()
+                );
+                match &self.pb {
+                    // A hidden bar (no terminal: logs, CI) prints nothing, so say it plainly.
+                    Some(p) if !p.is_hidden() => p.println(line),
+                    _ => println!("{line}"),
                 }
             }
+            Event::Note(note) => match &self.pb {
+                Some(p) if !p.is_hidden() => p.println(format!("note: {note}")),
+                _ => eprintln!("note: {note}"),
+            },
             Event::Checkpoint { .. } => {}
         }
     }

@@ -186,8 +186,17 @@ fn errors_name_the_file_and_exit_non_zero() {
         "{err}"
     );
     let out = nerf(&["eval", "--run", "norun"], dir.path());
+    let err = String::from_utf8_lossy(&out.stderr);
     assert!(
-        !out.status.success() && String::from_utf8_lossy(&out.stderr).contains("norun/config.json")
+        !out.status.success() && err.contains("norun") && err.contains("not a run folder"),
+        "{err}"
+    );
+    // Issue 10 #13: a folder that exists but holds no run says so.
+    let out = nerf(&["eval", "--run", "empty"], dir.path());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("not a run folder (no config.json)"),
+        "{err}"
     );
 }
 

@@ -329,7 +329,7 @@ fn largest_model(sparse: &Path) -> Result<Option<colmap::Model>> {
         let m = colmap::read_model(&dir)?;
         if best
             .as_ref()
-            .map_or(true, |b| m.images.len() > b.images.len())
+            .is_none_or(|b| m.images.len() > b.images.len())
         {
             best = Some(m);
         }

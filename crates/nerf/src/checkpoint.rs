@@ -66,7 +66,7 @@ pub fn save(
         })
         .collect::<std::result::Result<Vec<_>, _>>()
         .map_err(|e| problem(path, e))?;
-    let meta = HashMap::from([
+    let mut meta = HashMap::from([
         ("format".to_string(), FORMAT.to_string()),
         ("step".to_string(), ckpt.step.to_string()),
         ("seed".to_string(), ckpt.seed.to_string()),
@@ -76,6 +76,10 @@ pub fn save(
             ckpt.elapsed_seconds.to_string(),
         ),
     ]);
+    // A checksum per tensor, so a bit flipped on disk is reported, not trained on.
+    for (name, _, data) in &owned {
+        meta.insert(checksum_key(name), format!("{:08x}", crc32fast::hash(data)));
+    }
     let data = safetensors::serialize(views, Some(meta)).map_err(|e| problem(path, e))?;
     crate::io::write_atomic(path, &data)
 }
@@ -121,8 +125,35 @@ pub fn load(path: &Path, layout: &ParamLayout, buffer_layout: &ParamLayout) -> R
                     ),
                 ));
             }
-            for (o, b) in out[t.range()].iter_mut().zip(view.data().chunks_exact(4)) {
+            // Checkpoints written before checksums existed have none; they load unchecked.
+            if let Some(want) = meta.get(&checksum_key(&name)) {
+                let got = format!("{:08x}", crc32fast::hash(view.data()));
+                if *want != got {
+                    return Err(problem(
+                        path,
+                        format!(
+                            "tensor `{name}` is corrupt (checksum {got}, saved as {want}); \
+                             the file was damaged after it was written"
+                        ),
+                    ));
+                }
+            }
+            let range = t.range();
+            for (o, b) in out[range.clone()]
+                .iter_mut()
+                .zip(view.data().chunks_exact(4))
+            {
                 *o = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            }
+            if let Some(i) = out[range].iter().position(|v| !v.is_finite()) {
+                return Err(problem(
+                    path,
+                    format!(
+                        "tensor `{name}` holds a non-finite value ({} at index {i}); the \
+                         weights are unusable",
+                        out[t.range()][i]
+                    ),
+                ));
             }
         }
         Ok(out)
@@ -140,6 +171,22 @@ pub fn load(path: &Path, layout: &ParamLayout, buffer_layout: &ParamLayout) -> R
         adam_v: read_group("adam.v.", layout)?,
         buffers: read_group("", buffer_layout)?,
     })
+}
+
+fn checksum_key(tensor: &str) -> String {
+    format!("crc32.{tensor}")
+}
+
+/// The step a checkpoint was saved at, from its header alone.
+pub fn read_step(path: &Path) -> Result<u64> {
+    let data = std::fs::read(path).map_err(|e| NerfError::io(path, e))?;
+    let (_, header) = SafeTensors::read_metadata(&data).map_err(|e| problem(path, e))?;
+    header
+        .metadata()
+        .as_ref()
+        .and_then(|m| m.get("step"))
+        .and_then(|v| v.parse().ok())
+        .ok_or_else(|| problem(path, "metadata `step` missing or not a number"))
 }
 
 fn problem(path: &Path, e: impl std::fmt::Display) -> NerfError {
@@ -198,5 +245,53 @@ mod tests {
 
         std::fs::write(&path, b"garbage").expect("write");
         assert!(load(&path, &layout(), &buffers()).is_err());
+    }
+
+    /// Issue 10 #6: a flipped bit is found by the tensor's checksum, and non-finite
+    /// weights (saved as such) are refused, each naming the tensor and the file.
+    #[test]
+    fn corrupt_and_non_finite_tensors_are_named() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("ckpt.safetensors");
+        let mut ckpt = Checkpoint {
+            step: 1,
+            seed: 0,
+            elapsed_seconds: 0.0,
+            params: vec![0.5; 9],
+            adam_m: vec![0.0; 9],
+            adam_v: vec![0.0; 9],
+            adam_t: 1,
+            buffers: vec![1.0; 4],
+        };
+        save(&path, &layout(), &buffers(), &ckpt).expect("save");
+        // 0.5f32 is 00 00 00 3f: flip a bit of the first weight's mantissa.
+        let mut bytes = std::fs::read(&path).expect("read");
+        let at = bytes
+            .windows(4)
+            .position(|w| w == 0.5f32.to_le_bytes())
+            .expect("a weight");
+        bytes[at] ^= 1;
+        std::fs::write(&path, &bytes).expect("write");
+        let err = load(&path, &layout(), &buffers())
+            .expect_err("bit flip")
+            .to_string();
+        assert!(
+            err.contains("corrupt")
+                && err.contains("ckpt.safetensors")
+                && err.contains("tensor `a."),
+            "{err}"
+        );
+
+        ckpt.params[4] = f32::NAN;
+        save(&path, &layout(), &buffers(), &ckpt).expect("save");
+        let err = load(&path, &layout(), &buffers())
+            .expect_err("NaN")
+            .to_string();
+        assert!(
+            err.contains("a.weight")
+                && err.contains("non-finite")
+                && err.contains("ckpt.safetensors"),
+            "{err}"
+        );
     }
 }

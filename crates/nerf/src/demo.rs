@@ -109,6 +109,7 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         minutes: None,
         resume: false,
         pause_at: None,
+        stop: None,
     };
     let training = run::train(&run_options, &mut |e| hooks.train_event(e))?;
     let loaded = LoadedRun::open(&run_dir)?;

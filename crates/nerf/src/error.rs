@@ -32,8 +32,16 @@ pub enum NerfError {
     Checkpoint { path: PathBuf, message: String },
     #[error("invalid configuration: {0}")]
     Config(String),
-    #[error("training diverged at step {step}: loss is {loss} (the last good checkpoint is kept)")]
-    Diverged { step: u64, loss: f32 },
+    #[error("training diverged at step {step}: {what} (the last good checkpoint is kept)")]
+    Diverged { step: u64, what: String },
+    #[error("{stage} produced a non-finite value at step {step}: {buffer}[{index}] = {value} (NERF_CHECK_FINITE)")]
+    NonFinite {
+        stage: &'static str,
+        buffer: &'static str,
+        step: u64,
+        index: usize,
+        value: f32,
+    },
 }
 
 pub type Result<T, E = NerfError> = std::result::Result<T, E>;

@@ -111,6 +111,13 @@ pub fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
 
 /// The cameras of `opts.path` in `scene`.
 pub fn cameras(scene: &Scene, opts: &FramesOptions) -> Result<Vec<Camera>> {
+    if opts.camera_path.is_some() && opts.path != PathKind::File {
+        return Err(NerfError::Config(format!(
+            "--camera-path is read only with --path file (the path asked for is {}); add \
+             --path file, or drop --camera-path",
+            opts.path.name()
+        )));
+    }
     if opts.path == PathKind::File {
         let file = opts
             .camera_path
@@ -119,6 +126,13 @@ pub fn cameras(scene: &Scene, opts: &FramesOptions) -> Result<Vec<Camera>> {
         return crate::camera::path::load_camera_path(file, opts.size);
     }
     if opts.path == PathKind::Test {
+        if scene.test.is_empty() {
+            return Err(NerfError::Config(format!(
+                "the scene in {} has no test split (no transforms_test.json or no held-out \
+                 images); render --path orbit, spiral or interpolate instead",
+                scene.dir.display()
+            )));
+        }
         return Ok(scene.cameras(Split::Test));
     }
     let train = scene.cameras(Split::Train);
@@ -144,6 +158,8 @@ pub fn cameras(scene: &Scene, opts: &FramesOptions) -> Result<Vec<Camera>> {
         Some(width) => resized(reference, width),
         None => reference.clone(),
     };
+    crate::camera::check_image_size(template.width, template.height)
+        .map_err(|m| NerfError::Config(format!("--size {}: {m}", template.width)))?;
     Ok(path
         .into_iter()
         .map(|c2w| Camera {

@@ -41,13 +41,56 @@ pub fn write_json<T: serde::Serialize>(path: &Path, value: &T) -> Result<()> {
 /// Reads and parses a JSON file, naming the file in any error.
 pub fn read_json<T: serde::de::DeserializeOwned>(path: &Path) -> Result<T> {
     let text = std::fs::read_to_string(path).map_err(|e| NerfError::io(path, e))?;
-    serde_json::from_str(&text).map_err(|source| NerfError::Json {
-        path: path.to_path_buf(),
-        source,
-    })
+    serde_json::from_str(&text).map_err(|source| json_error(path, source))
+}
+
+/// A JSON error named by its kind: text that is not JSON is "malformed"; valid JSON with
+/// a field missing or of the wrong type says which field (serde's message names it).
+pub(crate) fn json_error(path: &Path, source: serde_json::Error) -> NerfError {
+    match source.classify() {
+        serde_json::error::Category::Data => NerfError::format(path, source.to_string()),
+        _ => NerfError::Json {
+            path: path.to_path_buf(),
+            source,
+        },
+    }
 }
 
 /// Creates a directory and its parents, naming it on failure.
 pub fn create_dir(path: &Path) -> Result<()> {
     std::fs::create_dir_all(path).map_err(|e| NerfError::write(path, e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 10 #13: valid JSON with a missing field says which field; broken text is
+    /// called malformed.
+    #[test]
+    fn json_errors_say_what_is_wrong() {
+        #[derive(serde::Deserialize, Debug)]
+        #[allow(dead_code)]
+        struct Doc {
+            frames: Vec<u32>,
+        }
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("t.json");
+        std::fs::write(&path, r#"{"camera_angle_x": 0.7}"#).expect("write");
+        let err = read_json::<Doc>(&path)
+            .expect_err("missing field")
+            .to_string();
+        assert!(
+            err.contains("t.json")
+                && err.contains("missing field `frames`")
+                && !err.contains("malformed"),
+            "{err}"
+        );
+        std::fs::write(&path, r#"{"frames": [1, 2"#).expect("write");
+        let err = read_json::<Doc>(&path).expect_err("truncated").to_string();
+        assert!(
+            err.contains("t.json") && err.contains("malformed JSON"),
+            "{err}"
+        );
+    }
 }

@@ -35,6 +35,7 @@ fn trains_a_small_scene_past_a_psnr_floor() {
         minutes: None,
         resume: false,
         pause_at: None,
+        stop: None,
     };
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!((summary.steps, summary.reason), (400, StopReason::Steps));
@@ -66,6 +67,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
             minutes: None,
             resume: false,
             pause_at: None,
+            stop: None,
         },
         &mut |_| {},
     )
@@ -80,6 +82,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
         minutes: None,
         resume: false,
         pause_at: Some(7),
+        stop: None,
     };
     assert_eq!(
         run::train(&first, &mut |_| {}).expect("first half").reason,
@@ -96,6 +99,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
             minutes: None,
             resume: true,
             pause_at: None,
+            stop: None,
         },
         &mut |_| {},
     )
@@ -124,6 +128,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
             minutes: None,
             resume: false,
             pause_at: None,
+            stop: None,
         },
         &mut |_| {},
     )
@@ -143,6 +148,7 @@ fn time_budget_stops_with_a_checkpoint() {
         minutes: Some(0.02),
         resume: false,
         pause_at: None,
+        stop: None,
     };
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!(summary.reason, StopReason::TimeBudget);

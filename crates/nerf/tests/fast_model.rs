@@ -18,6 +18,7 @@ fn options(out: &Path, config: TrainConfig, resume: bool, pause_at: Option<u64>)
         minutes: None,
         resume,
         pause_at,
+        stop: None,
     }
 }
 

@@ -124,6 +124,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
         minutes: None,
         resume: false,
         pause_at: None,
+        stop: None,
     };
     run::train(&opts, &mut |_| {}).expect("train");
     let run = LoadedRun::open(&out).expect("run");

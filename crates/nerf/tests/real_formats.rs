@@ -91,7 +91,11 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
     );
     assert!(matches!(scene.space, RaySpace::Ndc(_)), "{:?}", scene.space);
     assert_eq!(scene.ray_bounds(), (0.0, 1.0));
-    assert_eq!(scene.warning(), None, "a forward-facing capture");
+    assert!(
+        scene.warnings().is_empty(),
+        "a forward-facing capture: {:?}",
+        scene.warnings()
+    );
     assert!(!scene.contract, "NDC already reaches infinity");
     let truth: Vec<Pose> = shots.iter().map(|s| s.camera.c2w).collect();
     let loaded: Vec<Pose> = scene.frames.iter().map(|f| f.camera.c2w).collect();
@@ -140,6 +144,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
             minutes: None,
             resume: false,
             pause_at: None,
+            stop: None,
         },
         &mut |_| {},
     )
@@ -511,14 +516,14 @@ fn real_beer_llff_and_its_colmap_model_agree() {
         colmap.near,
         colmap.far
     );
-    assert_eq!(llff.warning(), None);
+    assert!(llff.warnings().is_empty(), "{:?}", llff.warnings());
     assert!(
         llff.contract && colmap.contract,
         "360-degree captures are unbounded"
     );
     // Read as forward-facing, the half circle of cameras is flagged.
     let ndc = Scene::open(&dir, &SceneOptions::default(), 4).expect("llff as forward-facing");
-    assert!(ndc.warning().is_some_and(|w| w.contains("--spherify")));
+    assert!(ndc.warnings().iter().any(|w| w.contains("--spherify")));
     let cam = &llff.cameras(Split::Train)[0];
     assert_eq!((cam.width, cam.height), (180, 320));
 }

@@ -54,7 +54,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         render_rows: a.render_rows,
         preset: a.preset,
     };
-    let report = nerf::bench_vanilla::run(&opts, &mut |line| println!("{line}"))?;
+    let report = nerf::bench_vanilla::run(&opts, &mut |line| eprintln!("{line}"))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
@@ -88,7 +88,7 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         render_size: a.render_size,
         model,
     };
-    let r = nerf::bench_fast::run(&opts, &mut |line| println!("{line}"))?;
+    let r = nerf::bench_fast::run(&opts, &mut |line| eprintln!("{line}"))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
         return Ok(());

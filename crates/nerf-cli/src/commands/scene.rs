@@ -65,7 +65,7 @@ pub fn run(a: SceneArgs) -> Result<()> {
     } else {
         println!("fast-model box: [-{0:.3}, {0:.3}]^3", s.bound);
     }
-    if let Some(w) = s.warning() {
+    for w in s.warnings() {
         println!("warning: {w}");
     }
     Ok(())

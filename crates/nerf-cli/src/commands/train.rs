@@ -1,31 +1,58 @@
 //! `nerf train`: the options (declared once, in the library) -> a run folder.
 
+use std::sync::atomic::AtomicUsize;
+use std::sync::Arc;
+
 use anyhow::Result;
 use nerf::train::options::TrainOptions;
-use nerf::train::run::{self, StopReason, CHECKPOINT_FILE};
+use nerf::train::run::{self, RunSummary, StopReason, CHECKPOINT_FILE};
 
 use crate::progress::TrainProgress;
 
 pub fn run(a: TrainOptions) -> Result<()> {
-    let opts = a.run_options(&mut |w| eprintln!("warning: {w}"))?;
+    let mut opts = a.run_options(&mut |w| eprintln!("warning: {w}"))?;
+    let stop = Arc::new(AtomicUsize::new(0));
+    crate::signals::stop_on_interrupt(&stop)?;
+    opts.stop = Some(stop);
     let mut progress = TrainProgress::default();
     let summary = run::train(&opts, &mut |e| progress.on_event(e));
     progress.finish();
     let summary = summary?;
+    let out = opts.out.display();
+    let resume = format!("nerf train --out {out} --resume");
     let why = match summary.reason {
         StopReason::Steps => "all steps done".to_string(),
         StopReason::TimeBudget => format!("the {} minute budget ran out", a.minutes.unwrap_or(0.0)),
         StopReason::Paused => format!(
-            "paused at step {}; continue with --resume",
+            "paused at step {}; continue with `{resume}`",
             a.pause_at.unwrap_or(0)
+        ),
+        StopReason::Interrupted(signal) => format!(
+            "interrupted by {}; continue with `{resume}`",
+            crate::signals::name(signal)
         ),
     };
     println!(
-        "stopped after step {} ({why}); {:.1} s of training; last batch PSNR {:.2} dB; checkpoint in {}",
+        "stopped after step {} ({why}); {:.1} s of training; {}",
         summary.steps,
         summary.seconds,
-        summary.last_psnr,
+        headline(&summary)
+    );
+    println!(
+        "checkpoint: {}\nnext: nerf eval --run {out}   (test-split PSNR / SSIM per view)",
         opts.out.join(CHECKPOINT_FILE).display()
     );
+    if let StopReason::Interrupted(signal) = summary.reason {
+        std::process::exit(crate::signals::exit_code(signal));
+    }
     Ok(())
+}
+
+/// The figure to lead with: the latest validation PSNR (a held-out view), not the last
+/// training batch's, which flatters the model.
+fn headline(s: &RunSummary) -> String {
+    match s.val_psnr {
+        Some((step, psnr)) => format!("latest validation PSNR {psnr:.2} dB (step {step})"),
+        None => "no validation image yet (see --val-every)".to_string(),
+    }
 }

@@ -19,6 +19,82 @@ use crate::math::{cross, normalize_or_zero, scale, sub, V3};
 /// Camera-to-world transform: rotation columns are the camera's X, Y, Z axes in the world.
 pub type Pose = [[f32; 4]; 3];
 
+/// How far a pose's rotation may be from orthonormal (largest entry of `R^T R - I`) and
+/// still be taken as a rotation. Real exports (Blender, COLMAP, instant-ngp, nerfstudio)
+/// are orthonormal to about 1e-6; 1e-2 leaves room for matrices printed with few digits.
+pub const ROTATION_TOLERANCE: f32 = 1e-2;
+/// Camera positions beyond this distance from the origin are a broken export, not a scene.
+pub const MAX_POSITION: f32 = 1e6;
+
+/// Checks that a camera-to-world matrix is a rotation and a finite, sensible position.
+pub fn check_pose(pose: &Pose) -> Result<(), String> {
+    if pose.iter().flatten().any(|v| !v.is_finite()) {
+        return Err("the pose has a non-finite entry".into());
+    }
+    let col = |c: usize| [pose[0][c], pose[1][c], pose[2][c]];
+    let mut worst = 0.0f32;
+    for a in 0..3 {
+        for b in 0..3 {
+            let d = crate::math::dot(col(a), col(b)) - if a == b { 1.0 } else { 0.0 };
+            worst = worst.max(d.abs());
+        }
+    }
+    let det = crate::math::dot(col(0), cross(col(1), col(2)));
+    if worst > ROTATION_TOLERANCE || det < 0.0 {
+        return Err(format!(
+            "the pose's 3x3 part is not a rotation (columns off orthonormal by {worst:.3}, \
+             determinant {det:.3}); camera-to-world matrices must be rotation + translation"
+        ));
+    }
+    let distance = crate::math::length(col(3));
+    if distance > MAX_POSITION {
+        return Err(format!(
+            "the camera sits {distance:e} units from the origin (more than {MAX_POSITION:e})"
+        ));
+    }
+    Ok(())
+}
+
+/// The largest image side rendered, in pixels.
+pub const MAX_IMAGE_SIDE: usize = 16384;
+
+/// Refuses image sizes that cannot be rendered (zero) or would not fit in memory, saying
+/// the limit and what the size would need (RGB, depth and opacity: 5 floats per pixel).
+pub fn check_image_size(width: usize, height: usize) -> std::result::Result<(), String> {
+    if width == 0 || height == 0 {
+        return Err(format!("a {width}x{height} image has no pixels"));
+    }
+    if width > MAX_IMAGE_SIDE || height > MAX_IMAGE_SIDE {
+        let bytes = width as f64 * height as f64 * 5.0 * 4.0;
+        return Err(format!(
+            "a {width}x{height} image is larger than the limit of {MAX_IMAGE_SIDE} pixels a \
+             side (it would need {:.1} GiB for its buffers alone)",
+            bytes / f64::from(1u32 << 30)
+        ));
+    }
+    Ok(())
+}
+
+/// A camera-to-world pose from the rows of a 4x4 (or 3x4) matrix, checked (see
+/// [`check_pose`]).
+pub fn pose_from_rows(m: &[Vec<f32>]) -> Result<Pose, String> {
+    if !(m.len() == 4 || m.len() == 3) || m.iter().any(|row| row.len() != 4) {
+        let shape: Vec<usize> = m.iter().map(|r| r.len()).collect();
+        return Err(format!(
+            "the matrix must be 4x4, got rows of lengths {shape:?}"
+        ));
+    }
+    if m.iter().flatten().any(|v| !v.is_finite()) {
+        return Err("the matrix has a non-finite entry".into());
+    }
+    let mut pose = [[0.0; 4]; 3];
+    for (r, row) in pose.iter_mut().enumerate() {
+        row.copy_from_slice(&m[r]);
+    }
+    check_pose(&pose)?;
+    Ok(pose)
+}
+
 /// One camera: image size, intrinsics and pose.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Camera {

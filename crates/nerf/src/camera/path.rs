@@ -184,55 +184,109 @@ pub fn interpolate(poses: &[Pose], keys: usize, frames: usize) -> Vec<Pose> {
 struct PathFile {
     render_width: Option<usize>,
     render_height: Option<usize>,
+    /// nerfstudio: `perspective`, `fisheye` or `equirectangular`.
+    camera_type: Option<String>,
     camera_path: Option<Vec<PathFrame>>,
 }
 
 #[derive(Deserialize)]
 struct PathFrame {
-    /// Row-major 4x4 camera-to-world.
-    camera_to_world: Vec<f32>,
+    /// Camera-to-world: row-major 16 values, or nested 4x4 (or 3x4) rows.
+    camera_to_world: Matrix,
     /// Vertical field of view in degrees.
     fov: f32,
     aspect: Option<f32>,
+    camera_type: Option<String>,
+}
+
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum Matrix {
+    Flat(Vec<f32>),
+    Nested(Vec<Vec<f32>>),
+}
+
+impl Matrix {
+    fn pose(&self) -> std::result::Result<Pose, String> {
+        let rows: Vec<Vec<f32>> = match self {
+            Matrix::Flat(v) if v.len() == 16 || v.len() == 12 => {
+                v.chunks(4).map(<[f32]>::to_vec).collect()
+            }
+            Matrix::Flat(v) => {
+                return Err(format!(
+                    "camera_to_world has {} values, expected 16",
+                    v.len()
+                ))
+            }
+            Matrix::Nested(rows) => rows.clone(),
+        };
+        super::pose_from_rows(&rows).map_err(|m| m.replace("the matrix", "camera_to_world"))
+    }
 }
 
 /// The cameras of a nerfstudio `camera_path.json` (its per-frame `camera_path` list: a
-/// row-major 4x4 `camera_to_world`, vertical `fov` in degrees, `aspect`), at the file's
-/// `render_width` x `render_height` unless `size` overrides the height.
+/// 4x4 `camera_to_world`, flat row-major or nested, vertical `fov` in degrees, `aspect`),
+/// at the file's `render_width` x `render_height` (a frame's `aspect` is used only when the
+/// file gives no size); `size` overrides the height, keeping the aspect. Only perspective
+/// paths are rendered: fisheye and equirectangular ones are refused by name.
 pub fn load_camera_path(path: &Path, size: Option<usize>) -> Result<Vec<Camera>> {
     let file: PathFile = crate::io::read_json(path)?;
     let bad = |m: String| NerfError::Format {
         path: path.to_path_buf(),
         message: m,
     };
-    let frames = file.camera_path.ok_or_else(|| {
+    let frames = file.camera_path.as_ref().ok_or_else(|| {
         bad("no `camera_path` list (export the path from the viewer first)".into())
     })?;
+    if frames.is_empty() {
+        return Err(bad(
+            "the `camera_path` list is empty: no frames to render".into()
+        ));
+    }
+    let file_aspect = match (file.render_width, file.render_height) {
+        (Some(w), Some(h)) if w > 0 && h > 0 => Some(w as f32 / h as f32),
+        (Some(_), Some(_)) => {
+            return Err(bad("render_width and render_height must be positive".into()))
+        }
+        _ => None,
+    };
     let height = size.or(file.render_height).unwrap_or(400).max(1);
     frames
         .iter()
         .enumerate()
         .map(|(k, f)| {
-            if f.camera_to_world.len() != 16 {
+            let kind = f.camera_type.as_deref().or(file.camera_type.as_deref());
+            if let Some(kind) = kind.filter(|t| !t.eq_ignore_ascii_case("perspective")) {
                 return Err(bad(format!(
-                    "camera_path[{k}].camera_to_world has {} values, expected 16",
-                    f.camera_to_world.len()
+                    "camera_path[{k}] is a {kind} camera; only perspective paths are \
+                     rendered (set the camera type to perspective in the viewer and export again)"
                 )));
             }
+            let pose = f
+                .camera_to_world
+                .pose()
+                .map_err(|m| bad(format!("camera_path[{k}]: {m}")))?;
             if !(f.fov > 0.0 && f.fov < 180.0) {
                 return Err(bad(format!(
                     "camera_path[{k}].fov {} is not in (0, 180)",
                     f.fov
                 )));
             }
-            let aspect = f
-                .aspect
-                .or_else(|| Some(file.render_width? as f32 / file.render_height? as f32))
-                .unwrap_or(1.0);
-            let width = ((height as f32 * aspect).round() as usize).max(1);
+            let aspect = file_aspect.or(f.aspect).unwrap_or(1.0);
+            if !(aspect.is_finite() && aspect > 0.0) {
+                return Err(bad(format!(
+                    "camera_path[{k}].aspect {aspect} must be a positive number"
+                )));
+            }
+            let width = (height as f64 * aspect as f64).round().max(1.0);
+            let width = if width > usize::MAX as f64 {
+                usize::MAX
+            } else {
+                width as usize
+            };
+            super::check_image_size(width, height)
+                .map_err(|m| bad(format!("camera_path[{k}]: {m}")))?;
             let fov_x = 2.0 * (aspect * (f.fov.to_radians() / 2.0).tan()).atan();
-            let m = &f.camera_to_world;
-            let pose: Pose = std::array::from_fn(|r| std::array::from_fn(|c| m[4 * r + c]));
             Ok(Camera::from_fov_x(width, height, fov_x, pose))
         })
         .collect()

@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::scene::{Format, Frame as SceneFrame, Parsed, Scene, SceneOptions};
+use super::transforms::{camera_from, Intrinsics};
 use super::{Dataset, Split};
 use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
@@ -59,12 +60,37 @@ pub fn load_every(dir: &Path, split: Split, downscale: usize, every: usize) -> R
     Scene::open(dir, &opts, downscale)?.load(split, every)
 }
 
+/// One split's JSON as read: beside `camera_angle_x`, files exported by other tools may
+/// carry instant-ngp's keys (`fl_x`, `cx`, `k1`, ..., `aabb_scale`, per file or per
+/// frame). instant-ngp reads them, and so do we (see `transforms`); we say so.
+#[derive(Deserialize)]
+struct SplitJson {
+    frames: Vec<FrameJson>,
+    aabb_scale: Option<f32>,
+    scale: Option<f32>,
+    #[serde(flatten)]
+    intrinsics: Intrinsics,
+}
+
+#[derive(Deserialize)]
+struct FrameJson {
+    file_path: String,
+    transform_matrix: Vec<Vec<f32>>,
+    #[serde(flatten)]
+    intrinsics: Intrinsics,
+}
+
+/// instant-ngp's default scale from scene units to its unit cube.
+const NGP_SCALE: f32 = 0.33;
+
 /// Reads the three splits' JSON files (a missing `val` or `test` split is empty) and the
 /// first image's header for the image size.
 pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
     let mut frames = Vec::new();
     let mut splits: [Vec<usize>; 3] = Default::default();
     let mut size = None;
+    let mut notes = Vec::new();
+    let mut bound = BOUND;
     for (s, split) in [Split::Train, Split::Val, Split::Test]
         .into_iter()
         .enumerate()
@@ -73,52 +99,94 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
         if split != Split::Train && !json_path.exists() {
             continue;
         }
-        let transforms = load_transforms(dir, split)?;
-        if transforms.frames.is_empty() {
+        let doc: SplitJson = crate::io::read_json(&json_path)?;
+        if doc.frames.is_empty() {
             return Err(NerfError::format(&json_path, "lists no frames"));
         }
-        let fov = transforms.camera_angle_x;
-        if !(fov > 0.0 && fov < std::f32::consts::PI) {
-            return Err(NerfError::format(
-                &json_path,
-                format!("camera_angle_x {fov} is not an angle in (0, pi)"),
+        if let Some(fov) = doc.intrinsics.camera_angle_x() {
+            if !(fov > 0.0 && fov < std::f64::consts::PI) {
+                return Err(NerfError::format(
+                    &json_path,
+                    format!("camera_angle_x {fov} is not an angle in (0, pi)"),
+                ));
+            }
+        }
+        let mut given = doc.intrinsics.given();
+        for f in &doc.frames {
+            given.extend(f.intrinsics.given());
+        }
+        given.sort_unstable();
+        given.dedup();
+        if let Some(aabb) = doc.aabb_scale {
+            let scale = doc.scale.unwrap_or(NGP_SCALE);
+            if !(aabb > 0.0 && scale > 0.0 && aabb.is_finite()) {
+                return Err(NerfError::format(
+                    &json_path,
+                    format!("aabb_scale {aabb} and scale {scale} must be positive"),
+                ));
+            }
+            // instant-ngp's cube of side `aabb_scale` in its units, in scene units.
+            bound = bound.max(0.5 * aabb / scale);
+            given.push("aabb_scale");
+        }
+        if !given.is_empty() {
+            notes.push(format!(
+                "{} carries instant-ngp keys ({}); they are read as instant-ngp reads them \
+                 (fl_x/fl_y over camera_angle_x, principal point, distortion, the box from \
+                 aabb_scale)",
+                json_path.display(),
+                given.join(", ")
             ));
         }
         let base = json_path.parent().unwrap_or(Path::new("."));
-        for (k, frame) in transforms.frames.iter().enumerate() {
-            let pose = parse_pose(&frame.transform_matrix).map_err(|m| {
+        for (k, frame) in doc.frames.iter().enumerate() {
+            let bad = |m: String| {
                 NerfError::format(&json_path, format!("frame {k} ({}): {m}", frame.file_path))
-            })?;
-            let image = image_path(base, &frame.file_path);
-            // Every image of the format shares one size; read it once.
-            let (w, h) = match size {
-                Some(s) => s,
-                None => *size.insert(super::scene::image_dimensions(&image)?),
             };
+            let pose = parse_pose(&frame.transform_matrix).map_err(bad)?;
+            let image = image_path(base, &frame.file_path);
+            let intr = frame.intrinsics.over(&doc.intrinsics);
+            // The size the intrinsics refer to: the file's `w`, `h`, else the first image's
+            // (every image is checked against its camera when the scene opens).
+            let (w, h) = match (intr.size(), size) {
+                (Some(s), _) | (None, Some(s)) => s,
+                (None, None) => *size.insert(super::scene::image_dimensions(
+                    &super::scene::locate(dir, &image),
+                )?),
+            };
+            let camera = camera_from(&intr, w, h, pose).map_err(bad)?;
             splits[s].push(frames.len());
             frames.push(SceneFrame {
-                camera: Camera::from_fov_x(w, h, fov, pose),
+                camera,
                 image,
                 mask: None,
                 name: frame.file_path.clone(),
             });
         }
     }
+    let (near, far) = if bound > BOUND {
+        let cameras: Vec<Camera> = frames.iter().map(|f| f.camera.clone()).collect();
+        super::scene::bounds_around_box(&cameras, bound)
+    } else {
+        (NEAR, FAR)
+    };
     Ok(Parsed {
         frames,
         splits: Some(splits),
-        near: NEAR,
-        far: FAR,
+        near,
+        far,
         space: RaySpace::World,
-        bound: BOUND,
+        bound,
         contract: false,
         prescaled: 1,
+        notes,
+        one_size: true,
     })
 }
 
 /// `file_path` resolved against the JSON's folder, with `.png` added when it has no extension.
 pub fn image_path(base: &Path, file_path: &str) -> PathBuf {
-    let p = base.join(file_path);
+    let p = super::scene::resolve(base, file_path);
     if p.extension().is_none() {
         p.with_extension("png")
     } else {
@@ -128,20 +196,7 @@ pub fn image_path(base: &Path, file_path: &str) -> PathBuf {
 
 /// Checks a 4x4 (or 3x4) camera-to-world matrix and keeps its top three rows.
 pub fn parse_pose(m: &[Vec<f32>]) -> std::result::Result<Pose, String> {
-    if !(m.len() == 4 || m.len() == 3) || m.iter().any(|row| row.len() != 4) {
-        let shape: Vec<usize> = m.iter().map(|r| r.len()).collect();
-        return Err(format!(
-            "transform_matrix must be 4x4, got rows of lengths {shape:?}"
-        ));
-    }
-    if m.iter().flatten().any(|v| !v.is_finite()) {
-        return Err("transform_matrix has a non-finite entry".into());
-    }
-    let mut pose = [[0.0; 4]; 3];
-    for (r, row) in pose.iter_mut().enumerate() {
-        row.copy_from_slice(&m[r]);
-    }
-    Ok(pose)
+    crate::camera::pose_from_rows(m).map_err(|e| e.replace("the matrix", "transform_matrix"))
 }
 
 /// Writes the JSON of one split atomically.

@@ -135,18 +135,13 @@ where
                 ),
             )
         })?;
-    save_atomic(path, |tmp| {
-        img.save_with_format(tmp, image::ImageFormat::Png)
-    })
-}
-
-fn save_atomic(path: &Path, write: impl FnOnce(&Path) -> image::ImageResult<()>) -> Result<()> {
-    let tmp = crate::io::tmp_path(path);
-    write(&tmp).map_err(|e| {
-        let _ = std::fs::remove_file(&tmp);
-        NerfError::write(path, std::io::Error::other(e.to_string()))
-    })?;
-    std::fs::rename(&tmp, path).map_err(|e| NerfError::write(path, e))
+    // Encode in memory, then write through the one crash-safe path: the image crate's own
+    // file writer buffers, and a buffered write that fails at its final flush (a full disk)
+    // is dropped silently, leaving a 0-byte PNG reported as written.
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    img.write_to(&mut bytes, image::ImageFormat::Png)
+        .map_err(|e| NerfError::write(path, std::io::Error::other(e.to_string())))?;
+    crate::io::write_atomic(path, &bytes.into_inner())
 }
 
 #[inline]
@@ -192,5 +187,26 @@ mod tests {
         std::fs::write(&path, &bytes[..bytes.len() / 2]).expect("truncate");
         let err = RgbaImage::load(&path).expect_err("truncated PNG must fail");
         assert!(err.to_string().contains("a.png"), "{err}");
+    }
+
+    /// Issue 10 #4: a full disk. The temporary file is made a link to `/dev/full`, where
+    /// every write fails with "No space left on device"; the save must fail, naming the
+    /// file, and leave nothing in its place.
+    #[test]
+    #[cfg(unix)]
+    fn a_full_disk_is_an_error_not_an_empty_png() {
+        if !Path::new("/dev/full").exists() {
+            eprintln!("skipping: /dev/full is absent");
+            return;
+        }
+        let dir = tempfile::tempdir().expect("tempdir");
+        let path = dir.path().join("frame.png");
+        std::os::unix::fs::symlink("/dev/full", crate::io::tmp_path(&path)).expect("symlink");
+        let err = save_rgb_png(&path, 2, 2, &[0.5; 12]).expect_err("a full disk must fail");
+        assert!(
+            err.to_string().contains("frame.png") && err.to_string().contains("space"),
+            "{err}"
+        );
+        assert!(!path.exists(), "nothing may be left in place of frame.png");
     }
 }

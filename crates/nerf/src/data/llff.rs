@@ -213,5 +213,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
         bound,
         contract: opts.spherify,
         prescaled,
+        notes: Vec::new(),
+        one_size: false,
     })
 }

@@ -65,8 +65,8 @@ pub struct SceneOptions {
     /// Real captures: hold out every N-th image for testing (the paper's LLFF setting: 8).
     #[arg(long, default_value_t = 8, value_parser = at_least_two)]
     pub holdout: usize,
-    /// transforms.json: whose world placement to follow (auto: instant-ngp when the file
-    /// has aabb_scale, scale or offset, else nerfstudio).
+    /// transforms.json: whose world placement to follow (auto: instant-ngp's keys scale or
+    /// offset, else nerfstudio's keys, else aabb_scale; the choice is printed).
     #[arg(long, value_enum, default_value = "auto")]
     pub convention: Convention,
 }
@@ -128,6 +128,9 @@ pub struct Scene {
     pub contract: bool,
     /// Integer area-downscale still to apply to each image file on load.
     pub(crate) image_factor: usize,
+    /// What reading the scene decided or repaired that a user should hear (convention
+    /// chosen, images found elsewhere, duplicates dropped, intrinsics rescaled).
+    pub notes: Vec<String>,
 }
 
 /// What a format reader hands back; [`Scene::open`] adds splits and downscaling.
@@ -142,6 +145,10 @@ pub(crate) struct Parsed {
     pub contract: bool,
     /// Downscale already applied by picking a smaller image folder (LLFF `images_N`).
     pub prescaled: usize,
+    /// What the reader decided that a user should hear (see [`Scene::notes`]).
+    pub notes: Vec<String>,
+    /// The format has one image size for every frame (Blender: `camera_angle_x` is shared).
+    pub one_size: bool,
 }
 
 /// The format of the scene in `dir`, from the files it holds.
@@ -194,20 +201,35 @@ impl Scene {
             return Err(NerfError::format(dir, "the scene lists no images"));
         }
         let image_factor = (downscale / parsed.prescaled.max(1)).max(1);
-        let [train, val, test] = parsed.splits.unwrap_or_else(|| {
-            let (train, test) = hold_out(parsed.frames.len(), opts.holdout);
-            [train, test.clone(), test]
-        });
-        let frames = parsed.frames;
+        let mut notes = parsed.notes;
+        let mut frames = parsed.frames;
+        notes.extend(check_frames(dir, &mut frames)?);
+        if parsed.one_size {
+            check_one_size(&frames)?;
+        }
         if let Some(f) = frames
             .iter()
             .find(|f| f.camera.width < image_factor || f.camera.height < image_factor)
         {
-            return Err(NerfError::Config(format!(
-                "--downscale {downscale} leaves no pixels of {}",
-                f.image.display()
-            )));
+            return Err(NerfError::format(
+                &f.image,
+                format!(
+                    "is {}x{}: --downscale {downscale} leaves no pixels of it",
+                    f.camera.width, f.camera.height
+                ),
+            ));
         }
+        let [train, val, test] = match parsed.splits {
+            Some(splits) => dedupe_splits(&frames, splits, &mut notes),
+            None => {
+                let kept = dedupe_frames(&mut frames, &mut notes);
+                if kept == 0 {
+                    return Err(NerfError::format(dir, "the scene lists no images"));
+                }
+                let (train, test) = hold_out(frames.len(), opts.holdout);
+                [train, test.clone(), test]
+            }
+        };
         Ok(Scene {
             dir: dir.to_path_buf(),
             format,
@@ -221,6 +243,7 @@ impl Scene {
             bound: parsed.bound,
             contract: parsed.contract,
             image_factor,
+            notes,
         })
     }
 
@@ -246,23 +269,25 @@ impl Scene {
             .collect()
     }
 
-    /// A warning when the scene is read in a way its cameras contradict: a forward-facing
-    /// treatment (NDC) of cameras that look in directions more than
-    /// [`INWARD_SPREAD_DEGREES`] apart from their mean, i.e. an inward-facing capture that
-    /// wants `--spherify`.
-    pub fn warning(&self) -> Option<String> {
-        if !matches!(self.space, RaySpace::Ndc(_)) {
-            return None;
+    /// What a user should hear before training on the scene: the readers' notes, and a
+    /// warning when the scene is read in a way its cameras contradict (a forward-facing
+    /// treatment, NDC, of cameras that look in directions more than
+    /// [`INWARD_SPREAD_DEGREES`] apart from their mean, i.e. an inward-facing capture
+    /// that wants `--spherify`).
+    pub fn warnings(&self) -> Vec<String> {
+        let mut out = self.notes.clone();
+        if matches!(self.space, RaySpace::Ndc(_)) {
+            let poses: Vec<Pose> = self.frames.iter().map(|f| f.camera.c2w).collect();
+            let spread = super::poses::view_spread_degrees(&poses);
+            if spread > INWARD_SPREAD_DEGREES {
+                out.push(format!(
+                    "the cameras' viewing directions spread {spread:.0} degrees from their \
+                     mean: this looks like an inward-facing capture; NDC suits forward-facing \
+                     ones, so consider --spherify"
+                ));
+            }
         }
-        let poses: Vec<Pose> = self.frames.iter().map(|f| f.camera.c2w).collect();
-        let spread = super::poses::view_spread_degrees(&poses);
-        (spread > INWARD_SPREAD_DEGREES).then(|| {
-            format!(
-                "the cameras' viewing directions spread {spread:.0} degrees from their mean: \
-                 this looks like an inward-facing capture; NDC suits forward-facing ones, so \
-                 consider --spherify"
-            )
-        })
+        out
     }
 
     /// Marching bounds in ray space.
@@ -377,14 +402,189 @@ fn load_mask(path: &Path, image: &RgbaImage, factor: usize) -> Result<Vec<u32>> 
     Ok(kept)
 }
 
-/// The path `relative` names, resolved against `base`.
+/// The path `relative` names, resolved against `base`. Backslashes are folder separators
+/// (files written on Windows), and a drive letter makes no sense here: `C:\\x\\a.jpg`
+/// is read as `C:/x/a.jpg` relative to `base`, which [`check_frames`] then finds by its
+/// last components.
 pub(crate) fn resolve(base: &Path, relative: &str) -> PathBuf {
-    let p = Path::new(relative);
+    let text = if std::path::MAIN_SEPARATOR == '/' {
+        relative.replace('\\', "/")
+    } else {
+        relative.to_string()
+    };
+    let p = Path::new(&text);
     if p.is_absolute() {
         p.to_path_buf()
     } else {
         base.join(p)
     }
+}
+
+/// `path`, or where [`find_moved`] finds it when it is not there.
+pub(crate) fn locate(dir: &Path, path: &Path) -> PathBuf {
+    if path.exists() {
+        return path.to_path_buf();
+    }
+    find_moved(dir, path).unwrap_or_else(|| path.to_path_buf())
+}
+
+/// A file named by a scene that is not where it says (an absolute path from another
+/// machine, a Windows path), looked up in `dir` by its last one, two or three components.
+fn find_moved(dir: &Path, path: &Path) -> Option<PathBuf> {
+    let parts: Vec<&std::ffi::OsStr> = path
+        .components()
+        .filter_map(|c| match c {
+            std::path::Component::Normal(p) => Some(p),
+            _ => None,
+        })
+        .collect();
+    (1..=parts.len().min(3)).rev().find_map(|n| {
+        let candidate = parts[parts.len() - n..]
+            .iter()
+            .fold(dir.to_path_buf(), |p, c| p.join(c));
+        candidate.is_file().then_some(candidate)
+    })
+}
+
+/// Checks every frame before anything trains, so a problem in any split is found when the
+/// scene is opened (`nerf scene`, the start of `nerf train`), not after hours of training:
+/// the pose is a rotation and a sane position; the image exists (or is found by its last
+/// path components) and its header is readable; the camera's size has the image's shape
+/// (its intrinsics are scaled to the image's resolution, with a note when that is more
+/// than rounding). Returns the notes.
+fn check_frames(dir: &Path, frames: &mut [Frame]) -> Result<Vec<String>> {
+    struct Fixed {
+        moved: Option<PathBuf>,
+        rescaled: Option<String>,
+    }
+    let fixes = frames
+        .par_iter_mut()
+        .map(|f| -> Result<Fixed> {
+            crate::camera::check_pose(&f.camera.c2w)
+                .map_err(|m| NerfError::format(&f.image, format!("frame {}: {m}", f.name)))?;
+            let mut moved = None;
+            if !f.image.exists() {
+                if let Some(found) = find_moved(dir, &f.image) {
+                    moved = Some(std::mem::replace(&mut f.image, found));
+                }
+            }
+            let (w, h) = image_dimensions(&f.image)?;
+            let (cw, ch) = (f.camera.width, f.camera.height);
+            f.camera = fit_to_image(&f.camera, w, h).map_err(|m| NerfError::format(&f.image, m))?;
+            let rescaled = (cw.abs_diff(w) > 1 || ch.abs_diff(h) > 1).then(|| {
+                format!(
+                    "{}: the scene file says {cw}x{ch} but the image is {w}x{h}",
+                    f.image.display()
+                )
+            });
+            Ok(Fixed { moved, rescaled })
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let mut notes = Vec::new();
+    let moved: Vec<(&PathBuf, &Frame)> = fixes
+        .iter()
+        .zip(frames.iter())
+        .filter_map(|(x, f)| x.moved.as_ref().map(|m| (m, f)))
+        .collect();
+    if let Some((from, f)) = moved.first() {
+        notes.push(format!(
+            "{} of the scene's image paths do not exist as written; found them by their last \
+             path components inside {} (e.g. {} -> {})",
+            moved.len(),
+            dir.display(),
+            from.display(),
+            f.image.display()
+        ));
+    }
+    let rescaled: Vec<&String> = fixes.iter().filter_map(|x| x.rescaled.as_ref()).collect();
+    if let Some(first) = rescaled.first() {
+        notes.push(format!(
+            "{} images differ in size from the scene file's metadata ({first}); their \
+             intrinsics are scaled to the image size, check the metadata if that is wrong",
+            rescaled.len()
+        ));
+    }
+    Ok(notes)
+}
+
+/// Every image has the first image's size (formats whose intrinsics are shared).
+fn check_one_size(frames: &[Frame]) -> Result<()> {
+    let Some(first) = frames.first() else {
+        return Ok(());
+    };
+    let size = (first.camera.width, first.camera.height);
+    match frames
+        .iter()
+        .find(|f| (f.camera.width, f.camera.height) != size)
+    {
+        None => Ok(()),
+        Some(f) => Err(NerfError::format(
+            &f.image,
+            format!(
+                "is {}x{} but the scene's images are {}x{} (as {} is); one camera angle is \
+                 shared by all of them, so every image must have the same size",
+                f.camera.width,
+                f.camera.height,
+                size.0,
+                size.1,
+                first.image.display()
+            ),
+        )),
+    }
+}
+
+/// Drops frames that name an image already listed (kept: the first), so a file listing
+/// an image twice cannot put it in both the training and the test split. Returns how many
+/// frames are left.
+fn dedupe_frames(frames: &mut Vec<Frame>, notes: &mut Vec<String>) -> usize {
+    let before = frames.len();
+    let mut seen = std::collections::HashSet::new();
+    frames.retain(|f| seen.insert(f.image.clone()));
+    if frames.len() < before {
+        notes.push(format!(
+            "the scene lists {} images more than once; each is kept once, so no test image \
+             is also trained on",
+            before - frames.len()
+        ));
+    }
+    frames.len()
+}
+
+/// Explicit splits with an image listed twice in a split kept once, and a note when a
+/// held-out image is also a training image.
+fn dedupe_splits(
+    frames: &[Frame],
+    splits: [Vec<usize>; 3],
+    notes: &mut Vec<String>,
+) -> [Vec<usize>; 3] {
+    let mut dropped = 0;
+    let splits = splits.map(|split| {
+        let mut seen = std::collections::HashSet::new();
+        let before = split.len();
+        let kept: Vec<usize> = split
+            .into_iter()
+            .filter(|&i| seen.insert(&frames[i].image))
+            .collect();
+        dropped += before - kept.len();
+        kept
+    });
+    if dropped > 0 {
+        notes.push(format!(
+            "{dropped} frames repeat an image already listed in their split; each is kept once"
+        ));
+    }
+    let train: std::collections::HashSet<&PathBuf> =
+        splits[0].iter().map(|&i| &frames[i].image).collect();
+    let leaked = splits[2]
+        .iter()
+        .filter(|&&i| train.contains(&frames[i].image))
+        .count();
+    if leaked > 0 {
+        notes.push(format!(
+            "{leaked} test images are also training images: test PSNR will be optimistic"
+        ));
+    }
+    splits
 }
 
 /// Width and height from an image file's header.

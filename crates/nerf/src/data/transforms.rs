@@ -24,8 +24,9 @@
 //!   camera up vector to +Z, centres the mean camera position and scales so the cameras fit
 //!   in `[-1, 1]^3`. We do the same; the box is `[-1, 1]^3`.
 //!
-//! `Convention::Auto` picks instant-ngp when the file has `aabb_scale`, `scale` or
-//! `offset`, nerfstudio otherwise.
+//! `Convention::Auto` weighs the evidence (see `TransformsJson::convention`): instant-ngp's
+//! `scale`/`offset`, then nerfstudio's `applied_transform`/`ply_file_path`/`camera_model`,
+//! then `aabb_scale`; the choice and its reason are printed with the flag that overrides it.
 
 use std::path::Path;
 
@@ -40,15 +41,20 @@ use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
 
-/// Intrinsics that may appear at the top level and in each frame.
+/// Intrinsics that may appear at the top level and in each frame. Per-frame layouts of
+/// other tools are read too: `fx`/`fy` for `fl_x`/`fl_y`, and a 3x3 (or 4x4) matrix `K`.
 #[derive(Clone, Debug, Default, Deserialize)]
-struct Intrinsics {
+pub(crate) struct Intrinsics {
+    #[serde(alias = "fx")]
     fl_x: Option<f64>,
+    #[serde(alias = "fy")]
     fl_y: Option<f64>,
     camera_angle_x: Option<f64>,
     camera_angle_y: Option<f64>,
     cx: Option<f64>,
     cy: Option<f64>,
+    #[serde(rename = "K")]
+    k_matrix: Option<Vec<Vec<f64>>>,
     w: Option<f64>,
     h: Option<f64>,
     k1: Option<f64>,
@@ -62,7 +68,7 @@ struct Intrinsics {
 
 impl Intrinsics {
     /// `self`'s values where given, `base`'s elsewhere.
-    fn over(&self, base: &Intrinsics) -> Intrinsics {
+    pub(crate) fn over(&self, base: &Intrinsics) -> Intrinsics {
         macro_rules! pick {
             ($($f:ident),*) => { Intrinsics { $($f: self.$f.clone().or(base.$f.clone()),)* } };
         }
@@ -73,6 +79,7 @@ impl Intrinsics {
             camera_angle_y,
             cx,
             cy,
+            k_matrix,
             w,
             h,
             k1,
@@ -83,6 +90,60 @@ impl Intrinsics {
             p2,
             camera_model
         )
+    }
+
+    /// The names of the instant-ngp intrinsics given (for saying what was read).
+    pub(crate) fn given(&self) -> Vec<&'static str> {
+        let mut names = Vec::new();
+        macro_rules! given {
+            ($($f:ident),*) => { $(if self.$f.is_some() { names.push(stringify!($f)); })* };
+        }
+        given!(
+            fl_x,
+            fl_y,
+            camera_angle_y,
+            cx,
+            cy,
+            k_matrix,
+            k1,
+            k2,
+            k3,
+            k4,
+            p1,
+            p2,
+            camera_model
+        );
+        names
+    }
+
+    /// The image size the intrinsics refer to, when the file gives it.
+    pub(crate) fn size(&self) -> Option<(usize, usize)> {
+        Some((self.w? as usize, self.h? as usize))
+    }
+
+    /// The camera angle the Blender format requires, when given.
+    pub(crate) fn camera_angle_x(&self) -> Option<f64> {
+        self.camera_angle_x
+    }
+
+    /// Focal lengths and principal point from a `K` matrix where not given by name.
+    fn with_k(&self) -> std::result::Result<Intrinsics, String> {
+        let Some(k) = &self.k_matrix else {
+            return Ok(self.clone());
+        };
+        if !(k.len() == 3 || k.len() == 4) || k.iter().any(|r| r.len() != k.len()) {
+            return Err(format!(
+                "K must be a 3x3 (or 4x4) matrix, got rows of lengths {:?}",
+                k.iter().map(Vec::len).collect::<Vec<_>>()
+            ));
+        }
+        Ok(Intrinsics {
+            fl_x: self.fl_x.or(Some(k[0][0])),
+            fl_y: self.fl_y.or(Some(k[1][1])),
+            cx: self.cx.or(Some(k[0][2])),
+            cy: self.cy.or(Some(k[1][2])),
+            ..self.clone()
+        })
     }
 }
 
@@ -101,9 +162,45 @@ struct TransformsJson {
     aabb_scale: Option<f32>,
     scale: Option<f32>,
     offset: Option<[f32; 3]>,
+    /// Keys only nerfstudio writes (evidence for its convention).
+    applied_transform: Option<serde_json::Value>,
+    ply_file_path: Option<String>,
     #[serde(flatten)]
     intrinsics: Intrinsics,
 }
+
+impl TransformsJson {
+    /// Whose placement the file follows, and the evidence. instant-ngp's own keys `scale`
+    /// and `offset` decide; then nerfstudio's (`applied_transform`, `ply_file_path`,
+    /// `camera_model`), which outweigh an `aabb_scale` that nerfstudio files may also
+    /// carry; then `aabb_scale`; nerfstudio when nothing tells.
+    fn convention(&self) -> (bool, String) {
+        let keys = |pairs: &[(&'static str, bool)]| -> Vec<&'static str> {
+            pairs.iter().filter(|p| p.1).map(|p| p.0).collect()
+        };
+        let ngp_own = keys(&[
+            ("scale", self.scale.is_some()),
+            ("offset", self.offset.is_some()),
+        ]);
+        let studio = keys(&[
+            ("applied_transform", self.applied_transform.is_some()),
+            ("ply_file_path", self.ply_file_path.is_some()),
+            ("camera_model", self.intrinsics.camera_model.is_some()),
+        ]);
+        if !ngp_own.is_empty() {
+            (true, format!("it has instant-ngp's {}", ngp_own.join(", ")))
+        } else if !studio.is_empty() {
+            (false, format!("it has nerfstudio's {}", studio.join(", ")))
+        } else if self.aabb_scale.is_some() {
+            (true, "it has aabb_scale".into())
+        } else {
+            (false, "it has none of instant-ngp's keys".into())
+        }
+    }
+}
+
+/// Cameras farther than this many box half-extents from the box centre earn a warning.
+const FAR_OUTSIDE: f32 = 10.0;
 
 /// instant-ngp's defaults.
 const NGP_SCALE: f32 = 0.33;
@@ -127,7 +224,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         let intr = f.intrinsics.over(&doc.intrinsics);
         let (w, h) = match (intr.w, intr.h) {
             (Some(w), Some(h)) => (w as usize, h as usize),
-            _ => image_dimensions(&image)?,
+            _ => image_dimensions(&super::scene::locate(dir, &image))?,
         };
         let camera = camera_from(&intr, w, h, pose).map_err(|m| bad(k, f, m))?;
         frames.push(Frame {
@@ -137,11 +234,16 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
             name: f.file_path.clone(),
         });
     }
-    let ngp = match opts.convention {
-        Convention::Ngp => true,
-        Convention::Nerfstudio => false,
-        Convention::Auto => doc.aabb_scale.is_some() || doc.scale.is_some() || doc.offset.is_some(),
+    let (ngp, why) = match opts.convention {
+        Convention::Ngp => (true, "--convention ngp".to_string()),
+        Convention::Nerfstudio => (false, "--convention nerfstudio".to_string()),
+        Convention::Auto => doc.convention(),
     };
+    let mut notes = vec![format!(
+        "transforms.json placed by {} rules ({why}); override with --convention {}",
+        if ngp { "instant-ngp's" } else { "nerfstudio's" },
+        if ngp { "nerfstudio" } else { "ngp" }
+    )];
     let poses: Vec<Pose> = frames.iter().map(|f| f.camera.c2w).collect();
     let (placement, bound) = if ngp {
         let s = doc.scale.unwrap_or(NGP_SCALE);
@@ -168,6 +270,18 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         f.camera.c2w = placement.apply_pose(&f.camera.c2w);
     }
     let cameras: Vec<Camera> = frames.iter().map(|f| f.camera.clone()).collect();
+    let far_out = cameras
+        .iter()
+        .filter(|c| c.origin().iter().any(|x| x.abs() > FAR_OUTSIDE * bound))
+        .count();
+    if far_out > 0 {
+        notes.push(format!(
+            "{far_out} of {} cameras sit more than {FAR_OUTSIDE} times the box's half-extent \
+             ({bound}) from its centre: the object may be tiny in the box or outside it; \
+             check the convention (--convention) or the box (--bound)",
+            cameras.len()
+        ));
+    }
     let (near, far) = bounds_around_box(&cameras, bound);
     Ok(Parsed {
         frames,
@@ -178,15 +292,18 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         bound,
         contract: false,
         prescaled: 1,
+        notes,
+        one_size: false,
     })
 }
 
-fn camera_from(
+pub(crate) fn camera_from(
     intr: &Intrinsics,
     w: usize,
     h: usize,
     c2w: Pose,
 ) -> std::result::Result<Camera, String> {
+    let intr = &intr.with_k()?;
     let focal = |fl: Option<f64>, angle: Option<f64>, size: usize| {
         fl.or(angle.map(|a| 0.5 * size as f64 / (0.5 * a).tan()))
     };
@@ -213,6 +330,15 @@ fn camera_from(
         | Some("SIMPLE_RADIAL")
         | Some("RADIAL") => LensModel::Opencv,
         Some("OPENCV_FISHEYE") => LensModel::Fisheye,
+        Some(m) if m.eq_ignore_ascii_case("EQUIRECTANGULAR") => {
+            return Err(
+                "camera_model EQUIRECTANGULAR (360-degree photos) is not supported: rays are \
+                 cast through a pinhole or fisheye lens only; cut the panoramas into \
+                 perspective views (e.g. nerfstudio's `ns-process-data images \
+                 --camera-type equirectangular`) and train on those"
+                    .into(),
+            )
+        }
         Some(other) => {
             return Err(format!(
                 "camera_model {other:?} is not supported (OPENCV, OPENCV_FISHEYE, PINHOLE)"

@@ -16,6 +16,7 @@ use crate::model::{FastModel, Model, ModelConfig, StepInput, VanillaModel, Worke
 use crate::nn::adam::{Adam, DirtyStep};
 use crate::nn::{GradBuffer, ParamLayout};
 use crate::render::loss::mean_scale;
+use crate::stage::finite::FiniteCheck;
 use crate::stage::{RayBatch, RayOutput};
 
 /// Points per work unit of density queries.
@@ -28,6 +29,7 @@ pub struct CpuEngine<M: Model> {
     params: Vec<f32>,
     adam: Adam,
     chunk_rays: usize,
+    check_finite: bool,
     workers: Vec<Worker<M::Workspace>>,
     step_buffers: M::StepBuffers,
     /// Workspaces for rendering and queries, handed to whichever thread takes a chunk.
@@ -70,6 +72,7 @@ impl<M: Model> CpuEngine<M> {
             params,
             adam,
             chunk_rays: options.chunk_rays.max(1),
+            check_finite: options.check_finite,
             workers,
             step_buffers: M::StepBuffers::default(),
             pool: std::sync::Mutex::new(Vec::new()),
@@ -116,12 +119,14 @@ impl<M: Model> Engine for CpuEngine<M> {
         for w in &mut self.workers {
             w.grads.clear();
         }
+        let check = FiniteCheck::new(self.check_finite);
         let input = StepInput {
             data,
             params: &self.params,
             sampling: spec.sampling,
             batch_rays: spec.batch_rays,
             chunk_rays: self.chunk_rays,
+            check: &check,
         };
         let totals = self
             .model
@@ -136,12 +141,25 @@ impl<M: Model> Engine for CpuEngine<M> {
             w.grads = b;
         }
         self.touched_fraction = self.workers[0].grads.dirty_fraction();
+        check.check(
+            "field.backward",
+            "parameter gradients",
+            &self.workers[0].grads.values,
+        );
+        if let Some(e) = check.take(step + 1) {
+            return Err(e);
+        }
         let scale = mean_scale(totals.rays);
         let loss = (totals.sse * scale) as f32;
         if !loss.is_finite() || !finite {
+            let what = if loss.is_finite() {
+                format!("the gradients hold non-finite values (the loss was a finite {loss})")
+            } else {
+                format!("the loss is {loss}")
+            };
             return Err(NerfError::Diverged {
                 step: step + 1,
-                loss,
+                what,
             });
         }
         let rule = self.model.update_rule();
@@ -155,6 +173,10 @@ impl<M: Model> Engine for CpuEngine<M> {
                 weight_decay: rule.weight_decay,
             },
         );
+        check.check("adam", "parameters", &self.params);
+        if let Some(e) = check.take(step + 1) {
+            return Err(e);
+        }
         self.model
             .after_step(&self.params, step + 1, spec.sampling.seed);
         Ok(StepStats {
@@ -250,6 +272,7 @@ mod tests {
         let options = EngineOptions {
             adam: AdamConfig::default(),
             chunk_rays: 64,
+            check_finite: false,
         };
         [
             ModelConfig::Vanilla(vanilla),
@@ -287,6 +310,59 @@ mod tests {
             state.params.pop();
             let err = engine.set_state(state).expect_err("short parameters");
             assert!(err.to_string().contains("parameters"), "{err}");
+        }
+    }
+
+    /// NERF_CHECK_FINITE: NaN weights are caught at the first stage whose output they
+    /// reach (the field's forward pass), named with its buffer and step; without the switch
+    /// the same step is only reported as diverged.
+    #[test]
+    fn check_finite_names_the_first_stage_that_overflows() {
+        use crate::data::pixels::PixelSampling;
+        use crate::data::synth::{self, SynthOptions};
+        use crate::data::{Background, Split};
+        let opts = SynthOptions {
+            size: 8,
+            supersample: 1,
+            ..Default::default()
+        };
+        let data = synth::dataset(&opts, Split::Train, 2);
+        let spec = StepSpec {
+            sampling: PixelSampling {
+                seed: 1,
+                step: 0,
+                crop: 1.0,
+                background: Background::White,
+            },
+            lr: 1e-3,
+            batch_rays: 64,
+        };
+        for check_finite in [false, true] {
+            for mut engine in engines() {
+                let options = EngineOptions {
+                    adam: AdamConfig::default(),
+                    chunk_rays: 64,
+                    check_finite,
+                };
+                let config = engine.model_config().clone();
+                engine = open(&config, options, 1);
+                let mut state = engine.state();
+                state.params.iter_mut().for_each(|p| *p = f32::NAN);
+                engine.set_state(state).expect("set");
+                let err = engine
+                    .train_step(&data, &spec)
+                    .expect_err("NaN weights")
+                    .to_string();
+                if check_finite {
+                    assert!(
+                        err.contains("field.forward produced a non-finite value at step 1")
+                            && err.contains("NERF_CHECK_FINITE"),
+                        "{err}"
+                    );
+                } else {
+                    assert!(err.contains("diverged at step 1"), "{err}");
+                }
+            }
         }
     }
 }

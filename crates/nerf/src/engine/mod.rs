@@ -26,6 +26,9 @@ pub struct EngineOptions {
     pub adam: AdamConfig,
     /// Rays per work unit (bounds a thread's activation memory).
     pub chunk_rays: usize,
+    /// Check every stage's outputs and gradients for NaN / infinity during training
+    /// (`NERF_CHECK_FINITE`, see `stage::finite`).
+    pub check_finite: bool,
 }
 
 /// One training step, as the trainer schedules it.

@@ -135,7 +135,7 @@ pub fn glb(mesh: &Mesh, colours: &[[f32; 3]]) -> Vec<u8> {
         ]
     });
     let mut json = json.to_string().into_bytes();
-    while json.len() % 4 != 0 {
+    while !json.len().is_multiple_of(4) {
         json.push(b' ');
     }
     while bin.len() % 4 != 0 {

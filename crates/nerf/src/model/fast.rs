@@ -24,6 +24,7 @@ use crate::render::loss::{squared_error, LossBackward};
 use crate::render::march::{render_marched, MarchWorkspace, Marcher};
 use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
 use crate::render::volume::composite_packed;
+use crate::stage::finite::{check_outputs, FiniteCheck};
 use crate::stage::{Field, FieldOutput, PackedSamples, RayBatch, RayOutput};
 
 /// Rays per marching block of a training step.
@@ -81,6 +82,15 @@ pub struct FastModel {
     /// Which cells of the scene box hold anything; refreshed during training and saved
     /// with the checkpoint (rendering needs it).
     pub grid: OccupancyGrid,
+}
+
+/// What every training chunk of a step reads.
+#[derive(Clone, Copy)]
+struct ChunkInput<'a> {
+    params: &'a [f32],
+    /// The step's marched blocks; a chunk takes a range of their rays.
+    blocks: &'a [MarchedBlock],
+    check: &'a FiniteCheck,
 }
 
 impl FastModel {
@@ -210,13 +220,17 @@ impl FastModel {
     /// `ws`, then forward, loss and backward. Writes each ray's squared error into `sse`.
     fn train_chunk(
         &self,
-        params: &[f32],
-        blocks: &[MarchedBlock],
+        input: &ChunkInput,
         rays: std::ops::Range<usize>,
         ws: &mut FastWorkspace,
         grads: &mut GradBuffer,
         sse: &mut [f64],
     ) {
+        let ChunkInput {
+            params,
+            blocks,
+            check,
+        } = *input;
         ws.samples.clear();
         ws.backgrounds.clear();
         ws.targets.clear();
@@ -246,6 +260,8 @@ impl FastModel {
                 rgb: &[],
             }
         };
+        check.check("field.forward", "sigma", field.sigma);
+        check.check("field.forward", "rgb", field.rgb);
         composite_packed(
             &ws.samples,
             field,
@@ -253,6 +269,7 @@ impl FastModel {
             &mut ws.weights,
             &mut ws.outputs,
         );
+        check_outputs(check, &ws.weights, &ws.outputs);
         ws.loss.run(
             &ws.samples,
             field,
@@ -260,6 +277,8 @@ impl FastModel {
             &ws.outputs,
             &ws.targets,
         );
+        check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
+        check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
         if n > 0 {
             self.field.backward(
                 params,
@@ -351,9 +370,13 @@ impl Model for FastModel {
                 for g in first..shares[w + 1] {
                     held += samples_of(g);
                     if held >= batch || g + 1 == shares[w + 1] {
-                        self.train_chunk(
-                            input.params,
+                        let chunk = ChunkInput {
+                            params: input.params,
                             blocks,
+                            check: input.check,
+                        };
+                        self.train_chunk(
+                            &chunk,
                             start..g + 1,
                             &mut worker.ws,
                             &mut worker.grads,
@@ -384,7 +407,7 @@ impl Model for FastModel {
     /// Re-evaluates the occupancy grid every `update_every` steps with the current weights.
     fn after_step(&mut self, params: &[f32], steps_done: u64, seed: u64) {
         let every = self.config.occupancy.update_every.max(1);
-        if steps_done % every != 0 {
+        if !steps_done.is_multiple_of(every) {
             return;
         }
         let dt = self.config.step_length();
@@ -511,14 +534,12 @@ mod tests {
         block.rays.rays = rays;
         let mut grads = GradBuffer::new(model.field.num_params());
         let mut per_ray = vec![0.0; n];
-        model.train_chunk(
+        let input = ChunkInput {
             params,
-            std::slice::from_ref(&block),
-            0..n,
-            &mut ws,
-            &mut grads,
-            &mut per_ray,
-        );
+            blocks: std::slice::from_ref(&block),
+            check: &FiniteCheck::default(),
+        };
+        model.train_chunk(&input, 0..n, &mut ws, &mut grads, &mut per_ray);
         let sse: f64 = per_ray.iter().sum();
         RenderThenTrain {
             out,
@@ -629,6 +650,7 @@ mod step_tests {
             },
             batch_rays: 0,
             chunk_rays: 0,
+            check: &FiniteCheck::default(),
         };
         let kept = |first: usize| {
             let mut blocks = Vec::new();

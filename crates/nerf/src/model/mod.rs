@@ -184,6 +184,8 @@ pub struct StepInput<'a> {
     pub batch_rays: usize,
     /// Rays per work unit.
     pub chunk_rays: usize,
+    /// The debug checks of every stage's outputs and gradients (`NERF_CHECK_FINITE`).
+    pub check: &'a crate::stage::finite::FiniteCheck,
 }
 
 /// One thread's share of a training step.

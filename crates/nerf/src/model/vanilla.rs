@@ -13,6 +13,7 @@ use crate::render::loss::LossBackward;
 use crate::render::sampling::{merge_sorted, sample_pdf, stratified};
 use crate::render::volume::{composite_packed, depth_deltas};
 use crate::rng::Rng;
+use crate::stage::finite::{check_outputs, FiniteCheck};
 use crate::stage::{Field, FieldOutput, PackedSamples, RayBatch, RayOutput};
 
 /// Network shape and samples per ray.
@@ -192,12 +193,15 @@ fn pass_forward(
     t: &[f32],
     spr: usize,
     ws: &mut ChunkWorkspace,
+    check: &FiniteCheck,
 ) {
     let r = rays.len();
     pack(&mut ws.samples, rays, t, spr);
     ws.weights.resize(r * spr, 0.0);
     ws.outputs.resize(r, RayOutput::default());
     let field = net.forward(params, ws.samples.field_input(), &mut ws.net);
+    check.check("field.forward", "sigma", field.sigma);
+    check.check("field.forward", "rgb", field.rgb);
     composite_packed(
         &ws.samples,
         field,
@@ -205,6 +209,7 @@ fn pass_forward(
         &mut ws.weights,
         &mut ws.outputs,
     );
+    check_outputs(check, &ws.weights, &ws.outputs);
 }
 
 /// Loss of the last pass against `targets`, its backward through compositing and the
@@ -217,6 +222,7 @@ fn pass_backward(
     targets: &[[f32; 3]],
     ws: &mut ChunkWorkspace,
     grads: &mut Grads,
+    check: &FiniteCheck,
 ) -> f64 {
     let n = ws.samples.len();
     let field = FieldOutput {
@@ -226,6 +232,8 @@ fn pass_backward(
     let sse = ws
         .loss
         .run(&ws.samples, field, &rays.backgrounds, &ws.outputs, targets);
+    check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
+    check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
     net.backward(params, &mut ws.net, ws.loss.field_grad(), grads);
     sse
 }
@@ -246,6 +254,7 @@ impl VanillaModel {
         params: &[f32],
         ws: &mut ChunkWorkspace,
         grads: &mut GradBuffer,
+        check: &FiniteCheck,
     ) -> (f64, f64) {
         let (n_c, n_f) = (self.config.n_coarse, self.config.n_fine);
         let (p_coarse, p_fine) = self.split(params);
@@ -253,7 +262,7 @@ impl VanillaModel {
         let r = batch.len();
         coarse_samples(ws, &batch.rays, n_c, Some(&mut batch.rngs));
         let t = std::mem::take(&mut ws.t_coarse);
-        pass_forward(&self.coarse, p_coarse, &batch.rays, &t, n_c, ws);
+        pass_forward(&self.coarse, p_coarse, &batch.rays, &t, n_c, ws, check);
         let coarse_sse = pass_backward(
             &self.coarse,
             p_coarse,
@@ -261,13 +270,14 @@ impl VanillaModel {
             &batch.targets,
             ws,
             &mut grads.window(self.coarse_range()),
+            check,
         );
         ws.t_coarse = t;
         let mut fine_sse = 0.0;
         if let Some(fine) = &self.fine {
             fine_samples(ws, r, n_c, n_f, Some(&mut batch.rngs));
             let t = std::mem::take(&mut ws.t_fine);
-            pass_forward(fine, p_fine, &batch.rays, &t, n_c + n_f, ws);
+            pass_forward(fine, p_fine, &batch.rays, &t, n_c + n_f, ws, check);
             fine_sse = pass_backward(
                 fine,
                 p_fine,
@@ -275,6 +285,7 @@ impl VanillaModel {
                 &batch.targets,
                 ws,
                 &mut grads.window(self.fine_range()),
+                check,
             );
             ws.t_fine = t;
         }
@@ -315,7 +326,12 @@ impl Model for VanillaModel {
                 for c in (w..n_chunks).step_by(n_workers) {
                     let rays = (c * chunk) as u64..((c + 1) * chunk).min(batch) as u64;
                     worker.ws.rays.draw(input.data, &input.sampling, rays);
-                    let (a, b) = self.train_chunk(input.params, &mut worker.ws, &mut worker.grads);
+                    let (a, b) = self.train_chunk(
+                        input.params,
+                        &mut worker.ws,
+                        &mut worker.grads,
+                        input.check,
+                    );
                     coarse += a;
                     fine += b;
                 }
@@ -345,12 +361,28 @@ impl Model for VanillaModel {
         let (p_coarse, p_fine) = self.split(params);
         coarse_samples(ws, rays, n_c, None);
         let t = std::mem::take(&mut ws.t_coarse);
-        pass_forward(&self.coarse, p_coarse, rays, &t, n_c, ws);
+        pass_forward(
+            &self.coarse,
+            p_coarse,
+            rays,
+            &t,
+            n_c,
+            ws,
+            &FiniteCheck::default(),
+        );
         ws.t_coarse = t;
         if let Some(fine) = &self.fine {
             fine_samples(ws, r, n_c, n_f, None);
             let t = std::mem::take(&mut ws.t_fine);
-            pass_forward(fine, p_fine, rays, &t, n_c + n_f, ws);
+            pass_forward(
+                fine,
+                p_fine,
+                rays,
+                &t,
+                n_c + n_f,
+                ws,
+                &FiniteCheck::default(),
+            );
             ws.t_fine = t;
         }
         out[..r].copy_from_slice(&ws.outputs[..r]);
@@ -418,7 +450,8 @@ mod tests {
                     targets: all.targets[r.clone()].to_vec(),
                     rngs: all.rngs[r.clone()].to_vec(),
                 };
-                let (c, f) = model.train_chunk(&params, &mut ws, &mut grads);
+                let (c, f) =
+                    model.train_chunk(&params, &mut ws, &mut grads, &FiniteCheck::default());
                 sse += c + f;
                 let chunk = all.rays.slice(r.clone());
                 model.render_chunk(&params, &chunk, &mut ws, &mut rendered[r.clone()]);

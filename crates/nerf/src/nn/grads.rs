@@ -126,7 +126,7 @@ impl Grads<'_> {
     /// `base + at` (a pair never straddles a block).
     #[inline(always)]
     pub fn add_pair(&mut self, at: usize, g: [f32; 2]) {
-        debug_assert!((self.base + at) % 2 == 0);
+        debug_assert!((self.base + at).is_multiple_of(2));
         self.values[at] += g[0];
         self.values[at + 1] += g[1];
         self.dirty[(self.base + at) / BLOCK] = true;
@@ -223,7 +223,7 @@ impl GradBuffer {
 
     /// Consecutive pieces of `seg` values (a multiple of [`BLOCK`]) with their dirty flags.
     pub fn segments_mut(&mut self, seg: usize) -> impl Iterator<Item = Segment<'_>> {
-        assert!(seg % BLOCK == 0 && seg > 0);
+        assert!(seg.is_multiple_of(BLOCK) && seg > 0);
         self.values
             .chunks_mut(seg)
             .zip(self.dirty.chunks_mut(seg / BLOCK))

@@ -34,6 +34,7 @@
 //! Fields plug into the renderers through [`Field`]; the renderers and the marcher take a
 //! field, never a concrete model. Engines (see `engine`) run whole steps over these stages.
 
+pub mod finite;
 pub mod values;
 
 pub use values::{FieldGrad, FieldInput, FieldOutput, PackedSamples, RayBatch, RayOutput};

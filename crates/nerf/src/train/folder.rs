@@ -7,7 +7,7 @@ use std::path::Path;
 use super::TrainConfig;
 use crate::checkpoint::{self, Checkpoint};
 use crate::engine::{self, Engine, EngineState};
-use crate::error::Result;
+use crate::error::{NerfError, Result};
 
 pub const CONFIG_FILE: &str = "config.json";
 pub const CHECKPOINT_FILE: &str = "checkpoint.safetensors";
@@ -22,7 +22,7 @@ pub struct LoadedRun {
 
 impl LoadedRun {
     pub fn open(dir: &Path) -> Result<LoadedRun> {
-        let config: TrainConfig = crate::io::read_json(&dir.join(CONFIG_FILE))?;
+        let config = read_config(dir)?;
         let mut engine = engine::open(&config.model, config.engine_options(), config.seed);
         let ckpt = load_checkpoint(&dir.join(CHECKPOINT_FILE), engine.as_mut())?;
         Ok(LoadedRun {
@@ -31,6 +31,29 @@ impl LoadedRun {
             step: ckpt.step,
         })
     }
+}
+
+/// The run's `config.json`, checked as the command line's options are (it may have been
+/// edited). A folder without one is not a run.
+pub fn read_config(dir: &Path) -> Result<TrainConfig> {
+    let path = dir.join(CONFIG_FILE);
+    if !dir.is_dir() {
+        return Err(NerfError::format(
+            dir,
+            "is not a run folder (no such folder)",
+        ));
+    }
+    if !path.exists() {
+        return Err(NerfError::format(
+            dir,
+            format!("is not a run folder (no {CONFIG_FILE}); `nerf train --out` makes one"),
+        ));
+    }
+    let config: TrainConfig = crate::io::read_json(&path)?;
+    config
+        .validate()
+        .map_err(|e| NerfError::format(&path, e.to_string()))?;
+    Ok(config)
 }
 
 /// Writes `engine`'s state with the run's step, seed and elapsed time to `path`.

@@ -10,6 +10,7 @@
 //! gives the same rays and samples for any thread count; [`run`] adds the run folder.
 
 pub mod folder;
+pub mod lock;
 pub mod options;
 pub mod run;
 
@@ -26,6 +27,10 @@ use crate::model::{FastModelConfig, ModelConfig};
 use crate::nn::adam::AdamConfig;
 
 pub use crate::engine::StepStats;
+
+/// The largest hash table, 2^24 entries a level (Instant-NGP's largest setting is 2^24):
+/// 16 levels of it hold 4 GiB of tables, gradients and Adam moments.
+pub const MAX_TABLE_LOG2: u32 = 24;
 
 /// Everything that defines a training run; saved as `config.json` in the run folder.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -131,11 +136,16 @@ impl TrainConfig {
         )
     }
 
-    /// Rejects settings that cannot run, naming the field.
+    /// Rejects settings that cannot run, naming the field. Every command checks a
+    /// configuration here, whether it came from the command line or from a run's
+    /// `config.json` (which may have been edited).
     pub fn validate(&self) -> Result<()> {
         let bad = |m: &str| Err(NerfError::Config(m.to_string()));
         if self.chunk_rays == 0 {
             return bad("chunk_rays must be positive");
+        }
+        if self.steps == 0 {
+            return bad("steps must be at least 1");
         }
         match &self.model {
             ModelConfig::Vanilla(m) => {
@@ -150,8 +160,28 @@ impl TrainConfig {
                 if m.samples_per_step == 0 || m.batch_samples == 0 {
                     return bad("samples_per_step and batch_samples must be positive");
                 }
-                if m.field.bound.is_nan() || m.field.bound <= 0.0 || m.occupancy.resolution == 0 {
-                    return bad("the scene box and occupancy grid must not be empty");
+                let bound = m.field.bound;
+                if !(bound.is_finite() && bound > 0.0) || m.occupancy.resolution == 0 {
+                    return Err(NerfError::Config(format!(
+                        "bound {bound} must be a positive number and the occupancy grid not \
+                         empty"
+                    )));
+                }
+                let grid = &m.field.grid;
+                if grid.log2_table_size > MAX_TABLE_LOG2 || grid.log2_table_size < 2 {
+                    // Parameters, two Adam moments and a gradient buffer per entry.
+                    let bytes = grid.levels as f64
+                        * 2f64.powi(grid.log2_table_size.min(64) as i32)
+                        * crate::encoding::hash_grid::FEATURES as f64
+                        * 4.0
+                        * 4.0;
+                    return Err(NerfError::Config(format!(
+                        "table_log2 {} is outside 2..={MAX_TABLE_LOG2} (2^{} entries per level \
+                         would need {:.1} GiB for the tables, their gradients and Adam's moments)",
+                        grid.log2_table_size,
+                        grid.log2_table_size,
+                        bytes / f64::from(1u32 << 30)
+                    )));
                 }
                 if m.steps_per_diagonal.is_nan()
                     || m.steps_per_diagonal < 1.0
@@ -196,6 +226,7 @@ impl TrainConfig {
         EngineOptions {
             adam: self.adam,
             chunk_rays: self.chunk_rays,
+            check_finite: crate::stage::finite::from_env(),
         }
     }
 

@@ -43,10 +43,10 @@ pub struct TrainOptions {
     pub preset: Option<String>,
     /// Steps to train (the learning rate decays 10x over them). Default: 5000 fast,
     /// 200000 vanilla.
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub steps: Option<u64>,
     /// Wall-clock budget in minutes: stop (with a checkpoint) when it runs out.
-    #[arg(long)]
+    #[arg(long, value_parser = positive_minutes, allow_negative_numbers = true)]
     pub minutes: Option<f64>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
     #[arg(long)]
@@ -64,9 +64,9 @@ pub struct TrainOptions {
     /// Default: random for fast, white for vanilla.
     #[arg(long, value_enum)]
     pub background: Option<Background>,
-    /// Area-average downscale factor of the images.
-    #[arg(long, default_value_t = 1)]
-    pub downscale: usize,
+    /// Area-average downscale factor of the images (default 1).
+    #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=64))]
+    pub downscale: Option<usize>,
     /// Steps of central-crop warm-up (rays from the central half of each image). Default:
     /// 0 fast, 500 vanilla.
     #[arg(long)]
@@ -74,14 +74,15 @@ pub struct TrainOptions {
     /// Use the paper's printed positional encoding (sin(2^k pi p), no identity term).
     #[arg(long)]
     pub paper_pe: bool,
-    #[arg(long, default_value_t = 0)]
-    pub seed: u64,
+    /// Seed of the initial weights and of the rays each step draws (default 0).
+    #[arg(long)]
+    pub seed: Option<u64>,
     /// Render a validation image every N steps (0: never). Default: 500 fast, 1000 vanilla.
     #[arg(long)]
     pub val_every: Option<u64>,
-    /// Save a checkpoint every N steps.
-    #[arg(long, default_value_t = 500)]
-    pub checkpoint_every: u64,
+    /// Save a checkpoint every N steps (default: 500 fast, 1000 vanilla).
+    #[arg(long)]
+    pub checkpoint_every: Option<u64>,
     /// Rays per work unit per thread (vanilla memory: about 10 KB x 192 samples per ray).
     /// Default: 1024 fast, 64 vanilla.
     #[arg(long)]
@@ -175,10 +176,10 @@ impl TrainOptions {
             c.lr_init = lr;
         }
         c.background = self.background.unwrap_or(c.background);
-        c.downscale = self.downscale;
+        c.downscale = self.downscale.unwrap_or(c.downscale);
         c.scene = self.scene.clone();
         let scene = c.open_scene(1)?;
-        if let Some(w) = scene.warning() {
+        for w in scene.warnings() {
             on_warning(&w);
         }
         match &mut c.model {
@@ -192,31 +193,151 @@ impl TrainOptions {
             ModelConfig::Vanilla(_) => {}
         }
         c.precrop_steps = self.precrop_steps.unwrap_or(c.precrop_steps);
-        c.seed = self.seed;
+        c.seed = self.seed.unwrap_or(c.seed);
         c.val_every = self.val_every.unwrap_or(c.val_every);
-        c.checkpoint_every = self.checkpoint_every;
+        c.checkpoint_every = self.checkpoint_every.unwrap_or(c.checkpoint_every);
         c.chunk_rays = self.chunk.unwrap_or(c.chunk_rays);
         Ok(c)
     }
 
-    /// How to run: the configuration and the session's budget. Resuming with `--steps`
-    /// records the new target in the run's config, so the schedule and later resumes agree.
+    /// How to run: the configuration and the session's budget. Resuming continues the run
+    /// as its `config.json` says; options that would change it are refused by name, but
+    /// for `--steps`, which may extend the run (the target is recorded in the config, so
+    /// the schedule and later resumes agree).
     pub fn run_options(&self, on_warning: &mut dyn FnMut(&str)) -> Result<RunOptions> {
         let out = self.out()?;
-        if self.resume {
-            if let Some(steps) = self.steps {
-                let path = out.join(CONFIG_FILE);
-                let mut c: TrainConfig = crate::io::read_json(&path)?;
-                c.steps = steps;
-                crate::io::write_json(&path, &c)?;
-            }
+        if out.exists() && !out.is_dir() {
+            return refuse(format!(
+                "--out {} is an existing file, not a run folder; choose another --out",
+                out.display()
+            ));
         }
+        let config = if self.resume && out.join(CONFIG_FILE).exists() {
+            let mut saved = super::folder::read_config(&out)?;
+            let conflicts = self.conflicts_with(&saved);
+            if !conflicts.is_empty() {
+                return refuse(format!(
+                    "--resume continues the run in {} as its {CONFIG_FILE} says, and these \
+                     options differ from it: {}; drop them, or train a new run into another --out",
+                    out.display(),
+                    conflicts.join(", ")
+                ));
+            }
+            saved.steps = self.steps.unwrap_or(saved.steps);
+            saved
+        } else {
+            self.config(on_warning)?
+        };
         Ok(RunOptions {
             out,
-            config: self.config(on_warning)?,
+            config,
             minutes: self.minutes,
             resume: self.resume,
             pause_at: self.pause_at,
+            stop: None,
         })
+    }
+
+    /// The options given that would change `saved` (a run's config), as `--flag value
+    /// (the run's: value)`.
+    pub fn conflicts_with(&self, saved: &TrainConfig) -> Vec<String> {
+        let mut out = Vec::new();
+        let mut check = |flag: &str, given: Option<String>, theirs: String| {
+            if let Some(given) = given.filter(|g| *g != theirs) {
+                out.push(format!("{flag} {given} (the run's: {theirs})"));
+            }
+        };
+        let data = std::fs::canonicalize(&self.data).unwrap_or_else(|_| self.data.clone());
+        check(
+            "--data",
+            Some(data.display().to_string()),
+            saved.data.display().to_string(),
+        );
+        let fast = match &saved.model {
+            ModelConfig::Fast(m) => Some(m),
+            ModelConfig::Vanilla(_) => None,
+        };
+        let model = if fast.is_some() { "fast" } else { "vanilla" };
+        check(
+            "--model",
+            self.model.map(|m| format!("{m:?}").to_lowercase()),
+            model.into(),
+        );
+        check("--preset", self.preset.clone(), saved.preset.clone());
+        check(
+            "--samples",
+            self.samples.map(|v| v.to_string()),
+            fast.map_or("none (vanilla)".into(), |m| m.samples_per_step.to_string()),
+        );
+        check(
+            "--table-log2",
+            self.table_log2.map(|v| v.to_string()),
+            fast.map_or("none (vanilla)".into(), |m| {
+                m.field.grid.log2_table_size.to_string()
+            }),
+        );
+        check(
+            "--bound",
+            self.bound.map(|v| v.to_string()),
+            fast.map_or("none (vanilla)".into(), |m| m.field.bound.to_string()),
+        );
+        check(
+            "--lr",
+            self.lr.map(|v| v.to_string()),
+            saved.lr_init.to_string(),
+        );
+        check(
+            "--seed",
+            self.seed.map(|v| v.to_string()),
+            saved.seed.to_string(),
+        );
+        check(
+            "--batch",
+            self.batch.map(|v| v.to_string()),
+            saved.batch_rays.to_string(),
+        );
+        check(
+            "--downscale",
+            self.downscale.map(|v| v.to_string()),
+            saved.downscale.to_string(),
+        );
+        check(
+            "--background",
+            self.background.map(|b| format!("{b:?}").to_lowercase()),
+            format!("{:?}", saved.background).to_lowercase(),
+        );
+        check(
+            "--precrop-steps",
+            self.precrop_steps.map(|v| v.to_string()),
+            saved.precrop_steps.to_string(),
+        );
+        check(
+            "--val-every",
+            self.val_every.map(|v| v.to_string()),
+            saved.val_every.to_string(),
+        );
+        check(
+            "--checkpoint-every",
+            self.checkpoint_every.map(|v| v.to_string()),
+            saved.checkpoint_every.to_string(),
+        );
+        check(
+            "--chunk",
+            self.chunk.map(|v| v.to_string()),
+            saved.chunk_rays.to_string(),
+        );
+        if self.paper_pe || self.no_contract {
+            out.push("--paper-pe / --no-contract (set when the run was made)".into());
+        }
+        out
+    }
+}
+
+/// `--minutes`: a positive, finite number.
+fn positive_minutes(s: &str) -> std::result::Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(m) if m.is_finite() && m > 0.0 => Ok(m),
+        Ok(m) => Err(format!("{m} is not a positive number of minutes")),
+        Err(e) => Err(e.to_string()),
     }
 }

@@ -4,6 +4,7 @@
 
 use std::io::Write;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
 use std::time::Instant;
 
 use serde::{Deserialize, Serialize};
@@ -27,6 +28,9 @@ pub struct RunOptions {
     /// Pause (with a checkpoint) once this step is reached, before `steps`; the learning-rate
     /// schedule still spans the whole run.
     pub pause_at: Option<u64>,
+    /// Set to a non-zero value (a signal number, say) to stop after the current step with
+    /// a checkpoint; the value comes back in [`StopReason::Interrupted`].
+    pub stop: Option<std::sync::Arc<std::sync::atomic::AtomicUsize>>,
 }
 
 /// Why a run stopped.
@@ -38,6 +42,8 @@ pub enum StopReason {
     TimeBudget,
     /// `pause_at` was reached.
     Paused,
+    /// [`RunOptions::stop`] was set to this value (a signal number).
+    Interrupted(usize),
 }
 
 /// What a run reports as it goes.
@@ -60,6 +66,8 @@ pub enum Event<'a> {
     Checkpoint {
         step: u64,
     },
+    /// Something decided about the run that a user should hear.
+    Note(&'a str),
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -67,7 +75,11 @@ pub struct RunSummary {
     pub steps: u64,
     pub reason: StopReason,
     pub seconds: f64,
+    /// PSNR of the last training batch (NaN when no step ran in this session).
     pub last_psnr: f32,
+    /// The latest validation PSNR of the run (this session or, after a resume, an
+    /// earlier one), if any validation image was rendered.
+    pub val_psnr: Option<(u64, f32)>,
 }
 
 #[derive(Serialize)]
@@ -93,26 +105,53 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let out = &opts.out;
     let config_path = out.join(CONFIG_FILE);
     let ckpt_path = out.join(CHECKPOINT_FILE);
+    let metrics_path = out.join(METRICS_FILE);
+    let _lock = super::lock::RunLock::acquire(out)?;
+    // A folder with a config but no checkpoint holds a run that died before its first
+    // checkpoint: it starts again from step 0 (resumed or not), with fresh metrics.
+    let from_checkpoint = ckpt_path.exists();
     let config = if opts.resume {
-        if !ckpt_path.exists() {
+        if !config_path.exists() {
             return Err(NerfError::Config(format!(
-                "cannot resume: {} does not exist",
-                ckpt_path.display()
+                "cannot resume: {} holds no run (no {CONFIG_FILE})",
+                out.display()
             )));
         }
-        crate::io::read_json::<TrainConfig>(&config_path)?
+        let mut config = super::folder::read_config(out)?;
+        if from_checkpoint {
+            let at = crate::checkpoint::read_step(&ckpt_path)?;
+            if opts.config.steps < at {
+                return Err(NerfError::Config(format!(
+                    "--steps {} is below the step the run's checkpoint is at ({at})",
+                    opts.config.steps
+                )));
+            }
+        }
+        if config.steps != opts.config.steps {
+            config.steps = opts.config.steps;
+            crate::io::write_json(&config_path, &config)?;
+        }
+        config
     } else {
-        if ckpt_path.exists() {
+        if from_checkpoint {
             return Err(NerfError::Config(format!(
                 "{} already holds a run; pass --resume to continue it or choose another --out",
                 out.display()
             )));
         }
         opts.config.validate()?;
-        crate::io::create_dir(out)?;
         crate::io::write_json(&config_path, &opts.config)?;
         opts.config.clone()
     };
+    if !from_checkpoint {
+        if metrics_path.exists() {
+            on_event(Event::Note(
+                "the folder holds a run that stopped before its first checkpoint: starting it \
+                 again from step 0 with fresh metrics",
+            ));
+        }
+        remove_if_present(&metrics_path)?;
+    }
 
     let mut data = config.open_scene(1)?.load(Split::Train, 1)?;
     if let Some(n) = config.train_views {
@@ -124,7 +163,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let mut trainer = Trainer::new(config.clone(), data)?;
     let mut elapsed_before = 0.0;
     let mut resumed_from = None;
-    if opts.resume {
+    if opts.resume && from_checkpoint {
         let ckpt = load_checkpoint(&ckpt_path, trainer.engine.as_mut())?;
         trainer.step = ckpt.step;
         elapsed_before = ckpt.elapsed_seconds;
@@ -140,7 +179,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         resumed_from,
     });
 
-    let metrics_path = out.join(METRICS_FILE);
+    let mut val_psnr = last_validation(&metrics_path);
     let mut metrics = std::fs::OpenOptions::new()
         .create(true)
         .append(true)
@@ -168,6 +207,11 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         if opts.pause_at.is_some_and(|p| trainer.step >= p) {
             break StopReason::Paused;
         }
+        if let Some(signal) = opts.stop.as_ref().map(|s| s.load(Ordering::Relaxed)) {
+            if signal != 0 {
+                break StopReason::Interrupted(signal);
+            }
+        }
         let stats = trainer.step()?;
         last_psnr = stats.psnr;
         let elapsed = elapsed_before + start.elapsed().as_secs_f64();
@@ -186,6 +230,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
             if let Some(view) = &val_view {
                 let image = out.join("val").join(format!("step_{:07}.png", stats.step));
                 let psnr = validate(&trainer, view, &image)?;
+                val_psnr = Some((stats.step, psnr));
                 let name = image
                     .strip_prefix(out)
                     .unwrap_or(&image)
@@ -220,7 +265,27 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         reason,
         seconds,
         last_psnr,
+        val_psnr,
     })
+}
+
+/// The latest `val_psnr` line of a metrics file, if any.
+fn last_validation(path: &Path) -> Option<(u64, f32)> {
+    let text = std::fs::read_to_string(path).ok()?;
+    text.lines().rev().find_map(|l| {
+        let v: serde_json::Value = serde_json::from_str(l).ok()?;
+        Some((
+            v.get("step")?.as_u64()?,
+            v.get("val_psnr")?.as_f64()? as f32,
+        ))
+    })
+}
+
+fn remove_if_present(path: &Path) -> Result<()> {
+    match std::fs::remove_file(path) {
+        Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(NerfError::write(path, e)),
+        _ => Ok(()),
+    }
 }
 
 /// The first validation view (first training view if the scene has no val split), at the

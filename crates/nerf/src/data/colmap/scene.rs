@@ -47,6 +47,8 @@ pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
         bound: 2.0 * bound,
         contract: true,
         prescaled: 1,
+        notes: Vec::new(),
+        one_size: false,
     })
 }
 
