@@ -43,14 +43,42 @@ pub fn rate(per_second: f64, unit: &str) -> String {
 /// of an occupancy-grid refresh does not make it jump.
 const RATE_WINDOW_S: f64 = 5.0;
 
+/// A rate averaged over about [`RATE_WINDOW_S`] seconds: counts are gathered for a second,
+/// then folded into an exponential average, so one slow step (an occupancy-grid refresh)
+/// moves the figure a little instead of making it jump.
+#[derive(Debug, Default)]
+pub struct SmoothedRate {
+    pub per_second: f64,
+    count: usize,
+    seconds: f64,
+}
+
+impl SmoothedRate {
+    /// `count` more items that took `seconds`.
+    pub fn add(&mut self, count: usize, seconds: f64) {
+        self.count += count;
+        self.seconds += seconds;
+        if self.seconds < 1.0 {
+            return;
+        }
+        let now = self.count as f64 / self.seconds;
+        let a = if self.per_second == 0.0 {
+            1.0
+        } else {
+            (self.seconds / RATE_WINDOW_S).min(1.0)
+        };
+        self.per_second += a * (now - self.per_second);
+        (self.count, self.seconds) = (0, 0.0);
+    }
+}
+
 /// The training display: a header, a bar with loss, PSNR and rays/s, validation lines, and
 /// a line every 30 s when there is no terminal (logs, CI).
 pub struct TrainProgress {
     pb: Option<ProgressBar>,
     steps: u64,
-    last: (Instant, u64),
-    rays_per_s: f64,
-    rays_since: usize,
+    last: Instant,
+    rays: SmoothedRate,
     last_line: Instant,
 }
 
@@ -59,9 +87,8 @@ impl Default for TrainProgress {
         TrainProgress {
             pb: None,
             steps: 0,
-            last: (Instant::now(), 0),
-            rays_per_s: 0.0,
-            rays_since: 0,
+            last: Instant::now(),
+            rays: SmoothedRate::default(),
             last_line: Instant::now(),
         }
     }
@@ -93,7 +120,7 @@ impl TrainProgress {
                         ModelConfig::Fast(_) => String::new(),
                     }
                 );
-                self.rays_per_s = 0.0;
+                self.rays = SmoothedRate::default();
                 if let Some(step) = resumed_from {
                     println!("resuming from the checkpoint at step {step}");
                 }
@@ -101,31 +128,19 @@ impl TrainProgress {
                 p.set_position(resumed_from.unwrap_or(0));
                 p.reset_eta();
                 self.steps = config.steps;
-                self.last = (Instant::now(), resumed_from.unwrap_or(0));
+                self.last = Instant::now();
                 self.pb = Some(p);
             }
             Event::Step(s) => {
                 let Some(p) = &self.pb else { return };
-                let dt = self.last.0.elapsed().as_secs_f64();
-                self.rays_since += s.rays;
-                if dt > 1.0 {
-                    // An exponential average over about RATE_WINDOW_S seconds.
-                    let now = self.rays_since as f64 / dt;
-                    let a = if self.rays_per_s == 0.0 {
-                        1.0
-                    } else {
-                        (dt / RATE_WINDOW_S).min(1.0)
-                    };
-                    self.rays_per_s += a * (now - self.rays_per_s);
-                    self.rays_since = 0;
-                    self.last = (Instant::now(), s.step);
-                }
+                self.rays.add(s.rays, self.last.elapsed().as_secs_f64());
+                self.last = Instant::now();
                 p.set_position(s.step);
                 p.set_message(format!(
                     "loss {:.4} psnr {:.2} {}",
                     s.loss,
                     s.psnr,
-                    rate(self.rays_per_s, "rays")
+                    rate(self.rays.per_second, "rays")
                 ));
                 if p.is_hidden() && self.last_line.elapsed().as_secs_f64() >= 30.0 {
                     println!(
@@ -133,7 +148,7 @@ impl TrainProgress {
                         s.step,
                         s.loss,
                         s.psnr,
-                        rate(self.rays_per_s, "rays")
+                        rate(self.rays.per_second, "rays")
                     );
                     self.last_line = Instant::now();
                 }
@@ -162,5 +177,36 @@ impl TrainProgress {
         if let Some(p) = self.pb.take() {
             p.finish_and_clear();
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 10 #14: one rate format everywhere, no thousands separators, no 4 decimals.
+    #[test]
+    fn rates_have_one_format() {
+        assert_eq!(rate(26.8454, ""), "26.8/s");
+        assert_eq!(rate(46341.309, "rays"), "46341 rays/s");
+        assert_eq!(rate(4.2371, "steps"), "4.24 steps/s");
+        assert_eq!(rate(f64::NAN, "rays"), "- rays/s");
+    }
+
+    /// Issue 10 #14: a step ten times slower than the others (an occupancy refresh) moves
+    /// the shown rate by less than a fifth, where a plain per-window rate dropped 10x.
+    #[test]
+    fn one_slow_step_does_not_make_the_rate_jump() {
+        let mut r = SmoothedRate::default();
+        for _ in 0..50 {
+            r.add(1000, 0.1);
+        }
+        assert!((r.per_second - 10000.0).abs() < 1.0, "{}", r.per_second);
+        let mut lowest = f64::MAX;
+        for k in 0..50 {
+            r.add(1000, if k == 5 { 1.0 } else { 0.1 });
+            lowest = lowest.min(r.per_second);
+        }
+        assert!(lowest > 8000.0, "dropped to {lowest}");
     }
 }

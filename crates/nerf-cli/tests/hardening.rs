@@ -307,6 +307,14 @@ fn absurd_sizes_and_budgets_are_refused() {
         &["table_log2 40", "GiB"],
     );
     assert!(!t.contains("memory allocation"), "{t}");
+    fails(
+        &nerf(&["bench", "--table-log2", "40"], d),
+        &["table_log2 40", "GiB"],
+    );
+    fails(
+        &nerf(&["bench", "--render-size", "200000"], d),
+        &["--render-size", "larger than the limit"],
+    );
     for bad in [
         &["--minutes", "0"][..],
         &["--minutes=-1"],
@@ -465,7 +473,12 @@ fn check_finite_names_the_stage() {
     scene(d);
     // A learning rate so large that the first update overflows the weights.
     let args = train_args("run", "5", &["--lr", "1e38"]);
-    let plain = fails(&nerf(&args, d), &["training diverged"]);
+    // Without the switch: the step is refused, and the message says what was not finite.
+    let plain = fails(&nerf(&args, d), &["training diverged at step 2"]);
+    assert!(
+        plain.contains("the loss is NaN") || plain.contains("gradients hold non-finite"),
+        "{plain}"
+    );
     assert!(!plain.contains("NERF_CHECK_FINITE"), "{plain}");
     let _ = std::fs::remove_dir_all(d.join("run"));
     let checked = cmd(&args, d)

@@ -16,7 +16,7 @@ use crate::camera::Camera;
 use crate::data::scene::{Scene, SceneOptions};
 use crate::data::synth::{self, SceneKind, SynthOptions};
 use crate::data::Split;
-use crate::error::Result;
+use crate::error::{NerfError, Result};
 use crate::model::{FastModelConfig, ModelConfig};
 use crate::train::{TrainConfig, Trainer};
 use crate::views::{render_view, RenderSettings};
@@ -62,6 +62,12 @@ pub struct FastBenchReport {
 
 pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastBenchReport> {
     let threads = rayon::current_num_threads();
+    // Refuse what cannot run before minutes of scene loading.
+    let mut probe = TrainConfig::fast("(in memory)".into());
+    probe.model = ModelConfig::Fast(opts.model.clone());
+    probe.validate()?;
+    crate::camera::check_image_size(opts.render_size, opts.render_size)
+        .map_err(|m| NerfError::Config(format!("--render-size: {m}")))?;
     let mut model = opts.model.clone();
     let (data, scene, camera) = match &opts.data {
         Some(dir) => {

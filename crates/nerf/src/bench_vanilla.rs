@@ -9,7 +9,7 @@ use serde::Serialize;
 use crate::camera::Camera;
 use crate::data::synth::{self, SceneKind, SynthOptions};
 use crate::data::Split;
-use crate::error::Result;
+use crate::error::{NerfError, Result};
 use crate::nn::linalg::{matmul, matmul_parallel, MatRef};
 use crate::train::{TrainConfig, Trainer};
 
@@ -114,6 +114,8 @@ pub fn peak_resident_mib() -> f64 {
 /// Runs the benchmark, printing progress lines through `say`.
 pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchReport> {
     let threads = rayon::current_num_threads();
+    crate::camera::check_image_size(opts.render_size, opts.render_size)
+        .map_err(|m| NerfError::Config(format!("--render-size: {m}")))?;
     say(format!(
         "measuring the GEMM peak (16384x256 by 256x256, {threads} threads)..."
     ));

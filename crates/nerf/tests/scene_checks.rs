@@ -179,11 +179,11 @@ fn blender_files_with_instant_ngp_keys() {
     );
     assert!(
         scene
-            .warnings()
+            .notes
             .iter()
             .any(|w| w.contains("fl_x") && w.contains("aabb_scale")),
         "{:?}",
-        scene.warnings()
+        scene.notes
     );
 }
 
@@ -297,7 +297,7 @@ fn the_convention_weighs_the_evidence() {
     );
     let scene = open(dir.path(), 1).expect("open");
     assert_eq!(scene.bound, 1.0, "nerfstudio's box");
-    let said = scene.warnings().join("\n");
+    let said = scene.notes.join("\n");
     assert!(
         said.contains("nerfstudio's rules")
             && said.contains("applied_transform")

@@ -65,6 +65,9 @@ pub fn run(a: SceneArgs) -> Result<()> {
     } else {
         println!("fast-model box: [-{0:.3}, {0:.3}]^3", s.bound);
     }
+    for n in &s.notes {
+        println!("note: {n}");
+    }
     for w in s.warnings() {
         println!("warning: {w}");
     }

@@ -10,7 +10,7 @@ use nerf::train::run::{self, RunSummary, StopReason, CHECKPOINT_FILE};
 use crate::progress::TrainProgress;
 
 pub fn run(a: TrainOptions) -> Result<()> {
-    let mut opts = a.run_options(&mut |w| eprintln!("warning: {w}"))?;
+    let mut opts = a.run_options(&mut |line| eprintln!("{line}"))?;
     let stop = Arc::new(AtomicUsize::new(0));
     crate::signals::stop_on_interrupt(&stop)?;
     opts.stop = Some(stop);

@@ -180,6 +180,7 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
         contract: false,
         prescaled: 1,
         notes,
+        warnings: Vec::new(),
         one_size: true,
     })
 }

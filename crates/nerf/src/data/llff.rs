@@ -214,6 +214,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
         contract: opts.spherify,
         prescaled,
         notes: Vec::new(),
+        warnings: Vec::new(),
         one_size: false,
     })
 }

@@ -128,9 +128,12 @@ pub struct Scene {
     pub contract: bool,
     /// Integer area-downscale still to apply to each image file on load.
     pub(crate) image_factor: usize,
-    /// What reading the scene decided or repaired that a user should hear (convention
-    /// chosen, images found elsewhere, duplicates dropped, intrinsics rescaled).
+    /// What reading the scene decided that a user should hear (the convention chosen and
+    /// why, keys read from another tool's layout).
     pub notes: Vec<String>,
+    /// What reading the scene repaired or doubts (images found elsewhere, duplicates
+    /// dropped, intrinsics rescaled, cameras far outside the box); see [`Scene::warnings`].
+    problems: Vec<String>,
 }
 
 /// What a format reader hands back; [`Scene::open`] adds splits and downscaling.
@@ -147,6 +150,8 @@ pub(crate) struct Parsed {
     pub prescaled: usize,
     /// What the reader decided that a user should hear (see [`Scene::notes`]).
     pub notes: Vec<String>,
+    /// What the reader doubts (see [`Scene::warnings`]).
+    pub warnings: Vec<String>,
     /// The format has one image size for every frame (Blender: `camera_angle_x` is shared).
     pub one_size: bool,
 }
@@ -201,9 +206,9 @@ impl Scene {
             return Err(NerfError::format(dir, "the scene lists no images"));
         }
         let image_factor = (downscale / parsed.prescaled.max(1)).max(1);
-        let mut notes = parsed.notes;
+        let mut problems = parsed.warnings;
         let mut frames = parsed.frames;
-        notes.extend(check_frames(dir, &mut frames)?);
+        problems.extend(check_frames(dir, &mut frames)?);
         if parsed.one_size {
             check_one_size(&frames)?;
         }
@@ -220,9 +225,9 @@ impl Scene {
             ));
         }
         let [train, val, test] = match parsed.splits {
-            Some(splits) => dedupe_splits(&frames, splits, &mut notes),
+            Some(splits) => dedupe_splits(&frames, splits, &mut problems),
             None => {
-                let kept = dedupe_frames(&mut frames, &mut notes);
+                let kept = dedupe_frames(&mut frames, &mut problems);
                 if kept == 0 {
                     return Err(NerfError::format(dir, "the scene lists no images"));
                 }
@@ -243,7 +248,8 @@ impl Scene {
             bound: parsed.bound,
             contract: parsed.contract,
             image_factor,
-            notes,
+            notes: parsed.notes,
+            problems,
         })
     }
 
@@ -269,13 +275,13 @@ impl Scene {
             .collect()
     }
 
-    /// What a user should hear before training on the scene: the readers' notes, and a
-    /// warning when the scene is read in a way its cameras contradict (a forward-facing
+    /// What a user should be warned of before training on the scene: what reading it
+    /// repaired or doubts, and a warning when the scene is read in a way its cameras contradict (a forward-facing
     /// treatment, NDC, of cameras that look in directions more than
     /// [`INWARD_SPREAD_DEGREES`] apart from their mean, i.e. an inward-facing capture
     /// that wants `--spherify`).
     pub fn warnings(&self) -> Vec<String> {
-        let mut out = self.notes.clone();
+        let mut out = self.problems.clone();
         if matches!(self.space, RaySpace::Ndc(_)) {
             let poses: Vec<Pose> = self.frames.iter().map(|f| f.camera.c2w).collect();
             let spread = super::poses::view_spread_degrees(&poses);

@@ -66,13 +66,10 @@ pub(crate) struct Intrinsics {
     camera_model: Option<String>,
 }
 
-impl Intrinsics {
-    /// `self`'s values where given, `base`'s elsewhere.
-    pub(crate) fn over(&self, base: &Intrinsics) -> Intrinsics {
-        macro_rules! pick {
-            ($($f:ident),*) => { Intrinsics { $($f: self.$f.clone().or(base.$f.clone()),)* } };
-        }
-        pick!(
+/// Calls `$m!` with every field of [`Intrinsics`], so the lists cannot drift apart.
+macro_rules! intrinsics_fields {
+    ($m:ident) => {
+        $m!(
             fl_x,
             fl_y,
             camera_angle_x,
@@ -90,29 +87,27 @@ impl Intrinsics {
             p2,
             camera_model
         )
+    };
+}
+
+impl Intrinsics {
+    /// `self`'s values where given, `base`'s elsewhere.
+    pub(crate) fn over(&self, base: &Intrinsics) -> Intrinsics {
+        macro_rules! pick {
+            ($($f:ident),*) => { Intrinsics { $($f: self.$f.clone().or(base.$f.clone()),)* } };
+        }
+        intrinsics_fields!(pick)
     }
 
-    /// The names of the instant-ngp intrinsics given (for saying what was read).
+    /// The names of the keys given beyond Blender's `camera_angle_x` (for saying what was
+    /// read from another tool's layout).
     pub(crate) fn given(&self) -> Vec<&'static str> {
         let mut names = Vec::new();
         macro_rules! given {
             ($($f:ident),*) => { $(if self.$f.is_some() { names.push(stringify!($f)); })* };
         }
-        given!(
-            fl_x,
-            fl_y,
-            camera_angle_y,
-            cx,
-            cy,
-            k_matrix,
-            k1,
-            k2,
-            k3,
-            k4,
-            p1,
-            p2,
-            camera_model
-        );
+        intrinsics_fields!(given);
+        names.retain(|n| *n != "camera_angle_x");
         names
     }
 
@@ -239,7 +234,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         Convention::Nerfstudio => (false, "--convention nerfstudio".to_string()),
         Convention::Auto => doc.convention(),
     };
-    let mut notes = vec![format!(
+    let notes = vec![format!(
         "transforms.json placed by {} rules ({why}); override with --convention {}",
         if ngp { "instant-ngp's" } else { "nerfstudio's" },
         if ngp { "nerfstudio" } else { "ngp" }
@@ -274,8 +269,9 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         .iter()
         .filter(|c| c.origin().iter().any(|x| x.abs() > FAR_OUTSIDE * bound))
         .count();
+    let mut warnings = Vec::new();
     if far_out > 0 {
-        notes.push(format!(
+        warnings.push(format!(
             "{far_out} of {} cameras sit more than {FAR_OUTSIDE} times the box's half-extent \
              ({bound}) from its centre: the object may be tiny in the box or outside it; \
              check the convention (--convention) or the box (--bound)",
@@ -293,6 +289,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         contract: false,
         prescaled: 1,
         notes,
+        warnings,
         one_size: false,
     })
 }

@@ -87,7 +87,9 @@ pub struct TrainOptions {
     /// Default: 1024 fast, 64 vanilla.
     #[arg(long)]
     pub chunk: Option<usize>,
-    /// Continue the run in --out from its last checkpoint.
+    /// Continue the run in --out from its last checkpoint, as its config.json says (options
+    /// that would change it are refused; --steps may extend it). A run that stopped before
+    /// its first checkpoint starts again from step 0.
     #[arg(long)]
     pub resume: bool,
     /// Stop this session after step N with a checkpoint (the learning-rate schedule still
@@ -140,8 +142,8 @@ impl TrainOptions {
 
     /// The whole configuration: the model's defaults with every given option applied.
     /// Reads the scene (its box and contraction are the defaults of the fast model);
-    /// `on_warning` hears what the scene reader warns about.
-    pub fn config(&self, on_warning: &mut dyn FnMut(&str)) -> Result<TrainConfig> {
+    /// `on_notice` hears the scene reader's notes and warnings (`note: ...`, `warning: ...`).
+    pub fn config(&self, on_notice: &mut dyn FnMut(&str)) -> Result<TrainConfig> {
         // Absolute, so `eval` and `render` find the scene from any working directory.
         let data = std::fs::canonicalize(&self.data).unwrap_or_else(|_| self.data.clone());
         let mut c = match self.model()? {
@@ -179,8 +181,11 @@ impl TrainOptions {
         c.downscale = self.downscale.unwrap_or(c.downscale);
         c.scene = self.scene.clone();
         let scene = c.open_scene(1)?;
+        for n in &scene.notes {
+            on_notice(&format!("note: {n}"));
+        }
         for w in scene.warnings() {
-            on_warning(&w);
+            on_notice(&format!("warning: {w}"));
         }
         match &mut c.model {
             ModelConfig::Fast(m) => {
@@ -204,7 +209,7 @@ impl TrainOptions {
     /// as its `config.json` says; options that would change it are refused by name, but
     /// for `--steps`, which may extend the run (the target is recorded in the config, so
     /// the schedule and later resumes agree).
-    pub fn run_options(&self, on_warning: &mut dyn FnMut(&str)) -> Result<RunOptions> {
+    pub fn run_options(&self, on_notice: &mut dyn FnMut(&str)) -> Result<RunOptions> {
         let out = self.out()?;
         if out.exists() && !out.is_dir() {
             return refuse(format!(
@@ -226,7 +231,7 @@ impl TrainOptions {
             saved.steps = self.steps.unwrap_or(saved.steps);
             saved
         } else {
-            self.config(on_warning)?
+            self.config(on_notice)?
         };
         Ok(RunOptions {
             out,

@@ -106,6 +106,10 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let config_path = out.join(CONFIG_FILE);
     let ckpt_path = out.join(CHECKPOINT_FILE);
     let metrics_path = out.join(METRICS_FILE);
+    if !opts.resume {
+        // Before the folder is made: a refused configuration leaves nothing behind.
+        opts.config.validate()?;
+    }
     let _lock = super::lock::RunLock::acquire(out)?;
     // A folder with a config but no checkpoint holds a run that died before its first
     // checkpoint: it starts again from step 0 (resumed or not), with fresh metrics.
@@ -139,7 +143,6 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
                 out.display()
             )));
         }
-        opts.config.validate()?;
         crate::io::write_json(&config_path, &opts.config)?;
         opts.config.clone()
     };

@@ -48,6 +48,7 @@ pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
         contract: true,
         prescaled: 1,
         notes: Vec::new(),
+        warnings: Vec::new(),
         one_size: false,
     })
 }
