@@ -172,8 +172,10 @@ fn one_writer_per_run_and_interrupts_leave_a_checkpoint() {
         let saved = nerf::checkpoint::read_step(&ckpt).expect("checkpoint");
         assert_eq!(saved, at, "the checkpoint holds the last step done");
 
+        // The command the interruption suggested, as printed (no --data needed).
+        let steps = (at + 2).to_string();
         let t = ok(&nerf(
-            &train_args("run", &(at + 2).to_string(), &["--resume"]),
+            &["train", "--out", "run", "--resume", "--steps", &steps],
             d,
         ));
         assert!(

@@ -16,8 +16,9 @@ use crate::model::{ModelConfig, ModelKind};
 pub struct TrainOptions {
     /// Scene folder: Blender (transforms_train.json), instant-ngp / nerfstudio
     /// (transforms.json), LLFF (poses_bounds.npy + images/) or COLMAP (sparse/0 + images/).
-    #[arg(long)]
-    pub data: PathBuf,
+    /// Not needed with --resume --out RUN (the run's config names its scene).
+    #[arg(long, required_unless_present = "resume")]
+    pub data: Option<PathBuf>,
     #[command(flatten)]
     pub scene: SceneOptions,
     /// Fast: half-extent of the scene box [-B, B]^3 the hash grid covers, in scene units
@@ -136,7 +137,10 @@ impl TrainOptions {
     pub fn out(&self) -> Result<PathBuf> {
         match &self.out {
             Some(out) => Ok(out.clone()),
-            None => Ok(default_run(&self.data, &self.label()?)),
+            None => match &self.data {
+                Some(data) => Ok(default_run(data, &self.label()?)),
+                None => refuse("--resume without --data needs --out RUN, the run folder".into()),
+            },
         }
     }
 
@@ -145,7 +149,11 @@ impl TrainOptions {
     /// `on_notice` hears the scene reader's notes and warnings (`note: ...`, `warning: ...`).
     pub fn config(&self, on_notice: &mut dyn FnMut(&str)) -> Result<TrainConfig> {
         // Absolute, so `eval` and `render` find the scene from any working directory.
-        let data = std::fs::canonicalize(&self.data).unwrap_or_else(|_| self.data.clone());
+        let data = self
+            .data
+            .as_ref()
+            .ok_or_else(|| NerfError::Config("--data is needed to start a run".into()))?;
+        let data = std::fs::canonicalize(data).unwrap_or_else(|_| data.clone());
         let mut c = match self.model()? {
             ModelKind::Fast => TrainConfig::fast(data),
             ModelKind::Vanilla => {
@@ -217,7 +225,13 @@ impl TrainOptions {
                 out.display()
             ));
         }
-        let config = if self.resume && out.join(CONFIG_FILE).exists() {
+        if self.resume && !out.join(CONFIG_FILE).exists() {
+            return refuse(format!(
+                "cannot resume: {} holds no run (no {CONFIG_FILE}); drop --resume to start one",
+                out.display()
+            ));
+        }
+        let config = if self.resume {
             let mut saved = super::folder::read_config(&out)?;
             let conflicts = self.conflicts_with(&saved);
             if !conflicts.is_empty() {
@@ -252,10 +266,13 @@ impl TrainOptions {
                 out.push(format!("{flag} {given} (the run's: {theirs})"));
             }
         };
-        let data = std::fs::canonicalize(&self.data).unwrap_or_else(|_| self.data.clone());
+        let data = self
+            .data
+            .as_ref()
+            .map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.clone()));
         check(
             "--data",
-            Some(data.display().to_string()),
+            data.map(|d| d.display().to_string()),
             saved.data.display().to_string(),
         );
         let fast = match &saved.model {
