@@ -64,6 +64,11 @@ impl RunLock {
                     ),
                 ))
             }
+            // A file system without locks (some network mounts): run unlocked, as before
+            // locks existed, rather than refuse to train at all.
+            Err(TryLockError::Error(e)) if e.kind() == std::io::ErrorKind::Unsupported => {
+                Ok(RunLock { _file: file, path })
+            }
             Err(TryLockError::Error(e)) => Err(NerfError::write(&path, e)),
         }
     }
