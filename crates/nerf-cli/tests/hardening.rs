@@ -496,3 +496,51 @@ fn check_finite_names_the_stage() {
         ],
     );
 }
+
+/// Beyond the list: every number option refuses NaN, infinity and values outside its range
+/// (clap's exit 2, the option named), where they used to render garbage or nothing.
+#[test]
+fn numbers_that_make_no_sense_are_refused() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    for (args, option) in [
+        (&["render", "--run", "r", "--fps", "0"][..], "--fps"),
+        (&["render", "--run", "r", "--fps", "NaN"], "--fps"),
+        (
+            &["render", "--run", "r", "--elevation", "NaN"],
+            "--elevation",
+        ),
+        (&["render", "--run", "r", "--radius", "-1"], "--radius"),
+        (
+            &["render", "--run", "r", "--depth-range", "1,inf"],
+            "--depth-range",
+        ),
+        (
+            &[
+                "points",
+                "--run",
+                "r",
+                "--out",
+                "p.ply",
+                "--min-opacity",
+                "NaN",
+            ],
+            "--min-opacity",
+        ),
+        (
+            &["mesh", "--run", "r", "--out", "m.ply", "--threshold", "NaN"],
+            "--threshold",
+        ),
+        (&["train", "--data", "s", "--lr", "-1"], "--lr"),
+        (&["train", "--data", "s", "--bound", "inf"], "--bound"),
+        (
+            &["capture", "--video", "v.mp4", "--out", "s", "--fps", "0"],
+            "--fps",
+        ),
+    ] {
+        let out = nerf(args, d);
+        let t = text(&out);
+        assert_eq!(out.status.code(), Some(2), "{args:?}: {t}");
+        assert!(t.contains(option), "{args:?}: {t}");
+    }
+}

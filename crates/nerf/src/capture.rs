@@ -42,7 +42,7 @@ pub struct CaptureOptions {
     #[arg(long)]
     pub video: Option<PathBuf>,
     /// Frames per second taken from --video.
-    #[arg(long, default_value_t = 2.0)]
+    #[arg(long, default_value_t = 2.0, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub fps: f32,
     /// Output scene folder: images/, colmap/ (database, logs, models), sparse/0/ and
     /// transforms.json, ready for `nerf train --data`.

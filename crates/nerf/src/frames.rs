@@ -53,11 +53,11 @@ pub struct FramesOptions {
     #[arg(long)]
     pub camera_path: Option<PathBuf>,
     /// Orbit elevation in degrees.
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, default_value_t = 30.0, value_parser = crate::args::finite, allow_negative_numbers = true)]
     pub elevation: f32,
     /// Orbit radius in scene units (default: the training cameras' mean distance from the
     /// scene centre).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub radius: Option<f32>,
     /// Output size: the width for generated paths (the height keeps the scene's aspect
     /// ratio), the height for --path file (default: the training resolution, or the
@@ -69,7 +69,7 @@ pub struct FramesOptions {
     #[arg(long)]
     pub video: Option<PathBuf>,
     /// Frames per second of the video.
-    #[arg(long, default_value_t = 24.0)]
+    #[arg(long, default_value_t = 24.0, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub fps: f32,
     /// Fixed depth range NEAR,FAR for the colour map (default: the first frame's 2nd-98th
     /// percentile of opaque pixels, kept for all frames).
@@ -99,11 +99,8 @@ pub fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
     let (a, b) = s
         .split_once(',')
         .ok_or_else(|| format!("{s:?}: expected NEAR,FAR such as 2.5,5"))?;
-    let (a, b): (f32, f32) = (
-        a.trim().parse().map_err(|e| format!("{a:?}: {e}"))?,
-        b.trim().parse().map_err(|e| format!("{b:?}: {e}"))?,
-    );
-    if a.is_nan() || b.is_nan() || a >= b {
+    let (a, b): (f32, f32) = (crate::args::finite(a)?, crate::args::finite(b)?);
+    if a >= b {
         return Err(format!("{s:?}: NEAR must be less than FAR"));
     }
     Ok((a, b))

@@ -10,6 +10,7 @@
 //! schedule and the run folder), [`eval`] and [`metrics`], [`views`] (whole images),
 //! [`mesh`], and [`data::synth`], which renders the built-in scenes.
 
+pub mod args;
 pub mod bench_fast;
 pub mod bench_vanilla;
 pub mod camera;

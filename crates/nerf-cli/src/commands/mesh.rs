@@ -27,14 +27,14 @@ pub struct MeshArgs {
     resolution: Option<usize>,
     /// Density at the surface. Lower it (5-10) when thin parts go missing; raise it when
     /// fog or floaters wrap the object.
-    #[arg(long, default_value_t = DEFAULT_THRESHOLD)]
+    #[arg(long, default_value_t = DEFAULT_THRESHOLD, value_parser = nerf::args::positive, allow_negative_numbers = true)]
     threshold: f32,
     /// Keep only the N largest connected pieces (N = 1 when given without a value).
     #[arg(long, num_args = 0..=1, default_missing_value = "1")]
     keep_largest: Option<usize>,
     /// Half-extent of the sampled box [-B, B]^3 (default: the fast model's box, or its
     /// undistorted inner half when space is contracted; 1.5 for vanilla runs).
-    #[arg(long)]
+    #[arg(long, value_parser = nerf::args::positive, allow_negative_numbers = true)]
     bound: Option<f32>,
 }
 

@@ -25,7 +25,7 @@ pub struct PointsArgs {
     #[arg(long, default_value_t = 2)]
     downscale: usize,
     /// Keep pixels at least this opaque (drops background and soft edges).
-    #[arg(long, default_value_t = 0.95)]
+    #[arg(long, default_value_t = 0.95, value_parser = nerf::args::fraction, allow_negative_numbers = true)]
     min_opacity: f32,
 }
 

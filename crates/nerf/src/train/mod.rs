@@ -200,6 +200,9 @@ impl TrainConfig {
         if self.downscale == 0 || self.val_downscale == 0 {
             return bad("downscale factors must be at least 1");
         }
+        if self.scene.holdout < 2 {
+            return bad("scene.holdout must be at least 2");
+        }
         Ok(())
     }
 

@@ -24,7 +24,7 @@ pub struct TrainOptions {
     /// Fast: half-extent of the scene box [-B, B]^3 the hash grid covers, in scene units
     /// after the format's placement. Default: from the scene (Blender 1.5, NDC 1,
     /// instant-ngp aabb_scale / 2, COLMAP from its points).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub bound: Option<f32>,
     /// Fast: keep the whole scene in the box instead of contracting the space beyond its
     /// inner half (contraction is the default for 360-degree real captures: LLFF
@@ -47,7 +47,7 @@ pub struct TrainOptions {
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub steps: Option<u64>,
     /// Wall-clock budget in minutes: stop (with a checkpoint) when it runs out.
-    #[arg(long, value_parser = positive_minutes, allow_negative_numbers = true)]
+    #[arg(long, value_parser = crate::args::positive_f64, allow_negative_numbers = true)]
     pub minutes: Option<f64>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
     #[arg(long)]
@@ -59,7 +59,7 @@ pub struct TrainOptions {
     #[arg(long)]
     pub table_log2: Option<u32>,
     /// Initial learning rate (default 1e-2 fast, 5e-4 vanilla).
-    #[arg(long)]
+    #[arg(long, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub lr: Option<f32>,
     /// Background behind transparent pixels; random = a new colour per ray while training.
     /// Default: random for fast, white for vanilla.
@@ -352,14 +352,5 @@ impl TrainOptions {
             out.push("--paper-pe / --no-contract (set when the run was made)".into());
         }
         out
-    }
-}
-
-/// `--minutes`: a positive, finite number.
-fn positive_minutes(s: &str) -> std::result::Result<f64, String> {
-    match s.parse::<f64>() {
-        Ok(m) if m.is_finite() && m > 0.0 => Ok(m),
-        Ok(m) => Err(format!("{m} is not a positive number of minutes")),
-        Err(e) => Err(e.to_string()),
     }
 }
