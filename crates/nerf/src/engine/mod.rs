@@ -9,6 +9,8 @@
 //! reference engine; a second engine implements this trait and [`open`] picks it.
 
 pub mod cpu;
+#[cfg(feature = "wgpu")]
+pub mod gpu;
 
 use serde::{Deserialize, Serialize};
 

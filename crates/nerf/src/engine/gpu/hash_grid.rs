@@ -1,0 +1,420 @@
+//! The multiresolution hash encoding on the GPU: the same levels, hash and trilinear
+//! weights as `encoding::hash_grid` (whose docs give the maths), one thread per (sample,
+//! level). The backward scatters each sample's gradient into the eight corners it read,
+//! with a float atomic add where the adapter has one and a compare-and-swap loop on the
+//! value's bits where it does not.
+
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::device::Gpu;
+use crate::encoding::hash_grid::{HashGrid, FEATURES};
+
+// The spatial hash's primes, as in `encoding::hash_grid`.
+const PRIME_Y: u32 = 2_654_435_761;
+const PRIME_Z: u32 = 805_459_861;
+/// Threads per workgroup.
+const GROUP: u32 = 256;
+/// `u32`s describing one level to the kernels: resolution, entries, dense (0/1), offset.
+const LEVEL_WORDS: usize = 4;
+
+/// Table index of grid vertex `(x, y, z)` of a level.
+#[cube]
+fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
+    let s = res + 1;
+    let indexed = x + s * (y + s * z);
+    // u32 products wrap on every backend, as `wrapping_mul` does on the CPU.
+    let hashed = (x ^ (y * PRIME_Y) ^ (z * PRIME_Z)) & (entries - 1);
+    select(dense == 1, indexed, hashed) as usize
+}
+
+/// Where thread `t`'s sample sits in level `l`'s grid: the cell's corner and the fractions.
+#[cube]
+fn cell(points: &[f32], s: usize, res: u32) -> (u32, u32, u32, f32, f32, f32) {
+    let rf = f32::cast_from(res);
+    let px = f32::clamp(points[3 * s], 0.0, 1.0) * rf;
+    let py = f32::clamp(points[3 * s + 1], 0.0, 1.0) * rf;
+    let pz = f32::clamp(points[3 * s + 2], 0.0, 1.0) * rf;
+    let cx = u32::min(u32::cast_from(px), res - 1);
+    let cy = u32::min(u32::cast_from(py), res - 1);
+    let cz = u32::min(u32::cast_from(pz), res - 1);
+    (
+        cx,
+        cy,
+        cz,
+        px - f32::cast_from(cx),
+        py - f32::cast_from(cy),
+        pz - f32::cast_from(cz),
+    )
+}
+
+/// Trilinear weight of corner `k` (bit 0: +x, bit 1: +y, bit 2: +z).
+#[cube]
+fn weight(k: u32, fx: f32, fy: f32, fz: f32) -> f32 {
+    let wx = select((k & 1) == 1, fx, 1.0 - fx);
+    let wy = select(((k >> 1) & 1) == 1, fy, 1.0 - fy);
+    let wz = select(((k >> 2) & 1) == 1, fz, 1.0 - fz);
+    wx * wy * wz
+}
+
+#[cube(launch_unchecked)]
+fn encode_fwd(params: &[f32], levels: &[u32], points: &[f32], out: &mut [f32], n_levels: u32) {
+    let nl = n_levels as usize;
+    let s = ABSOLUTE_POS / nl;
+    let l = ABSOLUTE_POS % nl;
+    if s * 3 < points.len() {
+        let res = levels[4 * l];
+        let entries = levels[4 * l + 1];
+        let dense = levels[4 * l + 2];
+        let offset = levels[4 * l + 3] as usize;
+        let (cx, cy, cz, fx, fy, fz) = cell(points, s, res);
+        let mut f0 = 0.0f32;
+        let mut f1 = 0.0f32;
+        #[unroll]
+        for k in 0..8u32 {
+            let w = weight(k, fx, fy, fz);
+            let v = vertex(
+                cx + (k & 1),
+                cy + ((k >> 1) & 1),
+                cz + ((k >> 2) & 1),
+                res,
+                entries,
+                dense,
+            );
+            f0 += w * params[offset + 2 * v];
+            f1 += w * params[offset + 2 * v + 1];
+        }
+        out[(s * nl + l) * 2] = f0;
+        out[(s * nl + l) * 2 + 1] = f1;
+    }
+}
+
+/// Backward with hardware float atomics: `grads[corner] += w * d_out`.
+#[cube(launch_unchecked)]
+fn encode_bwd_atomic(
+    levels: &[u32],
+    points: &[f32],
+    d_out: &[f32],
+    grads: &mut [Atomic<f32>],
+    n_levels: u32,
+) {
+    let nl = n_levels as usize;
+    let s = ABSOLUTE_POS / nl;
+    let l = ABSOLUTE_POS % nl;
+    if s * 3 < points.len() {
+        let g0 = d_out[(s * nl + l) * 2];
+        let g1 = d_out[(s * nl + l) * 2 + 1];
+        if g0 != 0.0 || g1 != 0.0 {
+            let res = levels[4 * l];
+            let (cx, cy, cz, fx, fy, fz) = cell(points, s, res);
+            let offset = levels[4 * l + 3] as usize;
+            #[unroll]
+            for k in 0..8u32 {
+                let w = weight(k, fx, fy, fz);
+                let v = vertex(
+                    cx + (k & 1),
+                    cy + ((k >> 1) & 1),
+                    cz + ((k >> 2) & 1),
+                    res,
+                    levels[4 * l + 1],
+                    levels[4 * l + 2],
+                );
+                grads[offset + 2 * v].fetch_add(w * g0);
+                grads[offset + 2 * v + 1].fetch_add(w * g1);
+            }
+        }
+    }
+}
+
+/// `*slot += v` for an `f32` stored as its bits, by compare-and-swap: for adapters without
+/// float atomics (WebGPU's baseline, older drivers).
+#[cube]
+fn add_by_cas(slot: &Atomic<u32>, v: f32) {
+    let mut old = slot.load();
+    loop {
+        let new = u32::reinterpret(f32::reinterpret(old) + v);
+        let seen = slot.compare_exchange_weak(old, new);
+        if seen == old {
+            break;
+        }
+        old = seen;
+    }
+}
+
+/// Backward with the compare-and-swap fallback (`grads` holds `f32` bits).
+#[cube(launch_unchecked)]
+fn encode_bwd_cas(
+    levels: &[u32],
+    points: &[f32],
+    d_out: &[f32],
+    grads: &mut [Atomic<u32>],
+    n_levels: u32,
+) {
+    let nl = n_levels as usize;
+    let s = ABSOLUTE_POS / nl;
+    let l = ABSOLUTE_POS % nl;
+    if s * 3 < points.len() {
+        let g0 = d_out[(s * nl + l) * 2];
+        let g1 = d_out[(s * nl + l) * 2 + 1];
+        if g0 != 0.0 || g1 != 0.0 {
+            let res = levels[4 * l];
+            let (cx, cy, cz, fx, fy, fz) = cell(points, s, res);
+            let offset = levels[4 * l + 3] as usize;
+            #[unroll]
+            for k in 0..8u32 {
+                let w = weight(k, fx, fy, fz);
+                let v = vertex(
+                    cx + (k & 1),
+                    cy + ((k >> 1) & 1),
+                    cz + ((k >> 2) & 1),
+                    res,
+                    levels[4 * l + 1],
+                    levels[4 * l + 2],
+                );
+                add_by_cas(&grads[offset + 2 * v], w * g0);
+                add_by_cas(&grads[offset + 2 * v + 1], w * g1);
+            }
+        }
+    }
+}
+
+/// How gradients are scattered.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Scatter {
+    /// Hardware `f32` atomic add.
+    FloatAtomic,
+    /// A compare-and-swap loop on the bits.
+    CompareAndSwap,
+}
+
+/// A hash grid's level table on the device.
+pub struct GpuHashGrid {
+    levels: Handle,
+    n_levels: usize,
+    num_params: usize,
+}
+
+impl GpuHashGrid {
+    /// Uploads `grid`'s level structure.
+    pub fn new(gpu: &Gpu, grid: &HashGrid) -> Self {
+        let words: Vec<u32> = grid
+            .levels
+            .iter()
+            .flat_map(|l| {
+                [
+                    l.resolution,
+                    l.entries as u32,
+                    u32::from(l.dense),
+                    l.offset as u32,
+                ]
+            })
+            .collect();
+        debug_assert_eq!(words.len(), grid.levels.len() * LEVEL_WORDS);
+        let end = grid.param_range().end;
+        GpuHashGrid {
+            levels: gpu.client.create_from_slice(u32::as_bytes(&words)),
+            n_levels: grid.levels.len(),
+            num_params: end,
+        }
+    }
+
+    fn launch_size(&self, samples: usize) -> (CubeCount, CubeDim) {
+        let threads = (samples * self.n_levels) as u32;
+        (
+            CubeCount::Static(threads.div_ceil(GROUP), 1, 1),
+            CubeDim::new_1d(GROUP),
+        )
+    }
+
+    /// Encodes `samples` unit-cube points (`points`: `samples x 3`) with the tables in
+    /// `params` (the whole parameter vector, as the CPU layout places it) into `out`
+    /// (`samples x levels x 2`).
+    pub fn encode(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        points: &Handle,
+        samples: usize,
+        out: &Handle,
+    ) {
+        if samples == 0 {
+            return;
+        }
+        let (count, dim) = self.launch_size(samples);
+        // SAFETY: the lengths given are those the buffers were made with (the parameter
+        // vector holds every level's table, `points` 3 floats per sample, `out` one pair
+        // per sample and level), and the kernel bounds-checks its sample index.
+        unsafe {
+            encode_fwd::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(params.clone(), self.num_params),
+                BufferArg::from_raw_parts(self.levels.clone(), self.n_levels * LEVEL_WORDS),
+                BufferArg::from_raw_parts(points.clone(), samples * 3),
+                BufferArg::from_raw_parts(out.clone(), samples * self.n_levels * FEATURES),
+                self.n_levels as u32,
+            );
+        }
+    }
+
+    /// Backward of [`encode`](Self::encode): adds `d_out` (`samples x levels x 2`), spread
+    /// over each sample's corners, into `grads` (laid out as the parameter vector).
+    pub fn encode_bwd(
+        &self,
+        gpu: &Gpu,
+        scatter: Scatter,
+        points: &Handle,
+        d_out: &Handle,
+        samples: usize,
+        grads: &Handle,
+    ) {
+        if samples == 0 {
+            return;
+        }
+        let (count, dim) = self.launch_size(samples);
+        let (nl, np) = (self.n_levels, self.num_params);
+        // SAFETY: as in `encode`; `grads` has one slot per parameter.
+        unsafe {
+            let levels = || BufferArg::from_raw_parts(self.levels.clone(), nl * LEVEL_WORDS);
+            let points = || BufferArg::from_raw_parts(points.clone(), samples * 3);
+            let d_out = || BufferArg::from_raw_parts(d_out.clone(), samples * nl * FEATURES);
+            let grads = || BufferArg::from_raw_parts(grads.clone(), np);
+            match scatter {
+                Scatter::FloatAtomic => encode_bwd_atomic::launch_unchecked(
+                    &gpu.client,
+                    count,
+                    dim,
+                    levels(),
+                    points(),
+                    d_out(),
+                    grads(),
+                    nl as u32,
+                ),
+                Scatter::CompareAndSwap => encode_bwd_cas::launch_unchecked(
+                    &gpu.client,
+                    count,
+                    dim,
+                    levels(),
+                    points(),
+                    d_out(),
+                    grads(),
+                    nl as u32,
+                ),
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encoding::hash_grid::HashGridConfig;
+    use crate::nn::{GradBuffer, ParamLayout};
+    use crate::rng::Rng;
+
+    fn gpu() -> Option<Gpu> {
+        match Gpu::vulkan() {
+            Ok(g) => Some(g),
+            Err(e) => {
+                eprintln!("skipping the GPU kernel test: {e}");
+                None
+            }
+        }
+    }
+
+    fn read(gpu: &Gpu, h: Handle) -> Vec<f32> {
+        let bytes = gpu.client.read_one(h).expect("read back");
+        f32::from_bytes(&bytes).to_vec()
+    }
+
+    /// A small grid with dense coarse levels and hashed fine ones (table of 2^10), random
+    /// tables and points, some outside the unit cube (clamped).
+    fn setup() -> (HashGrid, Vec<f32>, Vec<f32>) {
+        let mut layout = ParamLayout::default();
+        layout.push("before", &[7]);
+        let grid = HashGrid::new(
+            HashGridConfig {
+                levels: 6,
+                log2_table_size: 10,
+                base_resolution: 4,
+                max_resolution: 128,
+            },
+            "grid.",
+            &mut layout,
+        );
+        assert!(grid.levels[0].dense && !grid.levels[5].dense);
+        let mut rng = Rng::new(3);
+        let params: Vec<f32> = (0..layout.total).map(|_| rng.range(-1.0, 1.0)).collect();
+        let points: Vec<f32> = (0..1000 * 3).map(|_| rng.range(-0.05, 1.05)).collect();
+        (grid, params, points)
+    }
+
+    /// The kernel against the CPU reference on the same inputs: values within 1e-5.
+    #[test]
+    fn encode_matches_the_cpu() {
+        let Some(gpu) = gpu() else { return };
+        let (grid, params, points) = setup();
+        let n = points.len() / 3;
+        let mut want = vec![0.0; n * grid.dims()];
+        grid.encode_reference(&params, &points, &mut want);
+        let g = GpuHashGrid::new(&gpu, &grid);
+        let p = gpu.client.create_from_slice(f32::as_bytes(&params));
+        let x = gpu.client.create_from_slice(f32::as_bytes(&points));
+        let out = gpu.client.empty(n * grid.dims() * 4);
+        g.encode(&gpu, &p, &x, n, &out);
+        let got = read(&gpu, out);
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-5, "largest difference {worst}");
+    }
+
+    /// Both scatter paths against the CPU backward: gradients within 1e-4 (atomic adds
+    /// run in any order, so the sums are rounded differently).
+    #[test]
+    fn encode_bwd_matches_the_cpu_with_both_scatters() {
+        let Some(gpu) = gpu() else { return };
+        let (grid, params, points) = setup();
+        let n = points.len() / 3;
+        let mut rng = Rng::new(9);
+        let d_out: Vec<f32> = (0..n * grid.dims()).map(|_| rng.range(-1.0, 1.0)).collect();
+        let mut buffer = GradBuffer::new(params.len());
+        grid.encode_bwd(&points, &d_out, &mut buffer.all());
+        let want = buffer.values.clone();
+        let g = GpuHashGrid::new(&gpu, &grid);
+        let x = gpu.client.create_from_slice(f32::as_bytes(&points));
+        let d = gpu.client.create_from_slice(f32::as_bytes(&d_out));
+        let mut scatters = vec![Scatter::CompareAndSwap];
+        if gpu.float_atomics {
+            scatters.push(Scatter::FloatAtomic);
+        } else {
+            eprintln!(
+                "{}: no float atomics; testing the compare-and-swap path only",
+                gpu.name
+            );
+        }
+        for scatter in scatters {
+            let grads = gpu
+                .client
+                .create_from_slice(f32::as_bytes(&vec![0.0f32; params.len()]));
+            g.encode_bwd(&gpu, scatter, &x, &d, n, &grads);
+            let got = read(&gpu, grads);
+            let worst = got
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (a - b).abs() / (1.0 + b.abs()))
+                .fold(0.0f32, f32::max);
+            assert!(
+                worst < 1e-4,
+                "{scatter:?}: largest relative difference {worst}"
+            );
+            assert!(
+                got[..7].iter().all(|&v| v == 0.0),
+                "{scatter:?} wrote outside the grid"
+            );
+        }
+    }
+}

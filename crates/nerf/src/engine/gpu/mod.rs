@@ -1,0 +1,15 @@
+//! The GPU engine, under construction (issue 12): kernels written once in CubeCL and run
+//! through its `wgpu` runtime (Vulkan, Metal, DX12). Each kernel is tested against the CPU
+//! engine's stage on the same inputs, on Mesa's lavapipe in CI.
+//!
+//! Here so far:
+//! * [`device`]: opening an adapter, with a clear error when there is none, and what it
+//!   can do (float atomics);
+//! * [`hash_grid`]: the multiresolution hash encoding, forward and backward (gradients
+//!   scattered with float atomics, or a compare-and-swap loop where the adapter has none).
+//!
+//! Still to come before `engine::open` can hand out a GPU engine: ray generation, marching
+//! with compaction, the fused MLPs, compositing, loss, Adam and the occupancy refresh.
+
+pub mod device;
+pub mod hash_grid;
