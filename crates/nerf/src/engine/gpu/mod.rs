@@ -6,10 +6,12 @@
 //! * [`device`]: opening an adapter, with a clear error when there is none, and what it
 //!   can do (float atomics);
 //! * [`hash_grid`]: the multiresolution hash encoding, forward and backward (gradients
-//!   scattered with float atomics, or a compare-and-swap loop where the adapter has none).
+//!   scattered with float atomics, or a compare-and-swap loop where the adapter has none);
+//! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray.
 //!
 //! Still to come before `engine::open` can hand out a GPU engine: ray generation, marching
-//! with compaction, the fused MLPs, compositing, loss, Adam and the occupancy refresh.
+//! with compaction, the fused MLPs, the loss, Adam and the occupancy refresh.
 
 pub mod device;
 pub mod hash_grid;
+pub mod volume;
