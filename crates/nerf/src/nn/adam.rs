@@ -185,6 +185,14 @@ pub struct AdamStep {
     inv_bc2: f32,
 }
 
+impl AdamStep {
+    /// `(lr / (1 - beta1^t), 1 / (1 - beta2^t))`, for engines that apply the update
+    /// themselves (the GPU kernel), so the schedule is computed in one place.
+    pub fn factors(self) -> (f32, f32) {
+        (self.lr_over_bc1, self.inv_bc2)
+    }
+}
+
 /// How a range of parameters is updated.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct Rule {

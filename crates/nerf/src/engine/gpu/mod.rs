@@ -7,11 +7,13 @@
 //!   can do (float atomics);
 //! * [`hash_grid`]: the multiresolution hash encoding, forward and backward (gradients
 //!   scattered with float atomics, or a compare-and-swap loop where the adapter has none);
-//! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray.
+//! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
+//! * [`adam`]: the optimiser step over the whole parameter vector (lazy for hash tables).
 //!
 //! Still to come before `engine::open` can hand out a GPU engine: ray generation, marching
-//! with compaction, the fused MLPs, the loss, Adam and the occupancy refresh.
+//! with compaction, the fused MLPs, the loss and the occupancy refresh.
 
+pub mod adam;
 pub mod device;
 pub mod hash_grid;
 pub mod volume;
