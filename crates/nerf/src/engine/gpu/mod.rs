@@ -8,12 +8,15 @@
 //! * [`hash_grid`]: the multiresolution hash encoding, forward and backward (gradients
 //!   scattered with float atomics, or a compare-and-swap loop where the adapter has none);
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
+//! * [`loss`]: the squared error per ray and its gradient;
 //! * [`adam`]: the optimiser step over the whole parameter vector (lazy for hash tables).
 //!
 //! Still to come before `engine::open` can hand out a GPU engine: ray generation, marching
-//! with compaction, the fused MLPs, the loss and the occupancy refresh.
+//! with compaction, the fused MLPs and the occupancy refresh, then the engine that strings
+//! the kernels into a step with its data on the device.
 
 pub mod adam;
 pub mod device;
 pub mod hash_grid;
+pub mod loss;
 pub mod volume;
