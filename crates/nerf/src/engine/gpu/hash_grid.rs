@@ -89,65 +89,44 @@ fn encode_fwd(params: &[f32], levels: &[u32], points: &[f32], out: &mut [f32], n
     }
 }
 
-/// Backward with hardware float atomics: `grads[corner] += w * d_out`.
-#[cube(launch_unchecked)]
-fn encode_bwd_atomic(
-    levels: &[u32],
-    points: &[f32],
-    d_out: &[f32],
-    grads: &mut [Atomic<f32>],
-    n_levels: u32,
-) {
-    let nl = n_levels as usize;
-    let s = ABSOLUTE_POS / nl;
-    let l = ABSOLUTE_POS % nl;
-    if s * 3 < points.len() {
-        let g0 = d_out[(s * nl + l) * 2];
-        let g1 = d_out[(s * nl + l) * 2 + 1];
-        if g0 != 0.0 || g1 != 0.0 {
-            let res = levels[4 * l];
-            let (cx, cy, cz, fx, fy, fz) = cell(points, s, res);
-            let offset = levels[4 * l + 3] as usize;
-            #[unroll]
-            for k in 0..8u32 {
-                let w = weight(k, fx, fy, fz);
-                let v = vertex(
-                    cx + (k & 1),
-                    cy + ((k >> 1) & 1),
-                    cz + ((k >> 2) & 1),
-                    res,
-                    levels[4 * l + 1],
-                    levels[4 * l + 2],
-                );
-                grads[offset + 2 * v].fetch_add(w * g0);
-                grads[offset + 2 * v + 1].fetch_add(w * g1);
-            }
-        }
-    }
-}
-
-/// `*slot += v` for an `f32` stored as its bits, by compare-and-swap: for adapters without
-/// float atomics (WebGPU's baseline, older drivers).
+/// How a backward kernel adds into a gradient slot: the slot's element type picks it.
 #[cube]
-fn add_by_cas(slot: &Atomic<u32>, v: f32) {
-    let mut old = slot.load();
-    loop {
-        let new = u32::reinterpret(f32::reinterpret(old) + v);
-        let seen = slot.compare_exchange_weak(old, new);
-        if seen == old {
-            break;
-        }
-        old = seen;
+trait ScatterAdd: CubePrimitive {
+    fn scatter_add(slot: &Atomic<Self>, v: f32);
+}
+
+/// Hardware float atomics.
+#[cube]
+impl ScatterAdd for f32 {
+    fn scatter_add(slot: &Atomic<f32>, v: f32) {
+        slot.fetch_add(v);
     }
 }
 
-/// Backward with the compare-and-swap fallback (`grads` holds `f32` bits).
+/// An `f32` stored as its bits, added by compare-and-swap: for adapters without float
+/// atomics (WebGPU's baseline, older drivers).
+#[cube]
+impl ScatterAdd for u32 {
+    fn scatter_add(slot: &Atomic<u32>, v: f32) {
+        let mut old = slot.load();
+        loop {
+            let new = u32::reinterpret(f32::reinterpret(old) + v);
+            let seen = slot.compare_exchange_weak(old, new);
+            if seen == old {
+                break;
+            }
+            old = seen;
+        }
+    }
+}
+
+/// Backward: `grads[corner] += w * d_out` for each sample's eight corners, through `S`.
 #[cube(launch_unchecked)]
-fn encode_bwd_cas(
+fn encode_bwd<S: ScatterAdd>(
     levels: &[u32],
     points: &[f32],
     d_out: &[f32],
-    grads: &mut [Atomic<u32>],
+    grads: &mut [Atomic<S>],
     n_levels: u32,
 ) {
     let nl = n_levels as usize;
@@ -171,8 +150,8 @@ fn encode_bwd_cas(
                     levels[4 * l + 1],
                     levels[4 * l + 2],
                 );
-                add_by_cas(&grads[offset + 2 * v], w * g0);
-                add_by_cas(&grads[offset + 2 * v + 1], w * g1);
+                S::scatter_add(&grads[offset + 2 * v], w * g0);
+                S::scatter_add(&grads[offset + 2 * v + 1], w * g1);
             }
         }
     }
@@ -281,7 +260,7 @@ impl GpuHashGrid {
             let d_out = || BufferArg::from_raw_parts(d_out.clone(), samples * nl * FEATURES);
             let grads = || BufferArg::from_raw_parts(grads.clone(), np);
             match scatter {
-                Scatter::FloatAtomic => encode_bwd_atomic::launch_unchecked(
+                Scatter::FloatAtomic => encode_bwd::launch_unchecked::<f32>(
                     &gpu.client,
                     count,
                     dim,
@@ -291,7 +270,7 @@ impl GpuHashGrid {
                     grads(),
                     nl as u32,
                 ),
-                Scatter::CompareAndSwap => encode_bwd_cas::launch_unchecked(
+                Scatter::CompareAndSwap => encode_bwd::launch_unchecked::<u32>(
                     &gpu.client,
                     count,
                     dim,
