@@ -179,15 +179,33 @@ fn checksum_key(tensor: &str) -> String {
 
 /// The step a checkpoint was saved at, from its header alone.
 pub fn read_step(path: &Path) -> Result<u64> {
-    let data = std::fs::read(path).map_err(|e| NerfError::io(path, e))?;
-    let (_, header) = SafeTensors::read_metadata(&data).map_err(|e| problem(path, e))?;
-    header
-        .metadata()
-        .as_ref()
-        .and_then(|m| m.get("step"))
+    use std::io::Read;
+    // Only the header (an 8-byte length, then JSON): the tensors after it can be hundreds
+    // of megabytes, which the resume reads once, afterwards, in `load`.
+    let mut file = std::fs::File::open(path).map_err(|e| NerfError::io(path, e))?;
+    let mut len = [0u8; 8];
+    file.read_exact(&mut len)
+        .map_err(|_| problem(path, "too short to be a checkpoint"))?;
+    let len = u64::from_le_bytes(len);
+    if len > MAX_HEADER_BYTES {
+        return Err(problem(
+            path,
+            format!("header of {len} bytes: not a checkpoint"),
+        ));
+    }
+    let mut header = vec![0u8; len as usize];
+    file.read_exact(&mut header)
+        .map_err(|_| problem(path, "the header is cut short"))?;
+    let header: serde_json::Value =
+        serde_json::from_slice(&header).map_err(|e| problem(path, e))?;
+    header["__metadata__"]["step"]
+        .as_str()
         .and_then(|v| v.parse().ok())
         .ok_or_else(|| problem(path, "metadata `step` missing or not a number"))
 }
+
+/// The safetensors format's own bound on its JSON header.
+const MAX_HEADER_BYTES: u64 = 100_000_000;
 
 fn problem(path: &Path, e: impl std::fmt::Display) -> NerfError {
     NerfError::Checkpoint {
@@ -229,6 +247,7 @@ mod tests {
         };
         save(&path, &layout(), &buffers(), &ckpt).expect("save");
         assert!(!crate::io::tmp_path(&path).exists());
+        assert_eq!(read_step(&path).expect("step"), 42);
         assert_eq!(load(&path, &layout(), &buffers()).expect("load"), ckpt);
         let mut absent = ParamLayout::default();
         absent.push("occupancy", &[2, 2]);
@@ -245,6 +264,7 @@ mod tests {
 
         std::fs::write(&path, b"garbage").expect("write");
         assert!(load(&path, &layout(), &buffers()).is_err());
+        assert!(read_step(&path).is_err());
     }
 
     /// Issue 10 #6: a flipped bit is found by the tensor's checksum, and non-finite
