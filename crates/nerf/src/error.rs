@@ -32,6 +32,9 @@ pub enum NerfError {
     Checkpoint { path: PathBuf, message: String },
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// No such device, or the device failed (driver, out of device memory, lost device).
+    #[error("GPU: {0}")]
+    Device(String),
     #[error("training diverged at step {step}: {what} (the last good checkpoint is kept)")]
     Diverged { step: u64, what: String },
     #[error("{stage} produced a non-finite value at step {step}: {buffer}[{index}] = {value} (NERF_CHECK_FINITE)")]

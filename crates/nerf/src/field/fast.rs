@@ -127,7 +127,13 @@ impl FastField {
         self.grid.param_range().end..self.layout.total
     }
 
-    fn colour_in_dims(&self) -> usize {
+    /// Offsets of the weight matrices in the parameter vector, in order: density 0, 1,
+    /// colour 0, 1, 2 (each `inputs x outputs`, row-major).
+    pub fn weight_offsets(&self) -> [usize; 5] {
+        self.weights
+    }
+
+    pub fn colour_in_dims(&self) -> usize {
         SH_DIMS + self.config.geo_features - 1
     }
 

@@ -22,7 +22,7 @@ impl Gpu {
     /// software one such as lavapipe; `CUBECL_WGPU_DEFAULT_DEVICE` overrides).
     pub fn vulkan() -> Result<Gpu> {
         let device = cubecl::Device::vulkan(WgpuDeviceKind::default()).map_err(|e| {
-            NerfError::Config(format!(
+            NerfError::Device(format!(
                 "no Vulkan GPU adapter ({e}); install your GPU's Vulkan driver, or Mesa's \
                  lavapipe for a software one (Debian/Ubuntu: apt-get install mesa-vulkan-drivers)"
             ))
@@ -39,4 +39,12 @@ impl Gpu {
             float_atomics,
         })
     }
+}
+
+/// The adapter for a GPU test, or `None` (with the reason printed) where there is none.
+#[cfg(test)]
+pub fn test_gpu() -> Option<Gpu> {
+    Gpu::vulkan()
+        .map_err(|e| eprintln!("skipping the GPU kernel test: {e}"))
+        .ok()
 }

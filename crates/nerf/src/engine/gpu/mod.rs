@@ -17,6 +17,9 @@
 
 pub mod adam;
 pub mod device;
+pub mod field;
 pub mod hash_grid;
+pub mod launch;
 pub mod loss;
+pub mod mlp;
 pub mod volume;

@@ -1,0 +1,503 @@
+//! The fast field (`field::fast`, whose docs draw the network) on the GPU: the hash
+//! encoding, the density network, the spherical harmonics of the view direction, the colour
+//! network, and the backward of all of it, as a sequence of kernels over one batch of
+//! samples. Parameters and gradients are the model's whole vectors on the device, laid out
+//! as on the CPU.
+
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::device::Gpu;
+use super::hash_grid::{GpuHashGrid, Scatter};
+use super::launch::grid;
+use super::mlp::Dense;
+use crate::encoding::spherical_harmonics::SH_DIMS;
+use crate::field::fast::LOG_SIGMA_MAX;
+use crate::field::FastField;
+
+/// Threads per workgroup.
+const GROUP: u32 = 256;
+
+#[cube(launch_unchecked)]
+fn to_unit(positions: &[f32], unit: &mut [f32], bound: f32) {
+    let i = ABSOLUTE_POS;
+    if i < unit.len() {
+        unit[i] = (positions[i] + bound) * (0.5 / bound);
+    }
+}
+
+/// `sigma = exp(min(o_0, LOG_SIGMA_MAX))` from the density network's first output.
+#[cube(launch_unchecked)]
+fn density_head(geo: &[f32], sigma: &mut [f32], g: u32, log_max: f32) {
+    let s = ABSOLUTE_POS;
+    if s < sigma.len() {
+        sigma[s] = f32::exp(f32::min(geo[s * g as usize], log_max));
+    }
+}
+
+/// The colour network's input: the 16 spherical harmonics of the sample's unit view
+/// direction (as `encoding::spherical_harmonics::sh4`), then the geometry features.
+#[cube(launch_unchecked)]
+fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32) {
+    let s = ABSOLUTE_POS;
+    let gw = g as usize;
+    let ci = 16 + gw - 1;
+    if s * ci < colour_in.len() {
+        let x = dirs[3 * s];
+        let y = dirs[3 * s + 1];
+        let z = dirs[3 * s + 2];
+        let xx = x * x;
+        let yy = y * y;
+        let zz = z * z;
+        let o = s * ci;
+        colour_in[o] = 0.282_094_8f32;
+        colour_in[o + 1] = 0.0f32 - 0.488_602_5f32 * y;
+        colour_in[o + 2] = 0.488_602_5f32 * z;
+        colour_in[o + 3] = 0.0f32 - 0.488_602_5f32 * x;
+        colour_in[o + 4] = 1.092_548_4f32 * x * y;
+        colour_in[o + 5] = 0.0f32 - 1.092_548_4f32 * y * z;
+        colour_in[o + 6] = 0.946_174_7f32 * zz - 0.315_391_57f32;
+        colour_in[o + 7] = 0.0f32 - 1.092_548_4f32 * x * z;
+        colour_in[o + 8] = 0.546_274_2f32 * (xx - yy);
+        colour_in[o + 9] = 0.590_043_6f32 * y * (yy - 3.0f32 * xx);
+        colour_in[o + 10] = 2.890_611_4f32 * x * y * z;
+        colour_in[o + 11] = 0.457_045_8f32 * y * (1.0f32 - 5.0f32 * zz);
+        colour_in[o + 12] = 0.373_176_33f32 * z * (5.0f32 * zz - 3.0f32);
+        colour_in[o + 13] = 0.457_045_8f32 * x * (1.0f32 - 5.0f32 * zz);
+        colour_in[o + 14] = 1.445_305_7f32 * z * (xx - yy);
+        colour_in[o + 15] = 0.590_043_6f32 * x * (3.0f32 * yy - xx);
+        for j in 1usize..gw {
+            colour_in[o + 15 + j] = geo[s * gw + j];
+        }
+    }
+}
+
+#[cube(launch_unchecked)]
+fn sigmoid_in_place(v: &mut [f32]) {
+    let i = ABSOLUTE_POS;
+    if i < v.len() {
+        v[i] = 1.0 / (1.0 + f32::exp(-v[i]));
+    }
+}
+
+/// `d_logit = d_rgb * y (1 - y)` through the output sigmoid.
+#[cube(launch_unchecked)]
+fn sigmoid_bwd(d_rgb: &[f32], rgb: &[f32], d_logit: &mut [f32]) {
+    let i = ABSOLUTE_POS;
+    if i < d_logit.len() {
+        let y = rgb[i];
+        d_logit[i] = d_rgb[i] * y * (1.0 - y);
+    }
+}
+
+/// The density network's output gradient: `d o_0` through `exp(min(o_0, max))`, and the
+/// geometry features' gradients from the colour network's input gradient.
+#[cube(launch_unchecked)]
+fn geo_bwd(
+    geo: &[f32],
+    sigma: &[f32],
+    d_sigma: &[f32],
+    d_colour_in: &[f32],
+    d_geo: &mut [f32],
+    g: u32,
+    log_max: f32,
+) {
+    let s = ABSOLUTE_POS;
+    if s < sigma.len() {
+        let gw = g as usize;
+        let ci = 16 + gw - 1;
+        d_geo[s * gw] = select(geo[s * gw] < log_max, d_sigma[s] * sigma[s], 0.0);
+        for j in 1usize..gw {
+            d_geo[s * gw + j] = d_colour_in[s * ci + 15 + j];
+        }
+    }
+}
+
+/// The field's activations for one batch, kept by the forward for the backward.
+pub struct Activations {
+    pub n: usize,
+    unit: Handle,
+    enc: Handle,
+    h: Handle,
+    geo: Handle,
+    /// Densities (`n`).
+    pub sigma: Handle,
+    colour_in: Handle,
+    c1: Handle,
+    c2: Handle,
+    /// Colours (`n x 3`).
+    pub rgb: Handle,
+}
+
+/// The fast field's shapes and kernels on one device.
+pub struct GpuFastField {
+    grid: GpuHashGrid,
+    enc_dims: usize,
+    geo: usize,
+    bound: f32,
+    n_params: usize,
+    /// density 0, 1, colour 0, 1, 2.
+    layers: [Dense; 5],
+    scatter: Scatter,
+}
+
+impl GpuFastField {
+    pub fn new(gpu: &Gpu, field: &FastField) -> Self {
+        let c = &field.config;
+        let (e, w, g, ci) = (
+            field.grid.dims(),
+            c.hidden,
+            c.geo_features,
+            field.colour_in_dims(),
+        );
+        debug_assert_eq!(ci, SH_DIMS + g - 1);
+        let off = field.weight_offsets();
+        let layer = |k: usize, inputs, outputs, relu| Dense {
+            inputs,
+            outputs,
+            weight: off[k],
+            bias: None,
+            relu,
+        };
+        GpuFastField {
+            grid: GpuHashGrid::new(gpu, &field.grid),
+            enc_dims: e,
+            geo: g,
+            bound: c.bound,
+            n_params: field.num_params(),
+            layers: [
+                layer(0, e, w, true),
+                layer(1, w, g, false),
+                layer(2, ci, w, true),
+                layer(3, w, w, true),
+                layer(4, w, 3, false),
+            ],
+            scatter: if gpu.float_atomics {
+                Scatter::FloatAtomic
+            } else {
+                Scatter::CompareAndSwap
+            },
+        }
+    }
+
+    pub fn num_params(&self) -> usize {
+        self.n_params
+    }
+
+    fn launch(n: usize) -> (CubeCount, CubeDim) {
+        grid(n, GROUP)
+    }
+
+    /// Density network only, for `n` world `positions` (`n x 3`): fills everything up to
+    /// `sigma` (the colour buffers are left empty).
+    pub fn density(&self, gpu: &Gpu, params: &Handle, positions: &Handle, n: usize) -> Activations {
+        let [d0, d1, ..] = &self.layers;
+        let acts = Activations {
+            n,
+            unit: gpu.floats(n * 3),
+            enc: gpu.floats(n * self.enc_dims),
+            h: gpu.floats(n * d0.outputs),
+            geo: gpu.floats(n * self.geo),
+            sigma: gpu.floats(n),
+            colour_in: gpu.floats(0),
+            c1: gpu.floats(0),
+            c2: gpu.floats(0),
+            rgb: gpu.floats(0),
+        };
+        if n == 0 {
+            return acts;
+        }
+        let np = self.n_params;
+        // SAFETY: every buffer was made above with the length given here; the kernels
+        // bounds-check the buffer they write.
+        unsafe {
+            let (count, dim) = Self::launch(n * 3);
+            to_unit::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(positions.clone(), n * 3),
+                BufferArg::from_raw_parts(acts.unit.clone(), n * 3),
+                self.bound,
+            );
+        }
+        self.grid.encode(gpu, params, &acts.unit, n, &acts.enc);
+        d0.forward(gpu, params, np, &acts.enc, &acts.h, n);
+        d1.forward(gpu, params, np, &acts.h, &acts.geo, n);
+        // SAFETY: as above.
+        unsafe {
+            let (count, dim) = Self::launch(n);
+            density_head::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(acts.geo.clone(), n * self.geo),
+                BufferArg::from_raw_parts(acts.sigma.clone(), n),
+                self.geo as u32,
+                LOG_SIGMA_MAX,
+            );
+        }
+        acts
+    }
+
+    /// Density and colour of `n` samples at world `positions` seen along unit `dirs` (both
+    /// `n x 3`, one direction per sample).
+    pub fn forward(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        positions: &Handle,
+        dirs: &Handle,
+        n: usize,
+    ) -> Activations {
+        let mut acts = self.density(gpu, params, positions, n);
+        let [_, _, c0, c1, c2] = &self.layers;
+        acts.colour_in = gpu.floats(n * c0.inputs);
+        acts.c1 = gpu.floats(n * c0.outputs);
+        acts.c2 = gpu.floats(n * c1.outputs);
+        acts.rgb = gpu.floats(n * 3);
+        if n == 0 {
+            return acts;
+        }
+        let np = self.n_params;
+        // SAFETY: as in `density`.
+        unsafe {
+            let (count, dim) = Self::launch(n);
+            colour_input::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(dirs.clone(), n * 3),
+                BufferArg::from_raw_parts(acts.geo.clone(), n * self.geo),
+                BufferArg::from_raw_parts(acts.colour_in.clone(), n * c0.inputs),
+                self.geo as u32,
+            );
+        }
+        c0.forward(gpu, params, np, &acts.colour_in, &acts.c1, n);
+        c1.forward(gpu, params, np, &acts.c1, &acts.c2, n);
+        c2.forward(gpu, params, np, &acts.c2, &acts.rgb, n);
+        // SAFETY: as in `density`.
+        unsafe {
+            let (count, dim) = Self::launch(n * 3);
+            sigmoid_in_place::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(acts.rgb.clone(), n * 3),
+            );
+        }
+        acts
+    }
+
+    /// Backward of [`forward`](Self::forward): from `d_sigma` (`n`) and `d_rgb` (`n x 3`),
+    /// adds every parameter's gradient into `grads`.
+    pub fn backward(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        grads: &Handle,
+        acts: &Activations,
+        d_sigma: &Handle,
+        d_rgb: &Handle,
+    ) {
+        let n = acts.n;
+        if n == 0 {
+            return;
+        }
+        let np = self.n_params;
+        let [d0, d1, c0, c1, c2] = &self.layers;
+        let d_logit = gpu.floats(n * 3);
+        // SAFETY: as in `density`.
+        unsafe {
+            let (count, dim) = Self::launch(n * 3);
+            sigmoid_bwd::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(d_rgb.clone(), n * 3),
+                BufferArg::from_raw_parts(acts.rgb.clone(), n * 3),
+                BufferArg::from_raw_parts(d_logit.clone(), n * 3),
+            );
+        }
+        let d_c2 = gpu.floats(n * c2.inputs);
+        c2.backward(
+            gpu,
+            params,
+            grads,
+            np,
+            &acts.c2,
+            &d_logit,
+            Some((&d_c2, true)),
+            n,
+        );
+        let d_c1 = gpu.floats(n * c1.inputs);
+        c1.backward(
+            gpu,
+            params,
+            grads,
+            np,
+            &acts.c1,
+            &d_c2,
+            Some((&d_c1, true)),
+            n,
+        );
+        let d_colour_in = gpu.floats(n * c0.inputs);
+        c0.backward(
+            gpu,
+            params,
+            grads,
+            np,
+            &acts.colour_in,
+            &d_c1,
+            Some((&d_colour_in, false)),
+            n,
+        );
+        let d_geo = gpu.floats(n * self.geo);
+        // SAFETY: as in `density`.
+        unsafe {
+            let (count, dim) = Self::launch(n);
+            geo_bwd::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(acts.geo.clone(), n * self.geo),
+                BufferArg::from_raw_parts(acts.sigma.clone(), n),
+                BufferArg::from_raw_parts(d_sigma.clone(), n),
+                BufferArg::from_raw_parts(d_colour_in.clone(), n * c0.inputs),
+                BufferArg::from_raw_parts(d_geo.clone(), n * self.geo),
+                self.geo as u32,
+                LOG_SIGMA_MAX,
+            );
+        }
+        let d_h = gpu.floats(n * d1.inputs);
+        d1.backward(
+            gpu,
+            params,
+            grads,
+            np,
+            &acts.h,
+            &d_geo,
+            Some((&d_h, true)),
+            n,
+        );
+        let d_enc = gpu.floats(n * self.enc_dims);
+        d0.backward(
+            gpu,
+            params,
+            grads,
+            np,
+            &acts.enc,
+            &d_h,
+            Some((&d_enc, false)),
+            n,
+        );
+        self.grid
+            .encode_bwd(gpu, self.scatter, &acts.unit, &d_enc, n, grads);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encoding::HashGridConfig;
+    use crate::field::fast::FastWorkspace;
+    use crate::field::FastFieldConfig;
+    use crate::nn::GradBuffer;
+    use crate::rng::Rng;
+    use crate::stage::{Field, FieldGrad, FieldInput};
+
+    fn worst(a: &[f32], b: &[f32]) -> f32 {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs() / (1.0 + y.abs()))
+            .fold(0.0, f32::max)
+    }
+
+    /// A small field with large random weights (every path carries signal) over 700
+    /// samples: sigma, rgb and every parameter's gradient against the CPU field, within
+    /// 1e-4 relative to (1 + |value|) (sums of 700 terms in another order).
+    #[test]
+    fn the_field_matches_the_cpu_forward_and_backward() {
+        let Some(gpu) = super::super::device::test_gpu() else {
+            return;
+        };
+        let field = FastField::new(FastFieldConfig {
+            grid: HashGridConfig {
+                levels: 4,
+                log2_table_size: 8,
+                base_resolution: 2,
+                max_resolution: 32,
+            },
+            hidden: 16,
+            geo_features: 5,
+            bound: 1.5,
+        });
+        let mut rng = Rng::new(21);
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let n = 700;
+        let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.6, 1.6)).collect();
+        let dirs: Vec<f32> = (0..n)
+            .flat_map(|_| {
+                let d = [
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                    rng.range(-1.0, 1.0),
+                ];
+                crate::math::scale(d, 1.0 / crate::math::length(d))
+            })
+            .collect();
+        let d_sigma: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+        let d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+
+        let mut ws = FastWorkspace::default();
+        let input = FieldInput {
+            positions: &pos,
+            dirs: &dirs,
+            samples_per_dir: 1,
+        };
+        let out = field.forward(&params, input, &mut ws);
+        let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());
+        let mut grads = GradBuffer::new(field.num_params());
+        let d = FieldGrad {
+            d_sigma: &d_sigma,
+            d_rgb: &d_rgb,
+        };
+        field.backward(&params, &mut ws, d, &mut grads.all());
+
+        let gf = GpuFastField::new(&gpu, &field);
+        let p = gpu.upload(&params);
+        let g = gpu.zeros(field.num_params());
+        let acts = gf.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
+        gf.backward(
+            &gpu,
+            &p,
+            &g,
+            &acts,
+            &gpu.upload(&d_sigma),
+            &gpu.upload(&d_rgb),
+        );
+        let sigma = gpu.read(&acts.sigma, n).expect("read");
+        let rgb = gpu.read(&acts.rgb, n * 3).expect("read");
+        let got = gpu.read(&g, field.num_params()).expect("read");
+        assert!(
+            worst(&sigma, &want_sigma) < 1e-4,
+            "sigma {}",
+            worst(&sigma, &want_sigma)
+        );
+        assert!(
+            worst(&rgb, &want_rgb) < 1e-5,
+            "rgb {}",
+            worst(&rgb, &want_rgb)
+        );
+        for t in &field.layout.tensors {
+            let e = worst(&got[t.range()], &grads.values[t.range()]);
+            assert!(e < 1e-4, "gradient of {}: {e}", t.name);
+        }
+        // The density-only pass gives the same densities.
+        let alone = gf.density(&gpu, &p, &gpu.upload(&pos), n);
+        assert_eq!(gpu.read(&alone.sigma, n).expect("read"), sigma);
+    }
+}

@@ -1,0 +1,69 @@
+//! Small helpers every GPU module shares: launch grids past the 65535-workgroup limit of
+//! one axis, and moving `f32` buffers to and from the device.
+
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::device::Gpu;
+use crate::error::{NerfError, Result};
+
+/// Workgroups along x before a grid spills into y (Vulkan guarantees 65535 per axis).
+const MAX_GROUPS_X: u32 = 32768;
+
+/// A one-dimensional launch of at least `threads` threads in workgroups of `group`.
+/// `ABSOLUTE_POS` counts threads linearly across both axes; kernels bounds-check it, since
+/// the last workgroup (and, past 32768 workgroups, the last row) runs over.
+pub fn grid(threads: usize, group: u32) -> (CubeCount, CubeDim) {
+    let groups = (threads as u64).div_ceil(group as u64).max(1);
+    let x = groups.min(MAX_GROUPS_X as u64) as u32;
+    let y = groups.div_ceil(x as u64) as u32;
+    (CubeCount::Static(x, y, 1), CubeDim::new_1d(group))
+}
+
+impl Gpu {
+    /// A device copy of `values`.
+    pub fn upload(&self, values: &[f32]) -> Handle {
+        if values.is_empty() {
+            return self.client.empty(4);
+        }
+        self.client.create_from_slice(f32::as_bytes(values))
+    }
+
+    /// A device copy of `values`.
+    pub fn upload_u32(&self, values: &[u32]) -> Handle {
+        if values.is_empty() {
+            return self.client.empty(4);
+        }
+        self.client.create_from_slice(u32::as_bytes(values))
+    }
+
+    /// An uninitialised device buffer of `n` floats (at least one, so a handle exists).
+    pub fn floats(&self, n: usize) -> Handle {
+        self.client.empty(n.max(1) * 4)
+    }
+
+    /// A device buffer of `n` zeros.
+    pub fn zeros(&self, n: usize) -> Handle {
+        self.upload(&vec![0.0; n.max(1)])
+    }
+
+    /// The first `n` floats of `h`, read back (waits for the work that writes them).
+    pub fn read(&self, h: &Handle, n: usize) -> Result<Vec<f32>> {
+        let bytes = self
+            .client
+            .read_one(h.clone())
+            .map_err(|e| NerfError::Device(format!("reading a buffer back failed: {e:?}")))?;
+        let all = f32::from_bytes(&bytes);
+        Ok(all[..n.min(all.len())].to_vec())
+    }
+
+    /// The first `n` `u32`s of `h`, read back.
+    pub fn read_u32(&self, h: &Handle, n: usize) -> Result<Vec<u32>> {
+        let bytes = self
+            .client
+            .read_one(h.clone())
+            .map_err(|e| NerfError::Device(format!("reading a buffer back failed: {e:?}")))?;
+        let all = u32::from_bytes(&bytes);
+        Ok(all[..n.min(all.len())].to_vec())
+    }
+}
