@@ -31,11 +31,14 @@ pub struct FastBenchOptions {
     /// Size of the rendered view (square) when the scene has no test camera of its own.
     pub render_size: usize,
     pub model: FastModelConfig,
+    pub device: crate::engine::Device,
 }
 
 #[derive(Clone, Debug, Serialize)]
 pub struct FastBenchReport {
     pub threads: usize,
+    /// The engine and its device (`cpu, 2 threads`, `wgpu/vulkan: ...`).
+    pub engine: String,
     pub scene: String,
     pub warmup_steps: u64,
     pub samples_per_step: usize,
@@ -104,7 +107,8 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     let mut config = TrainConfig::fast("(in memory)".into());
     config.model = ModelConfig::Fast(model);
     config.steps = opts.warmup_steps + opts.steps as u64;
-    let mut trainer = Trainer::new(config, data)?;
+    let mut trainer = Trainer::on(opts.device, config, data)?;
+    say(format!("engine: {}", trainer.engine.describe()));
     say(format!(
         "training {} warm-up steps so the occupancy grid takes shape...",
         opts.warmup_steps
@@ -157,6 +161,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         hash_lookups_per_second: 2.0 * 8.0 * levels * samples / step_s,
         occupied_fraction: occupied,
         touched_fraction: trainer.engine.touched_fraction(),
+        engine: trainer.engine.describe(),
         render_width: camera.width,
         render_height: camera.height,
         render_seconds: render_s,

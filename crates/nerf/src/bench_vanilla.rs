@@ -20,6 +20,7 @@ pub struct BenchOptions {
     pub render_size: usize,
     pub render_rows: usize,
     pub preset: String,
+    pub device: crate::engine::Device,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -135,7 +136,7 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
     let mut config = TrainConfig::from_preset("(in memory)".into(), &opts.preset)?;
     config.batch_rays = opts.rays;
     config.precrop_steps = 0;
-    let mut trainer = Trainer::new(config, data)?;
+    let mut trainer = Trainer::on(opts.device, config, data)?;
     let crate::model::ModelConfig::Vanilla(vanilla) = trainer.config.model.clone() else {
         unreachable!("presets build vanilla models");
     };

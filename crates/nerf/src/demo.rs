@@ -25,6 +25,8 @@ pub struct DemoOptions {
     /// Image size of the built-in scene.
     #[arg(long, default_value_t = 128)]
     pub size: usize,
+    #[command(flatten)]
+    pub device: crate::engine::DeviceArg,
 }
 
 /// What a front end hears while the demo runs.
@@ -110,9 +112,10 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         resume: false,
         pause_at: None,
         stop: None,
+        device: opts.device.device,
     };
     let training = run::train(&run_options, &mut |e| hooks.train_event(e))?;
-    let loaded = LoadedRun::open(&run_dir)?;
+    let loaded = LoadedRun::open_on(&run_dir, opts.device.device)?;
     let eval_dir = run_dir.join("eval_test");
     let eval = crate::eval::evaluate(&loaded, Split::Test, 1, &eval_dir, &|done, total| {
         hooks.eval_progress(done, total)

@@ -36,6 +36,7 @@ fn trains_a_small_scene_past_a_psnr_floor() {
         resume: false,
         pause_at: None,
         stop: None,
+        device: nerf::engine::Device::Cpu,
     };
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!((summary.steps, summary.reason), (400, StopReason::Steps));
@@ -68,6 +69,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
             resume: false,
             pause_at: None,
             stop: None,
+            device: nerf::engine::Device::Cpu,
         },
         &mut |_| {},
     )
@@ -83,6 +85,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
         resume: false,
         pause_at: Some(7),
         stop: None,
+        device: nerf::engine::Device::Cpu,
     };
     assert_eq!(
         run::train(&first, &mut |_| {}).expect("first half").reason,
@@ -100,6 +103,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
             resume: true,
             pause_at: None,
             stop: None,
+            device: nerf::engine::Device::Cpu,
         },
         &mut |_| {},
     )
@@ -129,6 +133,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
             resume: false,
             pause_at: None,
             stop: None,
+            device: nerf::engine::Device::Cpu,
         },
         &mut |_| {},
     )
@@ -149,6 +154,7 @@ fn time_budget_stops_with_a_checkpoint() {
         resume: false,
         pause_at: None,
         stop: None,
+        device: nerf::engine::Device::Cpu,
     };
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!(summary.reason, StopReason::TimeBudget);

@@ -19,6 +19,7 @@ fn options(out: &Path, config: TrainConfig, resume: bool, pause_at: Option<u64>)
         resume,
         pause_at,
         stop: None,
+        device: nerf::engine::Device::Cpu,
     }
 }
 

@@ -125,6 +125,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
         resume: false,
         pause_at: None,
         stop: None,
+        device: nerf::engine::Device::Cpu,
     };
     run::train(&opts, &mut |_| {}).expect("train");
     let run = LoadedRun::open(&out).expect("run");

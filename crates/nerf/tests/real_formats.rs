@@ -145,6 +145,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
             resume: false,
             pause_at: None,
             stop: None,
+            device: nerf::engine::Device::Cpu,
         },
         &mut |_| {},
     )

@@ -41,6 +41,8 @@ pub struct BenchArgs {
     /// Vanilla: model preset to measure.
     #[arg(long, default_value = "paper", value_parser = nerf::presets::possible_values())]
     preset: String,
+    #[command(flatten)]
+    device: nerf::engine::DeviceArg,
 }
 
 pub fn run(a: BenchArgs) -> Result<()> {
@@ -53,6 +55,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         render_size: a.render_size,
         render_rows: a.render_rows,
         preset: a.preset,
+        device: a.device.device,
     };
     let report = nerf::bench_vanilla::run(&opts, &mut |line| eprintln!("{line}"))?;
     if a.json {
@@ -87,6 +90,7 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         steps: a.steps.unwrap_or(32).max(1),
         render_size: a.render_size,
         model,
+        device: a.device.device,
     };
     let r = nerf::bench_fast::run(&opts, &mut |line| eprintln!("{line}"))?;
     if a.json {
@@ -94,7 +98,8 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     println!(
-        "\n{} threads, fast model on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        "\n{} ({} threads), fast model on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        r.engine,
         r.threads,
         r.scene,
         r.warmup_steps,

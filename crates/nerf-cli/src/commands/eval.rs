@@ -15,6 +15,8 @@ pub struct EvalArgs {
     /// Run folder written by `nerf train`.
     #[arg(long)]
     run: PathBuf,
+    #[command(flatten)]
+    device: nerf::engine::DeviceArg,
     #[arg(long, value_enum, default_value = "test")]
     split: Split,
     /// Evaluate every K-th view only (quick checks).
@@ -26,7 +28,7 @@ pub struct EvalArgs {
 }
 
 pub fn run(a: EvalArgs) -> Result<()> {
-    let run = LoadedRun::open(&a.run)?;
+    let run = LoadedRun::open_on(&a.run, a.device.device)?;
     let out = a
         .out
         .unwrap_or_else(|| a.run.join(format!("eval_{}", a.split.name())));

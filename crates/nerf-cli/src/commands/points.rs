@@ -15,6 +15,8 @@ pub struct PointsArgs {
     /// Run folder written by `nerf train`.
     #[arg(long)]
     run: PathBuf,
+    #[command(flatten)]
+    device: nerf::engine::DeviceArg,
     /// Output file (.ply, binary, coloured vertices).
     #[arg(long)]
     out: PathBuf,
@@ -40,7 +42,7 @@ pub fn run(a: PointsArgs) -> Result<()> {
     {
         bail!("{}: point clouds are written as .ply", a.out.display());
     }
-    let run = LoadedRun::open(&a.run)?;
+    let run = LoadedRun::open_on(&a.run, a.device.device)?;
     let config = &run.config;
     let scene = config.open_scene(a.downscale)?;
     let cameras: Vec<_> = scene

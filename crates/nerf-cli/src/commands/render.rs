@@ -15,6 +15,8 @@ pub struct RenderArgs {
     #[arg(long)]
     run: PathBuf,
     #[command(flatten)]
+    device: nerf::engine::DeviceArg,
+    #[command(flatten)]
     frames: FramesOptions,
     /// Output folder for the PNG frames (RGB, turbo depth, opacity). Default:
     /// <run>/render_<path>.
@@ -23,7 +25,7 @@ pub struct RenderArgs {
 }
 
 pub fn run(a: RenderArgs) -> Result<()> {
-    let run = LoadedRun::open(&a.run)?;
+    let run = LoadedRun::open_on(&a.run, a.device.device)?;
     let out = a
         .out
         .clone()

@@ -113,7 +113,60 @@ pub trait Engine: Send + Sync {
     fn touched_fraction(&self) -> f64;
 }
 
-/// The engine for `model`, with fresh weights from `seed`.
+/// Which device an engine runs on (the command line's `--device`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, clap::ValueEnum)]
+pub enum Device {
+    /// A hardware GPU if there is one (CUDA, then Vulkan/Metal/DX12), else the CPU.
+    #[default]
+    Auto,
+    /// The CPU engine, on all cores.
+    Cpu,
+    /// The GPU engine through wgpu (Vulkan, Metal, DX12), any adapter, software ones
+    /// such as Mesa's lavapipe included.
+    Wgpu,
+    /// The GPU engine on an NVIDIA GPU through CUDA.
+    Cuda,
+}
+
+/// The command line's `--device`, shared by every command that runs a model.
+#[derive(Clone, Copy, Debug, Default, clap::Args)]
+pub struct DeviceArg {
+    /// Where the model runs: `auto` (a hardware GPU if there is one: CUDA, then Vulkan /
+    /// Metal / DX12; else the CPU), `cpu`, `wgpu` (any wgpu adapter, software ones such as
+    /// lavapipe included) or `cuda`. Checkpoints are the same files on every device.
+    #[arg(long, value_enum, default_value = "auto")]
+    pub device: Device,
+}
+
+/// The CPU engine for `model`, with fresh weights from `seed`.
 pub fn open(model: &ModelConfig, options: EngineOptions, seed: u64) -> Box<dyn Engine> {
     cpu::open(model, options, seed)
+}
+
+/// The engine for `model` on `device`, with fresh weights from `seed` (the same weights on
+/// every device). Fails when the device asked for is missing, saying what was looked for;
+/// `Auto` falls back to the CPU.
+pub fn open_on(
+    device: Device,
+    model: &ModelConfig,
+    options: EngineOptions,
+    seed: u64,
+) -> Result<Box<dyn Engine>> {
+    match device {
+        Device::Cpu => Ok(open(model, options, seed)),
+        #[cfg(feature = "wgpu")]
+        Device::Wgpu | Device::Cuda | Device::Auto => gpu::open(device, model, options, seed),
+        #[cfg(not(feature = "wgpu"))]
+        Device::Auto => Ok(open(model, options, seed)),
+        #[cfg(not(feature = "wgpu"))]
+        Device::Wgpu | Device::Cuda => Err(crate::error::NerfError::Device(format!(
+            "this build has no GPU engine (built without the `wgpu` feature); rebuild with \
+             default features to use --device {}",
+            if device == Device::Wgpu {
+                "wgpu"
+            } else {
+                "cuda"
+            }
+        ))),
+    }
 }

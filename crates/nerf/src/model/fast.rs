@@ -17,7 +17,8 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
-use crate::data::pixels::TrainingRays;
+use crate::data::pixels::{PixelSampling, TrainingRays};
+use crate::data::Dataset;
 use crate::field::{FastField, FastFieldConfig, FastWorkspace as FieldContext};
 use crate::nn::{GradBuffer, ParamLayout};
 use crate::render::loss::{squared_error, LossBackward};
@@ -119,6 +120,22 @@ impl FastModel {
     }
 }
 
+/// What marching a step's rays reads.
+#[derive(Clone, Copy)]
+pub struct MarchInput<'a> {
+    pub data: &'a Dataset,
+    pub sampling: PixelSampling,
+}
+
+/// A whole step's rays, marched and packed into one batch in ray order: what an engine
+/// that runs the rest of the step elsewhere (the GPU engine) takes.
+#[derive(Default, Debug)]
+pub struct StepSamples {
+    pub samples: PackedSamples,
+    pub backgrounds: Vec<[f32; 3]>,
+    pub targets: Vec<[f32; 3]>,
+}
+
 /// One block of a step's rays: drawn, marched and packed.
 #[derive(Default, Debug)]
 pub struct MarchedBlock {
@@ -152,7 +169,7 @@ impl FastModel {
     /// Draws and marches the rays of block `b` of the step.
     fn march_block(
         &self,
-        input: &StepInput,
+        input: &MarchInput,
         marcher: &Marcher,
         b: usize,
         block: &mut MarchedBlock,
@@ -172,7 +189,7 @@ impl FastModel {
 
     /// Phase 1 of a step: marches blocks until the budget is reached. Returns the number of
     /// blocks used and the rays kept of the last one.
-    fn march_step(&self, input: &StepInput, shared: &mut StepBlocks) -> (usize, usize) {
+    fn march_step(&self, input: &MarchInput, shared: &mut StepBlocks) -> (usize, usize) {
         let (used, last) = self.march_waves(input, &mut shared.blocks, shared.last_used.max(4));
         shared.last_used = used;
         (used, last)
@@ -182,7 +199,7 @@ impl FastModel {
     /// reached.
     fn march_waves(
         &self,
-        input: &StepInput,
+        input: &MarchInput,
         blocks: &mut Vec<MarchedBlock>,
         first: usize,
     ) -> (usize, usize) {
@@ -213,6 +230,31 @@ impl FastModel {
             marched += wave;
             wave = next;
             next = (next * 2).min(64);
+        }
+    }
+
+    /// The rays of step `input` exactly as [`Model::train_pass`] keeps them, packed into
+    /// `out` (in ray order, one unit view direction per sample).
+    pub fn pack_step(&self, input: &MarchInput, shared: &mut StepBlocks, out: &mut StepSamples) {
+        let (used, last_rays) = self.march_step(input, shared);
+        out.samples.clear();
+        out.backgrounds.clear();
+        out.targets.clear();
+        for (b, block) in shared.blocks[..used].iter().enumerate() {
+            let rays = if b + 1 == used { last_rays } else { BLOCK_RAYS };
+            let s = &block.samples;
+            for r in 0..rays {
+                let range = s.ray(r);
+                out.samples.t.extend_from_slice(&s.t[range.clone()]);
+                out.samples.dt.extend_from_slice(&s.dt[range.clone()]);
+                out.samples
+                    .positions
+                    .extend_from_slice(&s.positions[range.clone()]);
+                out.samples.dirs.extend_from_slice(&s.dirs[range]);
+                out.samples.end_ray();
+                out.backgrounds.push(block.rays.rays.backgrounds[r]);
+                out.targets.push(block.rays.targets[r]);
+            }
         }
     }
 
@@ -333,7 +375,11 @@ impl Model for FastModel {
         shared: &mut StepBlocks,
         workers: &mut [Worker<FastWorkspace>],
     ) -> PassTotals {
-        let (used, last_rays) = self.march_step(input, shared);
+        let march = MarchInput {
+            data: input.data,
+            sampling: input.sampling,
+        };
+        let (used, last_rays) = self.march_step(&march, shared);
         let blocks = &shared.blocks[..used];
         let n_rays = (used - 1) * BLOCK_RAYS + last_rays;
         let samples_of = |g: usize| blocks[g / BLOCK_RAYS].samples.ray(g % BLOCK_RAYS).len();
@@ -638,19 +684,14 @@ mod step_tests {
             ..FastModelConfig::default()
         };
         let model = FastModel::new(config);
-        let params = model.init_params(3);
-        let input = StepInput {
+        let input = MarchInput {
             data: &data,
-            params: &params,
             sampling: PixelSampling {
                 seed: 7,
                 step: 2,
                 crop: 1.0,
                 background: Background::Random,
             },
-            batch_rays: 0,
-            chunk_rays: 0,
-            check: &FiniteCheck::default(),
         };
         let kept = |first: usize| {
             let mut blocks = Vec::new();

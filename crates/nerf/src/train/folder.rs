@@ -21,9 +21,16 @@ pub struct LoadedRun {
 }
 
 impl LoadedRun {
+    /// The run in `dir`, on the CPU engine.
     pub fn open(dir: &Path) -> Result<LoadedRun> {
+        LoadedRun::open_on(dir, engine::Device::Cpu)
+    }
+
+    /// The run in `dir`, on `device` (checkpoints are the same files on every device).
+    pub fn open_on(dir: &Path, device: engine::Device) -> Result<LoadedRun> {
         let config = read_config(dir)?;
-        let mut engine = engine::open(&config.model, config.engine_options(), config.seed);
+        let mut engine =
+            engine::open_on(device, &config.model, config.engine_options(), config.seed)?;
         let ckpt = load_checkpoint(&dir.join(CHECKPOINT_FILE), engine.as_mut())?;
         Ok(LoadedRun {
             config,

@@ -253,13 +253,18 @@ impl TrainConfig {
 }
 
 impl Trainer {
-    /// A fresh run on `data` (its training split).
+    /// A fresh run on `data` (its training split), on the CPU engine.
     pub fn new(config: TrainConfig, data: Dataset) -> Result<Self> {
+        Trainer::on(engine::Device::Cpu, config, data)
+    }
+
+    /// A fresh run on `data` (its training split), on `device`.
+    pub fn on(device: engine::Device, config: TrainConfig, data: Dataset) -> Result<Self> {
         config.validate()?;
         if data.views.is_empty() {
             return Err(NerfError::Config("no training views".into()));
         }
-        let engine = engine::open(&config.model, config.engine_options(), config.seed);
+        let engine = engine::open_on(device, &config.model, config.engine_options(), config.seed)?;
         Ok(Trainer {
             config,
             engine,

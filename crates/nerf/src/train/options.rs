@@ -21,6 +21,8 @@ pub struct TrainOptions {
     pub data: Option<PathBuf>,
     #[command(flatten)]
     pub scene: SceneOptions,
+    #[command(flatten)]
+    pub device: crate::engine::DeviceArg,
     /// Fast: half-extent of the scene box [-B, B]^3 the hash grid covers, in scene units
     /// after the format's placement. Default: from the scene (Blender 1.5, NDC 1,
     /// instant-ngp aabb_scale / 2, COLMAP from its points).
@@ -254,6 +256,7 @@ impl TrainOptions {
             resume: self.resume,
             pause_at: self.pause_at,
             stop: None,
+            device: self.device.device,
         })
     }
 

@@ -31,6 +31,8 @@ pub struct RunOptions {
     /// Set to a non-zero value (a signal number, say) to stop after the current step with
     /// a checkpoint; the value comes back in [`StopReason::Interrupted`].
     pub stop: Option<std::sync::Arc<std::sync::atomic::AtomicUsize>>,
+    /// Where the model trains (not saved: a run can resume on another device).
+    pub device: crate::engine::Device,
 }
 
 /// Why a run stopped.
@@ -163,7 +165,11 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let val_view = validation_view(&config)?;
     let (width, height) = data.image_size();
     let views = data.views.len();
-    let mut trainer = Trainer::new(config.clone(), data)?;
+    let mut trainer = Trainer::on(opts.device, config.clone(), data)?;
+    on_event(Event::Note(&format!(
+        "training on {}",
+        trainer.engine.describe()
+    )));
     let mut elapsed_before = 0.0;
     let mut resumed_from = None;
     if opts.resume && from_checkpoint {

@@ -10,14 +10,39 @@ use crate::error::{NerfError, Result};
 #[derive(Clone)]
 pub struct Gpu {
     pub client: Client,
-    /// How the adapter was found, for messages (`Wgpu(WgpuDevice { .. })`).
+    /// The runtime and the adapter's name, for messages (`wgpu/vulkan: llvmpipe (LLVM 15.0.6, 256 bits) (software)`).
     pub name: String,
+    /// A software adapter (lavapipe, llvmpipe, WARP): correct, but slower than the CPU
+    /// engine.
+    pub software: bool,
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
     /// scattered with a compare-and-swap loop on their bits.
     pub float_atomics: bool,
 }
 
 impl Gpu {
+    /// The client of an opened CubeCL device, described.
+    fn from_device(device: cubecl::Device, runtime: &str) -> Gpu {
+        let client = device.client();
+        let f32_atomic = Type::atomic(ElemType::Float(FloatKind::F32));
+        let float_atomics = client
+            .features()
+            .atomic_type_usage(f32_atomic)
+            .contains(cubecl::ir::features::AtomicUsage::Add);
+        let identity = &client.properties().identity;
+        let software = identity.physical.is_none();
+        Gpu {
+            name: format!(
+                "{runtime}: {}{}",
+                identity.name,
+                if software { " (software)" } else { "" }
+            ),
+            software,
+            client,
+            float_atomics,
+        }
+    }
+
     /// The default Vulkan adapter (a discrete GPU before an integrated one before a
     /// software one such as lavapipe; `CUBECL_WGPU_DEFAULT_DEVICE` overrides).
     pub fn vulkan() -> Result<Gpu> {
@@ -27,17 +52,75 @@ impl Gpu {
                  lavapipe for a software one (Debian/Ubuntu: apt-get install mesa-vulkan-drivers)"
             ))
         })?;
-        let client = device.client();
-        let f32_atomic = Type::atomic(ElemType::Float(FloatKind::F32));
-        let float_atomics = client
-            .features()
-            .atomic_type_usage(f32_atomic)
-            .contains(cubecl::ir::features::AtomicUsage::Add);
-        Ok(Gpu {
-            client,
-            name: format!("{device:?}"),
-            float_atomics,
-        })
+        Ok(Gpu::from_device(device, "wgpu/vulkan"))
+    }
+
+    /// `--device wgpu`: the best adapter on Vulkan, else Metal, else DirectX 12 (never
+    /// OpenGL, whose shaders lack the atomics the hash grid's backward needs).
+    pub fn wgpu() -> Result<Gpu> {
+        let kind = WgpuDeviceKind::default;
+        let tried = [
+            ("wgpu/vulkan", cubecl::Device::vulkan(kind())),
+            ("wgpu/metal", cubecl::Device::metal_msl(kind())),
+            ("wgpu/dx12", cubecl::Device::dx12(kind())),
+        ];
+        let mut reasons = Vec::new();
+        for (api, device) in tried {
+            match device {
+                Ok(d) => return Ok(Gpu::from_device(d, api)),
+                Err(e) => reasons.push(format!("{api}: {e}")),
+            }
+        }
+        Err(NerfError::Device(format!(
+            "no GPU adapter on Vulkan, Metal or DirectX 12 ({}); install your GPU's driver \
+             (Linux: its Vulkan driver, or Mesa's lavapipe for a software adapter: \
+             apt-get install mesa-vulkan-drivers)",
+            reasons.join("; ")
+        )))
+    }
+
+    /// A hardware adapter through wgpu (discrete, then integrated, then virtual), for
+    /// `--device auto`; software adapters are slower than the CPU engine and not taken.
+    pub fn wgpu_hardware() -> Option<Gpu> {
+        use WgpuDeviceKind::*;
+        for kind in [DiscreteGpu(0), IntegratedGpu(0), VirtualGpu(0)] {
+            for device in [
+                cubecl::Device::vulkan(kind.clone()),
+                cubecl::Device::metal_msl(kind.clone()),
+                cubecl::Device::dx12(kind.clone()),
+            ]
+            .into_iter()
+            .flatten()
+            {
+                let gpu = Gpu::from_device(device, "wgpu");
+                if !gpu.software {
+                    return Some(gpu);
+                }
+            }
+        }
+        None
+    }
+
+    /// `--device cuda`: the first CUDA GPU (kernels compiled at run time by NVRTC, loaded
+    /// dynamically: no CUDA toolkit is needed to build).
+    pub fn cuda() -> Result<Gpu> {
+        #[cfg(feature = "cuda")]
+        {
+            cubecl::Device::cuda(0)
+                .map(|d| Gpu::from_device(d, "cuda"))
+                .map_err(|e| {
+                    NerfError::Device(format!(
+                        "no CUDA GPU ({e}); install the NVIDIA driver and NVRTC \
+                         (libnvrtc, in the CUDA runtime packages), or use --device wgpu"
+                    ))
+                })
+        }
+        #[cfg(not(feature = "cuda"))]
+        Err(NerfError::Device(
+            "this build has no CUDA runtime (built without the `cuda` feature); rebuild \
+             with `--features cuda`, or use --device wgpu"
+                .into(),
+        ))
     }
 }
 

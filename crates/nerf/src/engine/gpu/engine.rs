@@ -1,0 +1,491 @@
+//! The GPU engine for the fast model: parameters, gradients and Adam's moments live on the
+//! device, and a training step runs the field, compositing, the loss, the backward and the
+//! optimiser there, reading back one float per ray (the loss) and one count (non-finite
+//! gradients).
+//!
+//! Work mapping of a step: the host draws the step's rays and marches them through the
+//! occupancy grid exactly as the CPU engine does (`FastModel::pack_step`: same rays, same
+//! samples), uploads the packed samples (32 bytes each), and the device does the rest. The
+//! occupancy grid stays on the host; its refresh evaluates densities on the device.
+//! Rendering marches on the host in rounds (`render::march`) and evaluates each round's
+//! samples on the device through [`DeviceField`], a [`Field`] like any other.
+
+use std::sync::Mutex;
+
+use cubecl::server::Handle;
+use rayon::prelude::*;
+
+use super::device::Gpu;
+use super::field::{Activations, GpuFastField};
+use super::finite::count_nonfinite;
+use super::{adam, loss, volume};
+use crate::data::Dataset;
+use crate::engine::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
+use crate::error::{NerfError, Result};
+use crate::model::fast::{MarchInput, StepBlocks, StepSamples};
+use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
+use crate::nn::adam::{Adam, DirtyStep};
+use crate::nn::ParamLayout;
+use crate::render::loss::mean_scale;
+use crate::render::march::{render_marched, MarchWorkspace};
+use crate::stage::finite::FiniteCheck;
+use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput, Grads, RayBatch, RayOutput};
+
+/// Points per device call of density queries.
+const DENSITY_CHUNK: usize = 1 << 16;
+
+/// The fast model on one GPU.
+pub struct GpuEngine {
+    gpu: Gpu,
+    config: ModelConfig,
+    /// The host side: layout, occupancy grid and marching.
+    model: FastModel,
+    field: GpuFastField,
+    n_params: usize,
+    params: Handle,
+    grads: Handle,
+    adam_m: Handle,
+    adam_v: Handle,
+    /// Adam's configuration and step count (its moments are on the device).
+    adam: Adam,
+    check_finite: bool,
+    chunk_rays: usize,
+    blocks: StepBlocks,
+    batch: StepSamples,
+}
+
+impl GpuEngine {
+    pub fn new(gpu: Gpu, config: FastModelConfig, options: EngineOptions, seed: u64) -> Self {
+        let model = FastModel::new(config.clone());
+        let field = GpuFastField::new(&gpu, &model.field);
+        let params = model.init_params(seed);
+        let n = params.len();
+        GpuEngine {
+            params: gpu.upload(&params),
+            grads: gpu.zeros(n),
+            adam_m: gpu.zeros(n),
+            adam_v: gpu.zeros(n),
+            adam: Adam::new(options.adam, 0),
+            check_finite: options.check_finite,
+            chunk_rays: options.chunk_rays.max(1),
+            n_params: n,
+            config: ModelConfig::Fast(config),
+            model,
+            field,
+            gpu,
+            blocks: StepBlocks::default(),
+            batch: StepSamples::default(),
+        }
+    }
+
+    /// Densities of `positions` (`n x 3`, at most `DENSITY_CHUNK` points) into `out`.
+    fn density_chunk(&self, positions: &[f32], out: &mut [f32]) -> Result<()> {
+        let n = out.len();
+        let acts = self
+            .field
+            .density(&self.gpu, &self.params, &self.gpu.upload(positions), n);
+        out.copy_from_slice(&self.gpu.read(&acts.sigma, n)?);
+        Ok(())
+    }
+
+    /// Re-evaluates the occupancy grid when the schedule says so, with densities from the
+    /// device.
+    fn refresh_occupancy(&mut self, steps_done: u64, seed: u64) -> Result<()> {
+        let every = self.model.config.occupancy.update_every.max(1);
+        if !steps_done.is_multiple_of(every) {
+            return Ok(());
+        }
+        let failure = Mutex::new(None);
+        let dt = self.model.config.step_length();
+        let occupancy = self.model.config.occupancy;
+        let mut grid = std::mem::replace(
+            &mut self.model.grid,
+            crate::render::occupancy::OccupancyGrid::new(1, 1.0),
+        );
+        {
+            let density = |points: &[f32], out: &mut [f32]| {
+                for (p, o) in points
+                    .chunks(DENSITY_CHUNK * 3)
+                    .zip(out.chunks_mut(DENSITY_CHUNK))
+                {
+                    if let Err(e) = self.density_chunk(p, o) {
+                        o.fill(0.0);
+                        if let Ok(mut f) = failure.lock() {
+                            f.get_or_insert(e);
+                        }
+                    }
+                }
+            };
+            grid.update(&occupancy, steps_done, seed, dt, &density);
+        }
+        self.model.grid = grid;
+        match failure.into_inner().ok().flatten() {
+            Some(e) => Err(e),
+            None => Ok(()),
+        }
+    }
+
+    /// Reads `n` floats back for the NERF_CHECK_FINITE checks.
+    fn check(
+        &self,
+        check: &FiniteCheck,
+        stage: &'static str,
+        buffer: &'static str,
+        h: &Handle,
+        n: usize,
+    ) -> Result<()> {
+        if check.enabled() {
+            check.check(stage, buffer, &self.gpu.read(h, n)?);
+        }
+        Ok(())
+    }
+}
+
+impl Engine for GpuEngine {
+    fn describe(&self) -> String {
+        format!(
+            "wgpu, {}{}",
+            self.gpu.name,
+            if self.gpu.float_atomics {
+                ""
+            } else {
+                " (no float atomics: compare-and-swap)"
+            }
+        )
+    }
+
+    fn model_config(&self) -> &ModelConfig {
+        &self.config
+    }
+
+    fn param_layout(&self) -> &ParamLayout {
+        self.model.layout()
+    }
+
+    fn buffer_layout(&self) -> ParamLayout {
+        self.model.buffer_layout()
+    }
+
+    fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
+        let step = spec.sampling.step;
+        let input = MarchInput {
+            data,
+            sampling: spec.sampling,
+        };
+        self.model
+            .pack_step(&input, &mut self.blocks, &mut self.batch);
+        let gpu = &self.gpu;
+        let b = &self.batch;
+        let (rays, n) = (b.samples.rays(), b.samples.len());
+        let offsets: Vec<u32> = b.samples.offsets.iter().map(|&o| o as u32).collect();
+        let samples = volume::GpuSamples {
+            offsets: gpu.upload_u32(&offsets),
+            t: gpu.upload(&b.samples.t),
+            dt: gpu.upload(&b.samples.dt),
+            rays,
+            len: n,
+        };
+        let positions = gpu.upload(b.samples.positions.as_flattened());
+        let dirs = gpu.upload(b.samples.dirs.as_flattened());
+        let backgrounds = gpu.upload(b.backgrounds.as_flattened());
+        let targets = gpu.upload(b.targets.as_flattened());
+        let check = FiniteCheck::new(self.check_finite);
+
+        let acts = self.field.forward(gpu, &self.params, &positions, &dirs, n);
+        self.check(&check, "field.forward", "sigma", &acts.sigma, n)?;
+        self.check(&check, "field.forward", "rgb", &acts.rgb, n * 3)?;
+        let weights = gpu.floats(n);
+        let out = gpu.floats(rays * volume::OUT_WORDS);
+        volume::composite(
+            gpu,
+            &samples,
+            &acts.sigma,
+            &acts.rgb,
+            &backgrounds,
+            &weights,
+            &out,
+        );
+        self.check(
+            &check,
+            "composite",
+            "ray outputs",
+            &out,
+            rays * volume::OUT_WORDS,
+        )?;
+        let (sse, d_out) = (gpu.floats(rays), gpu.floats(rays * 3));
+        loss::squared_error_per_ray(gpu, rays, &out, &targets, &sse, &d_out);
+        let (d_sigma, d_rgb) = (gpu.floats(n), gpu.floats(n * 3));
+        volume::composite_backward(
+            gpu,
+            &samples,
+            &acts.sigma,
+            &acts.rgb,
+            &backgrounds,
+            &out,
+            &d_out,
+            &d_sigma,
+            &d_rgb,
+        );
+        self.check(&check, "loss.backward", "d_sigma", &d_sigma, n)?;
+        self.check(&check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
+        self.field
+            .backward(gpu, &self.params, &self.grads, &acts, &d_sigma, &d_rgb);
+        self.check(
+            &check,
+            "field.backward",
+            "parameter gradients",
+            &self.grads,
+            self.n_params,
+        )?;
+        let bad = count_nonfinite(gpu, &self.grads, self.n_params)?;
+        // Per ray, summed in ray order in f64: the CPU engine's loss to rounding.
+        let sse: f64 = gpu.read(&sse, rays)?.iter().map(|&e| e as f64).sum();
+        let scale = mean_scale(rays);
+        let loss = (sse * scale) as f32;
+        if let Some(e) = check.take(step + 1) {
+            self.grads = gpu.zeros(self.n_params);
+            return Err(e);
+        }
+        if !loss.is_finite() || bad > 0 {
+            self.grads = gpu.zeros(self.n_params);
+            let what = if loss.is_finite() {
+                format!("{bad} gradients are not finite (the loss was a finite {loss})")
+            } else {
+                format!("the loss is {loss}")
+            };
+            return Err(NerfError::Diverged {
+                step: step + 1,
+                what,
+            });
+        }
+        let rule = self.model.update_rule();
+        let adam_step = self.adam.begin_step(spec.lr);
+        adam::step(
+            gpu,
+            &self.adam.config,
+            adam_step,
+            DirtyStep {
+                scale: scale as f32,
+                lazy_end: rule.lazy_end,
+                weight_decay: rule.weight_decay,
+            },
+            self.n_params,
+            &self.params,
+            &self.adam_m,
+            &self.adam_v,
+            &self.grads,
+        );
+        self.check(&check, "adam", "parameters", &self.params, self.n_params)?;
+        if let Some(e) = check.take(step + 1) {
+            return Err(e);
+        }
+        self.refresh_occupancy(step + 1, spec.sampling.seed)?;
+        Ok(StepStats {
+            step: step + 1,
+            loss,
+            psnr: crate::metrics::psnr_from_mse(sse * scale),
+            lr: spec.lr,
+            rays,
+            samples: n,
+        })
+    }
+
+    fn render_rays(
+        &self,
+        rays: &RayBatch,
+        out: &mut [RayOutput],
+        on_progress: &(dyn Fn(usize) + Sync),
+    ) {
+        let chunk = self.chunk_rays;
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        let field = DeviceField { engine: self };
+        let marcher = self.model.marcher(rays.near, rays.far);
+        out[..rays.len()]
+            .par_chunks_mut(chunk)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let part = rays.slice(c * chunk..c * chunk + out.len());
+                let mut ws = MarchWorkspace::default();
+                render_marched(
+                    &field,
+                    &[],
+                    &marcher,
+                    &self.model.grid,
+                    self.model.config.batch_samples,
+                    &part,
+                    &mut ws,
+                    out,
+                );
+                let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
+                on_progress(n);
+            });
+    }
+
+    fn density(&self, positions: &[f32], out: &mut [f32]) {
+        assert_eq!(positions.len(), out.len() * 3);
+        for (p, o) in positions
+            .chunks(DENSITY_CHUNK * 3)
+            .zip(out.chunks_mut(DENSITY_CHUNK))
+        {
+            if let Err(e) = self.density_chunk(p, o) {
+                report_device_failure(&e);
+                o.fill(f32::NAN);
+            }
+        }
+    }
+
+    fn state(&self) -> EngineState {
+        let read = |h: &Handle| {
+            self.gpu.read(h, self.n_params).unwrap_or_else(|e| {
+                report_device_failure(&e);
+                vec![f32::NAN; self.n_params]
+            })
+        };
+        EngineState {
+            params: read(&self.params),
+            adam_m: read(&self.adam_m),
+            adam_v: read(&self.adam_v),
+            adam_t: self.adam.t,
+            buffers: self.model.buffers(),
+        }
+    }
+
+    fn set_state(&mut self, state: EngineState) -> Result<()> {
+        let n = self.n_params;
+        let buffers = self.model.buffer_layout().total;
+        if state.params.len() != n
+            || state.adam_m.len() != n
+            || state.adam_v.len() != n
+            || state.buffers.len() != buffers
+        {
+            return Err(NerfError::Config(format!(
+                "state does not fit this model: {} parameters and {} buffer values expected, \
+                 got {} and {}",
+                n,
+                buffers,
+                state.params.len(),
+                state.buffers.len()
+            )));
+        }
+        self.params = self.gpu.upload(&state.params);
+        self.adam_m = self.gpu.upload(&state.adam_m);
+        self.adam_v = self.gpu.upload(&state.adam_v);
+        self.grads = self.gpu.zeros(n);
+        self.adam.t = state.adam_t;
+        self.model.load_buffers(state.buffers);
+        Ok(())
+    }
+
+    fn occupancy(&self) -> Option<f64> {
+        self.model.occupancy()
+    }
+
+    /// Every parameter goes through the device's Adam pass (hash entries without a
+    /// gradient are skipped inside it); there are no untouched blocks to report.
+    fn touched_fraction(&self) -> f64 {
+        1.0
+    }
+}
+
+/// Rendering and density queries cannot return an error through the engine seam: a failed
+/// device read is reported once on stderr and its values come back as NaN.
+fn report_device_failure(e: &NerfError) {
+    static SAID: std::sync::Once = std::sync::Once::new();
+    SAID.call_once(|| eprintln!("error: {e}; the affected values are NaN"));
+}
+
+/// The engine's field as a [`Field`] whose parameters are on the device (the host
+/// `params` passed to it are ignored): what the host-side renderer evaluates each round
+/// through.
+struct DeviceField<'a> {
+    engine: &'a GpuEngine,
+}
+
+/// Host copies of a batch's outputs, and the device activations for a backward.
+#[derive(Default)]
+struct DeviceFieldContext {
+    sigma: Vec<f32>,
+    rgb: Vec<f32>,
+    acts: Option<Activations>,
+}
+
+impl Field for DeviceField<'_> {
+    type Context = DeviceFieldContext;
+
+    fn num_params(&self) -> usize {
+        self.engine.n_params
+    }
+
+    fn forward<'c>(
+        &self,
+        _params: &[f32],
+        input: FieldInput,
+        ctx: &'c mut DeviceFieldContext,
+    ) -> FieldOutput<'c> {
+        let (e, n) = (self.engine, input.len());
+        let dirs: Vec<f32> = (0..n)
+            .flat_map(|s| {
+                let d = &input.dirs[3 * (s / input.samples_per_dir)..][..3];
+                [d[0], d[1], d[2]]
+            })
+            .collect();
+        let acts = e.field.forward(
+            &e.gpu,
+            &e.params,
+            &e.gpu.upload(input.positions),
+            &e.gpu.upload(&dirs),
+            n,
+        );
+        let read = |h: &Handle, len: usize| {
+            e.gpu.read(h, len).unwrap_or_else(|err| {
+                report_device_failure(&err);
+                vec![f32::NAN; len]
+            })
+        };
+        ctx.sigma = read(&acts.sigma, n);
+        ctx.rgb = read(&acts.rgb, n * 3);
+        ctx.acts = Some(acts);
+        FieldOutput {
+            sigma: &ctx.sigma,
+            rgb: &ctx.rgb,
+        }
+    }
+
+    fn backward(
+        &self,
+        _params: &[f32],
+        ctx: &mut DeviceFieldContext,
+        d_output: FieldGrad,
+        grads: &mut Grads,
+    ) {
+        let Some(acts) = &ctx.acts else { return };
+        let e = self.engine;
+        let g = e.gpu.zeros(e.n_params);
+        e.field.backward(
+            &e.gpu,
+            &e.params,
+            &g,
+            acts,
+            &e.gpu.upload(d_output.d_sigma),
+            &e.gpu.upload(d_output.d_rgb),
+        );
+        match e.gpu.read(&g, e.n_params) {
+            Ok(values) => {
+                for (a, v) in grads.dense().iter_mut().zip(values) {
+                    *a += v;
+                }
+            }
+            Err(err) => report_device_failure(&err),
+        }
+    }
+
+    fn density(
+        &self,
+        _params: &[f32],
+        positions: &[f32],
+        _ctx: &mut DeviceFieldContext,
+        out: &mut [f32],
+    ) {
+        self.engine.density(positions, out);
+    }
+}
