@@ -6,7 +6,8 @@
 //! on the device) and runs whole stages: a training step, rendering a [`RayBatch`], density
 //! queries. State crosses the seam only as host copies ([`EngineState`]) for checkpoints,
 //! so every engine reads and writes the same checkpoint files. [`cpu::CpuEngine`] is the
-//! reference engine; a second engine implements this trait and [`open`] picks it.
+//! reference engine; `gpu::engine::GpuEngine` (feature `wgpu`) is the second, and
+//! [`open_on`] picks one for a [`Device`].
 
 pub mod cpu;
 #[cfg(feature = "wgpu")]

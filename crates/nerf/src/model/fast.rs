@@ -122,18 +122,9 @@ impl FastModel {
 
 /// What marching a step's rays reads.
 #[derive(Clone, Copy)]
-pub struct MarchInput<'a> {
-    pub data: &'a Dataset,
-    pub sampling: PixelSampling,
-}
-
-/// A whole step's rays, marched and packed into one batch in ray order: what an engine
-/// that runs the rest of the step elsewhere (the GPU engine) takes.
-#[derive(Default, Debug)]
-pub struct StepSamples {
-    pub samples: PackedSamples,
-    pub backgrounds: Vec<[f32; 3]>,
-    pub targets: Vec<[f32; 3]>,
+struct MarchInput<'a> {
+    data: &'a Dataset,
+    sampling: PixelSampling,
 }
 
 /// One block of a step's rays: drawn, marched and packed.
@@ -230,31 +221,6 @@ impl FastModel {
             marched += wave;
             wave = next;
             next = (next * 2).min(64);
-        }
-    }
-
-    /// The rays of step `input` exactly as [`Model::train_pass`] keeps them, packed into
-    /// `out` (in ray order, one unit view direction per sample).
-    pub fn pack_step(&self, input: &MarchInput, shared: &mut StepBlocks, out: &mut StepSamples) {
-        let (used, last_rays) = self.march_step(input, shared);
-        out.samples.clear();
-        out.backgrounds.clear();
-        out.targets.clear();
-        for (b, block) in shared.blocks[..used].iter().enumerate() {
-            let rays = if b + 1 == used { last_rays } else { BLOCK_RAYS };
-            let s = &block.samples;
-            for r in 0..rays {
-                let range = s.ray(r);
-                out.samples.t.extend_from_slice(&s.t[range.clone()]);
-                out.samples.dt.extend_from_slice(&s.dt[range.clone()]);
-                out.samples
-                    .positions
-                    .extend_from_slice(&s.positions[range.clone()]);
-                out.samples.dirs.extend_from_slice(&s.dirs[range]);
-                out.samples.end_ray();
-                out.backgrounds.push(block.rays.rays.backgrounds[r]);
-                out.targets.push(block.rays.targets[r]);
-            }
         }
     }
 

@@ -121,6 +121,11 @@ impl OccupancyGrid {
         self.occupied[self.index(self.cell(p))]
     }
 
+    /// Which cells are occupied, x fastest (what a GPU marcher uploads).
+    pub fn occupied_cells(&self) -> &[bool] {
+        &self.occupied
+    }
+
     /// Fraction of cells occupied.
     pub fn occupancy(&self) -> f64 {
         self.occupied.iter().filter(|&&o| o).count() as f64 / self.occupied.len() as f64

@@ -18,11 +18,12 @@ use rayon::prelude::*;
 use super::device::Gpu;
 use super::field::{Activations, GpuFastField};
 use super::finite::count_nonfinite;
+use super::march::{Cut, GpuMarcher, GpuRays};
 use super::{adam, loss, volume};
+use crate::data::pixels::TrainingRays;
 use crate::data::Dataset;
 use crate::engine::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
 use crate::error::{NerfError, Result};
-use crate::model::fast::{MarchInput, StepBlocks, StepSamples};
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
 use crate::nn::adam::{Adam, DirtyStep};
 use crate::nn::ParamLayout;
@@ -50,14 +51,19 @@ pub struct GpuEngine {
     adam: Adam,
     check_finite: bool,
     chunk_rays: usize,
-    blocks: StepBlocks,
-    batch: StepSamples,
+    /// The occupancy grid on the device, and the marcher.
+    marcher: GpuMarcher,
+    /// The training rays of the last step (buffers reused), and how many it kept.
+    rays: TrainingRays,
+    last_rays: usize,
 }
 
 impl GpuEngine {
     pub fn new(gpu: Gpu, config: FastModelConfig, options: EngineOptions, seed: u64) -> Self {
         let model = FastModel::new(config.clone());
         let field = GpuFastField::new(&gpu, &model.field);
+        // Near and far only clip each ray's span, which the host computes.
+        let marcher = GpuMarcher::new(&gpu, &model.marcher(0.0, 1.0), &model.grid);
         let params = model.init_params(seed);
         let n = params.len();
         GpuEngine {
@@ -73,8 +79,9 @@ impl GpuEngine {
             model,
             field,
             gpu,
-            blocks: StepBlocks::default(),
-            batch: StepSamples::default(),
+            marcher,
+            rays: TrainingRays::default(),
+            last_rays: 0,
         }
     }
 
@@ -86,6 +93,43 @@ impl GpuEngine {
             .density(&self.gpu, &self.params, &self.gpu.upload(positions), n);
         out.copy_from_slice(&self.gpu.read(&acts.sigma, n)?);
         Ok(())
+    }
+
+    /// Draws the step's rays on the host (the same rays as the CPU engine: `data::pixels`)
+    /// and marches them on the device until the sample budget is reached; returns the
+    /// rays drawn, the cut, and the packed samples with their positions and directions.
+    #[allow(clippy::type_complexity)]
+    fn march_step(
+        &mut self,
+        data: &Dataset,
+        spec: &StepSpec,
+    ) -> Result<(TrainingRays, Cut, volume::GpuSamples, Handle, Handle)> {
+        let marcher = self.model.marcher(data.near, data.far);
+        let budget = self.model.config.samples_per_step;
+        // As the CPU engine: rays that find no occupied cell add no samples, and this
+        // bound ends a step whose grid is (nearly) empty.
+        let max_rays = budget.max(64);
+        let mut want = (self.last_rays + self.last_rays / 4 + 16).clamp(64, max_rays);
+        let mut rays = std::mem::take(&mut self.rays);
+        loop {
+            rays.draw(data, &spec.sampling, 0..want as u64);
+            // Each ray's first draw after its pixel is its lattice jitter, as in
+            // `FastModel::march_block`.
+            let jitter: Vec<f32> = rays.rngs.iter_mut().map(|r| r.uniform()).collect();
+            let on_device =
+                GpuRays::new(&self.gpu, &marcher, &self.model.grid, &rays.rays, &jitter);
+            let counted = self.marcher.count(&self.gpu, &on_device);
+            let cut = self
+                .marcher
+                .cut(&self.gpu, &counted, want, budget, max_rays)?;
+            if cut.found || want >= max_rays {
+                self.last_rays = cut.rays;
+                let (samples, positions, dirs) =
+                    self.marcher.write(&self.gpu, &on_device, &counted, cut);
+                return Ok((rays, cut, samples, positions, dirs));
+            }
+            want = (want * 2).min(max_rays);
+        }
     }
 
     /// Re-evaluates the occupancy grid when the schedule says so, with densities from the
@@ -119,6 +163,7 @@ impl GpuEngine {
             grid.update(&occupancy, steps_done, seed, dt, &density);
         }
         self.model.grid = grid;
+        self.marcher.upload_grid(&self.gpu, &self.model.grid);
         match failure.into_inner().ok().flatten() {
             Some(e) => Err(e),
             None => Ok(()),
@@ -168,27 +213,14 @@ impl Engine for GpuEngine {
 
     fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
         let step = spec.sampling.step;
-        let input = MarchInput {
-            data,
-            sampling: spec.sampling,
-        };
-        self.model
-            .pack_step(&input, &mut self.blocks, &mut self.batch);
+        let (drawn, cut, samples, positions, dirs) = self.march_step(data, spec)?;
+        let (rays, n) = (cut.rays, cut.samples);
+        let backgrounds = self
+            .gpu
+            .upload(drawn.rays.backgrounds[..rays].as_flattened());
+        let targets = self.gpu.upload(drawn.targets[..rays].as_flattened());
+        self.rays = drawn;
         let gpu = &self.gpu;
-        let b = &self.batch;
-        let (rays, n) = (b.samples.rays(), b.samples.len());
-        let offsets: Vec<u32> = b.samples.offsets.iter().map(|&o| o as u32).collect();
-        let samples = volume::GpuSamples {
-            offsets: gpu.upload_u32(&offsets),
-            t: gpu.upload(&b.samples.t),
-            dt: gpu.upload(&b.samples.dt),
-            rays,
-            len: n,
-        };
-        let positions = gpu.upload(b.samples.positions.as_flattened());
-        let dirs = gpu.upload(b.samples.dirs.as_flattened());
-        let backgrounds = gpu.upload(b.backgrounds.as_flattened());
-        let targets = gpu.upload(b.targets.as_flattened());
         let check = FiniteCheck::new(self.check_finite);
 
         let acts = self.field.forward(gpu, &self.params, &positions, &dirs, n);
@@ -373,6 +405,7 @@ impl Engine for GpuEngine {
         self.grads = self.gpu.zeros(n);
         self.adam.t = state.adam_t;
         self.model.load_buffers(state.buffers);
+        self.marcher.upload_grid(&self.gpu, &self.model.grid);
         Ok(())
     }
 

@@ -1,19 +1,23 @@
-//! The GPU engine, under construction (issue 12): kernels written once in CubeCL and run
-//! through its `wgpu` runtime (Vulkan, Metal, DX12). Each kernel is tested against the CPU
-//! engine's stage on the same inputs, on Mesa's lavapipe in CI.
+//! The GPU engine: kernels written once in CubeCL and run through its `wgpu` runtime
+//! (Vulkan, Metal, DX12; `cuda` behind the cargo feature of that name). Each kernel is
+//! tested against the CPU engine's stage on the same inputs, on Mesa's lavapipe in CI.
 //!
-//! Here so far:
-//! * [`device`]: opening an adapter, with a clear error when there is none, and what it
-//!   can do (float atomics);
-//! * [`hash_grid`]: the multiresolution hash encoding, forward and backward (gradients
-//!   scattered with float atomics, or a compare-and-swap loop where the adapter has none);
+//! * [`open`]: which adapter (`--device`), with a clear error when the one asked for is
+//!   missing; [`device`]: opening one, and what it can do (float atomics);
+//! * [`engine`]: [`engine::GpuEngine`], the fast model's training step, rendering and
+//!   density queries with parameters, gradients and Adam's moments on the device;
+//! * [`field`]: the fast field forward and backward, built from [`hash_grid`] (the
+//!   multiresolution hash encoding; gradients scattered with float atomics, or a
+//!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`loss`]: the squared error per ray and its gradient;
-//! * [`adam`]: the optimiser step over the whole parameter vector (lazy for hash tables).
+//! * [`adam`]: the optimiser step over the whole parameter vector (lazy for hash tables);
+//! * [`finite`]: counting non-finite gradients before the optimiser runs;
+//! * [`launch`]: launch grids and host/device copies.
 //!
-//! Still to come before `engine::open` can hand out a GPU engine: ray generation, marching
-//! with compaction, the fused MLPs and the occupancy refresh, then the engine that strings
-//! the kernels into a step with its data on the device.
+//! Not on the device yet: drawing rays and marching them (the host does both with the CPU
+//! engine's code and uploads the packed samples), the occupancy refresh's bookkeeping (its
+//! densities are evaluated on the device), and the paper's model.
 
 pub mod adam;
 pub mod device;
@@ -23,6 +27,7 @@ pub mod finite;
 pub mod hash_grid;
 pub mod launch;
 pub mod loss;
+pub mod march;
 pub mod mlp;
 pub mod volume;
 

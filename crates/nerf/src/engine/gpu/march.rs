@@ -1,0 +1,716 @@
+//! Occupancy-grid marching on the GPU with sample compaction: `render::march`'s lattice
+//! (see `render::occupancy` for the grid and the skipping rule, `render::contraction` for
+//! unbounded scenes), one thread per ray, in three passes:
+//!
+//! 1. count: each ray marches and counts its samples;
+//! 2. scan: an exclusive prefix sum of the counts gives every ray its first slot (blocked:
+//!    a serial scan per block of [`SCAN_BLOCK`] rays, one over the block totals, then the
+//!    block offsets added), and one thread finds where the step's sample budget is reached;
+//! 3. write: the kept rays march again and write their samples (depth, step length,
+//!    field-space position, unit view direction) at their slots, packed with no gaps.
+//!
+//! The host reads back two numbers (rays kept, samples) and never sees the samples.
+
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::device::Gpu;
+use super::launch::grid;
+use super::volume::GpuSamples;
+use crate::error::Result;
+use crate::math::{length, scale};
+use crate::render::contraction::FAR_N;
+use crate::render::march::Marcher;
+use crate::render::occupancy::OccupancyGrid;
+use crate::stage::RayBatch;
+
+const GROUP: u32 = 64;
+/// Rays per block of the scan's first pass.
+pub const SCAN_BLOCK: usize = 256;
+
+/// The marcher's constants, in the order the kernels read them.
+#[derive(CubeType, CubeLaunch, Clone, Copy)]
+pub struct MarchParams {
+    /// Occupancy cells per axis, the box's half-extent and the cell size.
+    res: u32,
+    bound: f32,
+    cell: f32,
+    /// Step length (metric; in contracted space when contracting).
+    dt: f32,
+    max_samples: u32,
+    /// 1: contract space outside the cube of half-extent `inner`.
+    contract: u32,
+    inner: f32,
+    /// `contraction::FAR_N`: rays end past this many inner half-extents.
+    far_n: f32,
+}
+
+#[cube]
+fn cell_of(x: f32, bound: f32, cell: f32, res: u32) -> u32 {
+    let c = u32::cast_from(f32::max((x + bound) * (1.0 / cell), 0.0));
+    u32::min(c, res - 1)
+}
+
+#[cube]
+fn is_occupied(occ: &[u32], x: f32, y: f32, z: f32, bound: f32, cell: f32, res: u32) -> bool {
+    let cx = cell_of(x, bound, cell, res);
+    let cy = cell_of(y, bound, cell, res);
+    let cz = cell_of(z, bound, cell, res);
+    occ[(cx + res * (cy + res * cz)) as usize] != 0
+}
+
+/// `max(|p|) / inner`: where a point sits relative to the inner cube.
+#[cube]
+fn norm_inf(x: f32, y: f32, z: f32, inner: f32) -> f32 {
+    f32::max(f32::max(f32::abs(x), f32::abs(y)), f32::abs(z)) / inner
+}
+
+/// Contraction's scale of a point at `n = norm_inf` (1 inside the inner cube).
+#[cube]
+fn contract_scale(n: f32) -> f32 {
+    select(n <= 1.0, 1.0, (2.0 - 1.0 / n) / n)
+}
+
+/// Marches ray `r` from `start[r]` to `end[r]`; with `write`, stores its samples from
+/// slot `first`. Returns the samples taken.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn march_ray(
+    r: usize,
+    origins: &[f32],
+    dirs: &[f32],
+    views: &[f32],
+    start: &[f32],
+    end: &[f32],
+    occ: &[u32],
+    p: MarchParams,
+    first: usize,
+    t_out: &mut [f32],
+    dt_out: &mut [f32],
+    pos_out: &mut [f32],
+    dir_out: &mut [f32],
+    #[comptime] write: bool,
+) -> u32 {
+    let ox = origins[3 * r];
+    let oy = origins[3 * r + 1];
+    let oz = origins[3 * r + 2];
+    let dx = dirs[3 * r];
+    let dy = dirs[3 * r + 1];
+    let dz = dirs[3 * r + 2];
+    let res = p.res;
+    let bound = p.bound;
+    let cell = p.cell;
+    let dt = p.dt;
+    let max_samples = p.max_samples;
+    let contract = p.contract;
+    let inner = p.inner;
+    let far_n = p.far_n;
+    let mut t = start[r];
+    let t_end = end[r];
+    let mut added = 0u32;
+    let mut running = t < t_end;
+    while running {
+        let x = ox + t * dx;
+        let y = oy + t * dy;
+        let z = oz + t * dz;
+        let mut take = false;
+        let mut step = dt;
+        let mut sx = x;
+        let mut sy = y;
+        let mut sz = z;
+        if contract == 1 {
+            let n = norm_inf(x, y, z, inner);
+            if n > far_n {
+                // Past the contracted far shell: the ray is done.
+                running = false;
+            } else {
+                step = dt * f32::max(n * n, 1.0);
+                let s = contract_scale(n);
+                sx = x * s;
+                sy = y * s;
+                sz = z * s;
+                take = is_occupied(occ, sx, sy, sz, bound, cell, res);
+            }
+        } else if is_occupied(occ, x, y, z, bound, cell, res) {
+            take = true;
+        } else {
+            // Whole steps past the far wall of this empty cell.
+            let mut exit = 3.4e38f32; // "no wall": larger than any depth
+            let cx = cell_of(x, bound, cell, res);
+            let cy = cell_of(y, bound, cell, res);
+            let cz = cell_of(z, bound, cell, res);
+            if dx != 0.0 {
+                let wall = f32::cast_from(select(dx > 0.0, cx + 1, cx)) * cell - bound;
+                exit = f32::min(exit, (wall - x) / dx);
+            }
+            if dy != 0.0 {
+                let wall = f32::cast_from(select(dy > 0.0, cy + 1, cy)) * cell - bound;
+                exit = f32::min(exit, (wall - y) / dy);
+            }
+            if dz != 0.0 {
+                let wall = f32::cast_from(select(dz > 0.0, cz + 1, cz)) * cell - bound;
+                exit = f32::min(exit, (wall - z) / dz);
+            }
+            step = (f32::floor(f32::max(exit, 0.0) / dt) + 1.0) * dt;
+        }
+        if running {
+            if take {
+                if write {
+                    let k = first + added as usize;
+                    t_out[k] = t;
+                    dt_out[k] = step;
+                    pos_out[3 * k] = sx;
+                    pos_out[3 * k + 1] = sy;
+                    pos_out[3 * k + 2] = sz;
+                    dir_out[3 * k] = views[3 * r];
+                    dir_out[3 * k + 1] = views[3 * r + 1];
+                    dir_out[3 * k + 2] = views[3 * r + 2];
+                }
+                added += 1;
+            }
+            t += step;
+            running = t < t_end && added < max_samples;
+        }
+    }
+    added
+}
+
+/// Count (`write` false: `counts[r]`) or write (`write` true: the samples of rays
+/// `r < rays` from `offsets[r]`) pass.
+#[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
+fn march_rays(
+    origins: &[f32],
+    dirs: &[f32],
+    views: &[f32],
+    start: &[f32],
+    end: &[f32],
+    occ: &[u32],
+    offsets: &[u32],
+    counts: &mut [u32],
+    t_out: &mut [f32],
+    dt_out: &mut [f32],
+    pos_out: &mut [f32],
+    dir_out: &mut [f32],
+    rays: u32,
+    p: MarchParams,
+    #[comptime] write: bool,
+) {
+    let r = ABSOLUTE_POS;
+    if r < rays as usize {
+        let mut first = 0usize;
+        if write {
+            first = offsets[r] as usize;
+        }
+        let n = march_ray(
+            r, origins, dirs, views, start, end, occ, p, first, t_out, dt_out, pos_out, dir_out,
+            write,
+        );
+        if !write {
+            counts[r] = n;
+        }
+    }
+}
+
+/// Scan, pass 1: per block of `SCAN_BLOCK` counts, the exclusive prefix sums within the
+/// block (into `offsets`) and the block's total.
+#[cube(launch_unchecked)]
+fn scan_blocks(counts: &[u32], offsets: &mut [u32], totals: &mut [u32], n: u32, block: u32) {
+    let b = ABSOLUTE_POS;
+    let first = b * block as usize;
+    if first < n as usize {
+        let last = usize::min(first + block as usize, n as usize);
+        let mut sum = 0u32;
+        for i in first..last {
+            offsets[i] = sum;
+            sum += counts[i];
+        }
+        totals[b] = sum;
+    }
+}
+
+/// Scan, pass 2 (one thread): the exclusive prefix sums of the block totals, in place,
+/// with the grand total after them.
+#[cube(launch_unchecked)]
+fn scan_totals(totals: &mut [u32], blocks: u32) {
+    if ABSOLUTE_POS == 0 {
+        let mut sum = 0u32;
+        for b in 0..blocks as usize {
+            let v = totals[b];
+            totals[b] = sum;
+            sum += v;
+        }
+        totals[blocks as usize] = sum;
+    }
+}
+
+/// Scan, pass 3: each ray's block offset added.
+#[cube(launch_unchecked)]
+fn scan_add(offsets: &mut [u32], totals: &[u32], n: u32, block: u32) {
+    let i = ABSOLUTE_POS;
+    if i < n as usize {
+        offsets[i] += totals[i / block as usize];
+    }
+}
+
+/// The cut (one thread): the rays a step keeps, as the CPU engine keeps them: up to and
+/// including the first ray at which the running sample count reaches `budget`, or
+/// `max_rays` rays. Writes `[rays kept, their samples, 1 if the cut was found]`; without
+/// a cut (too few rays marched) `[n, all samples, 0]`.
+#[cube(launch_unchecked)]
+fn find_cut(offsets: &[u32], counts: &[u32], cut: &mut [u32], n: u32, budget: u32, max_rays: u32) {
+    if ABSOLUTE_POS == 0 {
+        // The inclusive sums grow with the ray index: the first one >= budget by bisection.
+        let mut lo = 0u32;
+        let mut hi = n;
+        while lo < hi {
+            let mid = (lo + hi) / 2;
+            if offsets[mid as usize] + counts[mid as usize] >= budget {
+                hi = mid;
+            } else {
+                lo = mid + 1;
+            }
+        }
+        // `lo` is that ray (n if none); the ray cap may come first.
+        let mut kept = n;
+        let mut found = 0u32;
+        if lo < n {
+            kept = lo + 1;
+            found = 1;
+        }
+        if max_rays <= kept {
+            kept = max_rays;
+            found = 1;
+        }
+        cut[0] = kept;
+        cut[1] = 0u32;
+        if kept > 0 {
+            cut[1] = offsets[(kept - 1) as usize] + counts[(kept - 1) as usize];
+        }
+        cut[2] = found;
+    }
+}
+
+/// Rays on the device, ready to march: unit directions, unit view directions, and the span
+/// each marches over (its first lattice depth, jittered, to its exit; empty when it
+/// misses the box).
+pub struct GpuRays {
+    origins: Handle,
+    dirs: Handle,
+    views: Handle,
+    start: Handle,
+    end: Handle,
+    pub len: usize,
+}
+
+impl GpuRays {
+    /// Rays `rays` with their jitters (`[0, 1)`, one per ray), as `Marcher::pack_ray`
+    /// starts them.
+    pub fn new(
+        gpu: &Gpu,
+        marcher: &Marcher,
+        grid: &OccupancyGrid,
+        rays: &RayBatch,
+        jitter: &[f32],
+    ) -> Self {
+        let n = rays.len();
+        let (mut dirs, mut views) = (Vec::with_capacity(n * 3), Vec::with_capacity(n * 3));
+        let (mut start, mut end) = (Vec::with_capacity(n), Vec::with_capacity(n));
+        for r in 0..n {
+            let (o, dir) = (rays.origins[r], rays.dirs[r]);
+            let norm = length(dir);
+            let d = scale(dir, 1.0 / norm);
+            let view = scale(rays.view_dirs[r], 1.0 / length(rays.view_dirs[r]));
+            dirs.extend_from_slice(&d);
+            views.extend_from_slice(&view);
+            match marcher.span(grid, o, d, norm) {
+                Some((t0, t1)) => {
+                    start.push(t0 + jitter[r] * marcher.dt);
+                    end.push(t1);
+                }
+                None => {
+                    start.push(0.0);
+                    end.push(0.0);
+                }
+            }
+        }
+        GpuRays {
+            origins: gpu.upload(rays.origins.as_flattened()),
+            dirs: gpu.upload(&dirs),
+            views: gpu.upload(&views),
+            start: gpu.upload(&start),
+            end: gpu.upload(&end),
+            len: n,
+        }
+    }
+}
+
+/// Where a step's sample budget cut its rays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Cut {
+    /// Rays kept (a prefix of the rays marched) and their samples.
+    pub rays: usize,
+    pub samples: usize,
+    /// False when the rays marched ran out before the budget (or the ray cap) was reached.
+    pub found: bool,
+}
+
+/// Rays marched and counted, with their slots: what [`GpuMarcher::write`] packs.
+pub struct Counted {
+    counts: Handle,
+    offsets: Handle,
+}
+
+/// The occupancy grid on the device and the marcher's constants.
+pub struct GpuMarcher {
+    occ: Handle,
+    res: usize,
+    bound: f32,
+    dt: f32,
+    max_samples: usize,
+    contract: Option<f32>,
+}
+
+impl GpuMarcher {
+    pub fn new(gpu: &Gpu, marcher: &Marcher, grid: &OccupancyGrid) -> Self {
+        let mut m = GpuMarcher {
+            occ: gpu.upload_u32(&[0]),
+            res: grid.resolution,
+            bound: grid.bound,
+            dt: marcher.dt,
+            max_samples: marcher.max_samples,
+            contract: marcher.contract,
+        };
+        m.upload_grid(gpu, grid);
+        m
+    }
+
+    /// Copies the grid's occupied cells to the device (after a refresh).
+    pub fn upload_grid(&mut self, gpu: &Gpu, grid: &OccupancyGrid) {
+        let bits: Vec<u32> = grid
+            .occupied_cells()
+            .iter()
+            .map(|&o| u32::from(o))
+            .collect();
+        self.occ = gpu.upload_u32(&bits);
+        self.res = grid.resolution;
+        self.bound = grid.bound;
+    }
+
+    fn params(&self) -> MarchParamsLaunch {
+        MarchParamsLaunch::new(
+            self.res as u32,
+            self.bound,
+            2.0 * self.bound / self.res as f32,
+            self.dt,
+            self.max_samples as u32,
+            u32::from(self.contract.is_some()),
+            self.contract.unwrap_or(1.0),
+            FAR_N,
+        )
+    }
+
+    /// Passes 1 and 2: counts every ray's samples and scans them into slots.
+    pub fn count(&self, gpu: &Gpu, rays: &GpuRays) -> Counted {
+        let n = rays.len;
+        let counts = gpu.upload_u32(&vec![0; n.max(1)]);
+        let offsets = gpu.upload_u32(&vec![0; n.max(1)]);
+        if n == 0 {
+            return Counted { counts, offsets };
+        }
+        let blocks = n.div_ceil(SCAN_BLOCK);
+        let totals = gpu.upload_u32(&vec![0; blocks + 1]);
+        let none = gpu.floats(1);
+        let cells = self.res.pow(3);
+        // SAFETY: every buffer holds the length given with it (rays: `n` or `3n` floats,
+        // the grid `res^3` cells, the scan's `blocks + 1` totals); the count pass writes
+        // only `counts[r]` for `r < n` (its sample outputs are never touched), and each
+        // scan pass bounds-checks its index against `n` or `blocks`.
+        unsafe {
+            let (c, d) = grid(n, GROUP);
+            march_rays::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(rays.origins.clone(), 3 * n),
+                BufferArg::from_raw_parts(rays.dirs.clone(), 3 * n),
+                BufferArg::from_raw_parts(rays.views.clone(), 3 * n),
+                BufferArg::from_raw_parts(rays.start.clone(), n),
+                BufferArg::from_raw_parts(rays.end.clone(), n),
+                BufferArg::from_raw_parts(self.occ.clone(), cells),
+                BufferArg::from_raw_parts(totals.clone(), 1),
+                BufferArg::from_raw_parts(counts.clone(), n),
+                BufferArg::from_raw_parts(none.clone(), 1),
+                BufferArg::from_raw_parts(none.clone(), 1),
+                BufferArg::from_raw_parts(none.clone(), 1),
+                BufferArg::from_raw_parts(none.clone(), 1),
+                n as u32,
+                self.params(),
+                false,
+            );
+            let (c, d) = grid(blocks, GROUP);
+            scan_blocks::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(counts.clone(), n),
+                BufferArg::from_raw_parts(offsets.clone(), n),
+                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+                n as u32,
+                SCAN_BLOCK as u32,
+            );
+            let (c, d) = grid(1, 1);
+            scan_totals::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+                blocks as u32,
+            );
+            let (c, d) = grid(n, GROUP);
+            scan_add::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(offsets.clone(), n),
+                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+                n as u32,
+                SCAN_BLOCK as u32,
+            );
+        }
+        Counted { counts, offsets }
+    }
+
+    /// Where the budget of `budget` samples (or `max_rays` rays) cuts `n` counted rays;
+    /// reads back three numbers.
+    pub fn cut(
+        &self,
+        gpu: &Gpu,
+        counted: &Counted,
+        n: usize,
+        budget: usize,
+        max_rays: usize,
+    ) -> Result<Cut> {
+        if n == 0 {
+            return Ok(Cut {
+                rays: 0,
+                samples: 0,
+                found: max_rays == 0,
+            });
+        }
+        let cut = gpu.upload_u32(&[0, 0, 0]);
+        // SAFETY: `offsets` and `counts` hold `n` values; `cut` three.
+        unsafe {
+            let (c, d) = grid(1, 1);
+            find_cut::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(counted.offsets.clone(), n),
+                BufferArg::from_raw_parts(counted.counts.clone(), n),
+                BufferArg::from_raw_parts(cut.clone(), 3),
+                n as u32,
+                budget.min(u32::MAX as usize) as u32,
+                max_rays.min(u32::MAX as usize) as u32,
+            );
+        }
+        let v = gpu.read_u32(&cut, 3)?;
+        Ok(Cut {
+            rays: v[0] as usize,
+            samples: v[1] as usize,
+            found: v[2] == 1,
+        })
+    }
+
+    /// Pass 3: the samples of the first `cut.rays` rays, packed: their CSR offsets, depths
+    /// and step lengths, and the field-space positions and unit view directions.
+    pub fn write(
+        &self,
+        gpu: &Gpu,
+        rays: &GpuRays,
+        counted: &Counted,
+        cut: Cut,
+    ) -> (GpuSamples, Handle, Handle) {
+        let (k, n) = (cut.rays, cut.samples);
+        let t = gpu.floats(n);
+        let dt = gpu.floats(n);
+        let positions = gpu.floats(3 * n);
+        let dirs = gpu.floats(3 * n);
+        // CSR offsets of the kept rays: their slots, then the total.
+        let offsets = gpu.upload_u32(&vec![0; k + 1]);
+        if k > 0 {
+            let cells = self.res.pow(3);
+            let none = gpu.upload_u32(&[0]);
+            // SAFETY: as in `count`; the kept rays' slots end at `n`, the buffers' length.
+            unsafe {
+                let (c, d) = grid(k, GROUP);
+                march_rays::launch_unchecked(
+                    &gpu.client,
+                    c,
+                    d,
+                    BufferArg::from_raw_parts(rays.origins.clone(), 3 * rays.len),
+                    BufferArg::from_raw_parts(rays.dirs.clone(), 3 * rays.len),
+                    BufferArg::from_raw_parts(rays.views.clone(), 3 * rays.len),
+                    BufferArg::from_raw_parts(rays.start.clone(), rays.len),
+                    BufferArg::from_raw_parts(rays.end.clone(), rays.len),
+                    BufferArg::from_raw_parts(self.occ.clone(), cells),
+                    BufferArg::from_raw_parts(counted.offsets.clone(), rays.len),
+                    BufferArg::from_raw_parts(none.clone(), 1),
+                    BufferArg::from_raw_parts(t.clone(), n.max(1)),
+                    BufferArg::from_raw_parts(dt.clone(), n.max(1)),
+                    BufferArg::from_raw_parts(positions.clone(), 3 * n.max(1)),
+                    BufferArg::from_raw_parts(dirs.clone(), 3 * n.max(1)),
+                    k as u32,
+                    self.params(),
+                    true,
+                );
+                let (c, d) = grid(k + 1, GROUP);
+                csr_offsets::launch_unchecked(
+                    &gpu.client,
+                    c,
+                    d,
+                    BufferArg::from_raw_parts(counted.offsets.clone(), rays.len),
+                    BufferArg::from_raw_parts(offsets.clone(), k + 1),
+                    k as u32,
+                    n as u32,
+                );
+            }
+        }
+        let samples = GpuSamples {
+            offsets,
+            t,
+            dt,
+            rays: k,
+            len: n,
+        };
+        (samples, positions, dirs)
+    }
+}
+
+/// The kept rays' slots followed by the total: the CSR offsets compositing reads.
+#[cube(launch_unchecked)]
+fn csr_offsets(slots: &[u32], offsets: &mut [u32], kept: u32, total: u32) {
+    let i = ABSOLUTE_POS;
+    if i < kept as usize {
+        offsets[i] = slots[i];
+    } else if i == kept as usize {
+        offsets[i] = total;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+    use crate::stage::PackedSamples;
+
+    /// A grid with a random third of its cells occupied, 500 rays from outside the box in
+    /// every direction (some missing it), with and without contraction: the device's counts,
+    /// slots, cut and packed samples against `Marcher::pack_ray` on the host. Positions
+    /// may differ by rounding (the device may fuse multiply-adds), so a ray agrees when its
+    /// sample count matches and its depths are within 1e-4; at most 1% may not (a point
+    /// that rounds across a cell wall).
+    #[test]
+    fn marching_matches_the_cpu_marcher() {
+        let Some(gpu) = super::super::device::test_gpu() else {
+            return;
+        };
+        for contract in [None, Some(0.75)] {
+            let mut rng = Rng::new(9);
+            let (res, bound) = (16, 1.5);
+            let thickness: Vec<f32> = (0..res * res * res)
+                .map(|_| if rng.uniform() < 0.33 { 1.0 } else { 0.0 })
+                .collect();
+            let grid = OccupancyGrid::from_thickness(res, bound, thickness, 0.5);
+            let marcher = Marcher {
+                dt: 3f32.sqrt() * 2.0 * bound / 128.0,
+                max_samples: 90,
+                near: 0.5,
+                far: if contract.is_some() { 200.0 } else { 8.0 },
+                contract,
+            };
+            let mut rays = RayBatch::new(marcher.near, marcher.far);
+            let mut jitter = Vec::new();
+            for k in 0..500 {
+                let origin = [rng.range(-4.0, 4.0), -4.0, rng.range(-1.0, 1.0)];
+                let target = [rng.range(-2.0, 2.0), 0.0, rng.range(-2.0, 2.0)];
+                let dir = [target[0] - origin[0], 4.0, target[2] - origin[2]];
+                let ray = crate::camera::Ray { origin, dir };
+                rays.push(ray, dir, [1.0; 3], k);
+                jitter.push(rng.uniform());
+            }
+            let mut want = PackedSamples::default();
+            want.clear();
+            for (r, &j) in jitter.iter().enumerate() {
+                marcher.pack_ray(&grid, &rays, r, j, &mut want);
+            }
+
+            let gm = GpuMarcher::new(&gpu, &marcher, &grid);
+            let on_device = GpuRays::new(&gpu, &marcher, &grid, &rays, &jitter);
+            let counted = gm.count(&gpu, &on_device);
+            let counts = gpu.read_u32(&counted.counts, 500).expect("read");
+            let slots = gpu.read_u32(&counted.offsets, 500).expect("read");
+            // The slots are the exclusive prefix sums of the device's own counts.
+            let mut sum = 0;
+            for (c, s) in counts.iter().zip(&slots) {
+                assert_eq!(*s, sum);
+                sum += c;
+            }
+            // The cut: the first ray at which the running count reaches the budget.
+            let budget = (sum / 2) as usize;
+            let cut = gm.cut(&gpu, &counted, 500, budget, 10_000).expect("cut");
+            let mut running = 0;
+            let first = counts
+                .iter()
+                .position(|&c| {
+                    running += c as usize;
+                    running >= budget
+                })
+                .expect("reached");
+            assert_eq!(
+                cut,
+                Cut {
+                    rays: first + 1,
+                    samples: running,
+                    found: true
+                }
+            );
+            assert!(
+                !gm.cut(&gpu, &counted, 500, 1 << 30, 10_000)
+                    .expect("cut")
+                    .found
+            );
+            assert_eq!(
+                gm.cut(&gpu, &counted, 500, 1 << 30, 7).expect("cut").rays,
+                7
+            );
+
+            let all = Cut {
+                rays: 500,
+                samples: sum as usize,
+                found: true,
+            };
+            let (packed, positions, _dirs) = gm.write(&gpu, &on_device, &counted, all);
+            let t = gpu.read(&packed.t, all.samples).expect("read");
+            let pos = gpu.read(&positions, 3 * all.samples).expect("read");
+            let mut disagree = 0;
+            for r in 0..500 {
+                let w = want.ray(r);
+                let got = slots[r] as usize..slots[r] as usize + counts[r] as usize;
+                let same = w.len() == got.len()
+                    && w.clone().zip(got.clone()).all(|(a, b)| {
+                        (want.t[a] - t[b]).abs() < 1e-4 * (1.0 + want.t[a].abs())
+                            && (0..3).all(|c| (want.positions[a][c] - pos[3 * b + c]).abs() < 1e-3)
+                    });
+                if !same {
+                    disagree += 1;
+                }
+            }
+            assert!(
+                disagree * 100 <= 500,
+                "{disagree} of 500 rays disagree (contract {contract:?})"
+            );
+            assert!(want.len() > 2000, "too few samples to test: {}", want.len());
+        }
+    }
+}
