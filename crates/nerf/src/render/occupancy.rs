@@ -121,6 +121,23 @@ impl OccupancyGrid {
         self.occupied[self.index(self.cell(p))]
     }
 
+    /// A grid with the given per-cell thickness and occupied cells (as a GPU refresh
+    /// derived them).
+    pub fn from_parts(
+        resolution: usize,
+        bound: f32,
+        thickness: Vec<f32>,
+        occupied: Vec<bool>,
+    ) -> Self {
+        assert_eq!(thickness.len(), occupied.len());
+        OccupancyGrid {
+            resolution,
+            bound,
+            thickness,
+            occupied,
+        }
+    }
+
     /// Which cells are occupied, x fastest (what a GPU marcher uploads).
     pub fn occupied_cells(&self) -> &[bool] {
         &self.occupied

@@ -3,14 +3,15 @@
 //! optimiser there, reading back one float per ray (the loss) and one count (non-finite
 //! gradients).
 //!
-//! Work mapping of a step: the host draws the step's rays and marches them through the
-//! occupancy grid exactly as the CPU engine does (`FastModel::pack_step`: same rays, same
-//! samples), uploads the packed samples (32 bytes each), and the device does the rest. The
-//! occupancy grid stays on the host; its refresh evaluates densities on the device.
-//! Rendering marches on the host in rounds (`render::march`) and evaluates each round's
-//! samples on the device through [`DeviceField`], a [`Field`] like any other.
-
-use std::sync::Mutex;
+//! Work mapping of a step: the host draws the step's rays exactly as the CPU engine does
+//! (`data::pixels`: same pixels, backgrounds and lattice jitters), uploads them, and the
+//! device marches them through the occupancy grid (`march`: the same samples as the CPU
+//! marcher while the grids agree), cuts them at the sample budget (two numbers read back),
+//! and runs the field, compositing, the loss, the backward and Adam. Every
+//! `update_every` steps it refreshes the occupancy grid (`occupancy`) and the host takes
+//! a copy for rendering and checkpoints. Rendering marches on the host in rounds
+//! (`render::march`) and evaluates each round's samples on the device through
+//! [`DeviceField`], a [`Field`] like any other.
 
 use cubecl::server::Handle;
 use rayon::prelude::*;
@@ -19,6 +20,7 @@ use super::device::Gpu;
 use super::field::{Activations, GpuFastField};
 use super::finite::count_nonfinite;
 use super::march::{Cut, GpuMarcher, GpuRays};
+use super::occupancy::GpuOccupancy;
 use super::{adam, loss, volume};
 use crate::data::pixels::TrainingRays;
 use crate::data::Dataset;
@@ -29,6 +31,7 @@ use crate::nn::adam::{Adam, DirtyStep};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
 use crate::render::march::{render_marched, MarchWorkspace};
+use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput, Grads, RayBatch, RayOutput};
 
@@ -51,7 +54,8 @@ pub struct GpuEngine {
     adam: Adam,
     check_finite: bool,
     chunk_rays: usize,
-    /// The occupancy grid on the device, and the marcher.
+    /// The occupancy grid on the device, and the marcher that reads it.
+    occupancy: GpuOccupancy,
     marcher: GpuMarcher,
     /// The training rays of the last step (buffers reused), and how many it kept.
     rays: TrainingRays,
@@ -62,8 +66,7 @@ impl GpuEngine {
     pub fn new(gpu: Gpu, config: FastModelConfig, options: EngineOptions, seed: u64) -> Self {
         let model = FastModel::new(config.clone());
         let field = GpuFastField::new(&gpu, &model.field);
-        // Near and far only clip each ray's span, which the host computes.
-        let marcher = GpuMarcher::new(&gpu, &model.marcher(0.0, 1.0), &model.grid);
+        let (occupancy, marcher) = GpuEngine::upload_occupancy(&gpu, &model);
         let params = model.init_params(seed);
         let n = params.len();
         GpuEngine {
@@ -79,6 +82,7 @@ impl GpuEngine {
             model,
             field,
             gpu,
+            occupancy,
             marcher,
             rays: TrainingRays::default(),
             last_rays: 0,
@@ -132,42 +136,43 @@ impl GpuEngine {
         }
     }
 
-    /// Re-evaluates the occupancy grid when the schedule says so, with densities from the
-    /// device.
+    /// Re-evaluates the occupancy grid on the device when the schedule says so, then
+    /// copies it to the host (for rendering, which marches there, and checkpoints).
     fn refresh_occupancy(&mut self, steps_done: u64, seed: u64) -> Result<()> {
-        let every = self.model.config.occupancy.update_every.max(1);
-        if !steps_done.is_multiple_of(every) {
+        let config = self.model.config.occupancy;
+        if !steps_done.is_multiple_of(config.update_every.max(1)) {
             return Ok(());
         }
-        let failure = Mutex::new(None);
         let dt = self.model.config.step_length();
-        let occupancy = self.model.config.occupancy;
-        let mut grid = std::mem::replace(
-            &mut self.model.grid,
-            crate::render::occupancy::OccupancyGrid::new(1, 1.0),
+        let (gpu, field, params) = (&self.gpu, &self.field, &self.params);
+        let density = |points: &Handle, n: usize| field.density(gpu, params, points, n).sigma;
+        self.occupancy
+            .update(gpu, &config, steps_done, seed, dt, &density);
+        let cells = self.occupancy.cells();
+        let thickness = gpu.read(&self.occupancy.thickness, cells)?;
+        let occupied = gpu.read_u32(&self.occupancy.occupied, cells)?;
+        self.model.grid = OccupancyGrid::from_parts(
+            self.occupancy.resolution,
+            self.occupancy.bound,
+            thickness,
+            occupied.iter().map(|&b| b == 1).collect(),
         );
-        {
-            let density = |points: &[f32], out: &mut [f32]| {
-                for (p, o) in points
-                    .chunks(DENSITY_CHUNK * 3)
-                    .zip(out.chunks_mut(DENSITY_CHUNK))
-                {
-                    if let Err(e) = self.density_chunk(p, o) {
-                        o.fill(0.0);
-                        if let Ok(mut f) = failure.lock() {
-                            f.get_or_insert(e);
-                        }
-                    }
-                }
-            };
-            grid.update(&occupancy, steps_done, seed, dt, &density);
-        }
-        self.model.grid = grid;
-        self.marcher.upload_grid(&self.gpu, &self.model.grid);
-        match failure.into_inner().ok().flatten() {
-            Some(e) => Err(e),
-            None => Ok(()),
-        }
+        Ok(())
+    }
+
+    /// Puts the host grid's state on the device.
+    fn upload_occupancy(gpu: &Gpu, model: &FastModel) -> (GpuOccupancy, GpuMarcher) {
+        let g = &model.grid;
+        let occupancy =
+            GpuOccupancy::new(gpu, &g.thickness, g.occupied_cells(), g.resolution, g.bound);
+        // Near and far only clip each ray's span, which the host computes.
+        let marcher = GpuMarcher::new(
+            &model.marcher(0.0, 1.0),
+            occupancy.occupied.clone(),
+            g.resolution,
+            g.bound,
+        );
+        (occupancy, marcher)
     }
 
     /// Reads `n` floats back for the NERF_CHECK_FINITE checks.
@@ -405,7 +410,7 @@ impl Engine for GpuEngine {
         self.grads = self.gpu.zeros(n);
         self.adam.t = state.adam_t;
         self.model.load_buffers(state.buffers);
-        self.marcher.upload_grid(&self.gpu, &self.model.grid);
+        (self.occupancy, self.marcher) = GpuEngine::upload_occupancy(&self.gpu, &self.model);
         Ok(())
     }
 

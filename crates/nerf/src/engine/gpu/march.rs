@@ -372,29 +372,27 @@ pub struct GpuMarcher {
 }
 
 impl GpuMarcher {
-    pub fn new(gpu: &Gpu, marcher: &Marcher, grid: &OccupancyGrid) -> Self {
-        let mut m = GpuMarcher {
-            occ: gpu.upload_u32(&[0]),
-            res: grid.resolution,
-            bound: grid.bound,
+    /// A marcher over the device grid `occupied` (`res^3` cells, 1 where occupied, read
+    /// at every march, so refreshes in place are seen).
+    pub fn new(marcher: &Marcher, occupied: Handle, res: usize, bound: f32) -> Self {
+        GpuMarcher {
+            occ: occupied,
+            res,
+            bound,
             dt: marcher.dt,
             max_samples: marcher.max_samples,
             contract: marcher.contract,
-        };
-        m.upload_grid(gpu, grid);
-        m
+        }
     }
 
-    /// Copies the grid's occupied cells to the device (after a refresh).
-    pub fn upload_grid(&mut self, gpu: &Gpu, grid: &OccupancyGrid) {
+    /// A marcher over a copy of a host grid.
+    pub fn with_grid(gpu: &Gpu, marcher: &Marcher, grid: &OccupancyGrid) -> Self {
         let bits: Vec<u32> = grid
             .occupied_cells()
             .iter()
             .map(|&o| u32::from(o))
             .collect();
-        self.occ = gpu.upload_u32(&bits);
-        self.res = grid.resolution;
-        self.bound = grid.bound;
+        GpuMarcher::new(marcher, gpu.upload_u32(&bits), grid.resolution, grid.bound)
     }
 
     fn params(&self) -> MarchParamsLaunch {
@@ -645,7 +643,7 @@ mod tests {
                 marcher.pack_ray(&grid, &rays, r, j, &mut want);
             }
 
-            let gm = GpuMarcher::new(&gpu, &marcher, &grid);
+            let gm = GpuMarcher::with_grid(&gpu, &marcher, &grid);
             let on_device = GpuRays::new(&gpu, &marcher, &grid, &rays, &jitter);
             let counted = gm.count(&gpu, &on_device);
             let counts = gpu.read_u32(&counted.counts, 500).expect("read");

@@ -5,7 +5,10 @@
 //! * [`open`]: which adapter (`--device`), with a clear error when the one asked for is
 //!   missing; [`device`]: opening one, and what it can do (float atomics);
 //! * [`engine`]: [`engine::GpuEngine`], the fast model's training step, rendering and
-//!   density queries with parameters, gradients and Adam's moments on the device;
+//!   density queries with parameters, gradients, Adam's moments and the occupancy grid on
+//!   the device;
+//! * [`march`]: occupancy-grid marching with sample compaction (count, prefix sum, budget
+//!   cut, packed write); [`occupancy`]: the grid's refresh;
 //! * [`field`]: the fast field forward and backward, built from [`hash_grid`] (the
 //!   multiresolution hash encoding; gradients scattered with float atomics, or a
 //!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
@@ -15,9 +18,10 @@
 //! * [`finite`]: counting non-finite gradients before the optimiser runs;
 //! * [`launch`]: launch grids and host/device copies.
 //!
-//! Not on the device yet: drawing rays and marching them (the host does both with the CPU
-//! engine's code and uploads the packed samples), the occupancy refresh's bookkeeping (its
-//! densities are evaluated on the device), and the paper's model.
+//! Not on the device yet: drawing the training rays (the host draws them with the CPU
+//! engine's code, `data::pixels`, every camera model included, and uploads 17 floats per
+//! ray), rendering's marching (the host marches in rounds; the field runs on the device),
+//! and the paper's model.
 
 pub mod adam;
 pub mod device;
@@ -29,6 +33,7 @@ pub mod launch;
 pub mod loss;
 pub mod march;
 pub mod mlp;
+pub mod occupancy;
 pub mod volume;
 
 use crate::engine::{Device, Engine, EngineOptions};
