@@ -227,3 +227,62 @@ fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
         report.mean_psnr
     );
 }
+
+/// The paper's model on both engines from the same weights on the same rays: the coarse
+/// samples are the same, the fine ones are drawn from each engine's own coarse weights
+/// (equal to rounding), and the losses agree step by step; renders of the result agree.
+#[test]
+fn the_paper_model_trains_alike_on_both_engines() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 16);
+    let mut c = TrainConfig::from_preset(data.clone(), "demo").expect("preset");
+    c.batch_rays = 128;
+    c.chunk_rays = 64;
+    let scene = c.open_scene(1).expect("scene");
+    let train = scene.load(Split::Train, 1).expect("load");
+    let mut cpu = Trainer::on(Device::Cpu, c.clone(), train.clone()).expect("cpu");
+    let mut gpu = Trainer::on(Device::Wgpu, c, train).expect("gpu");
+    let mut worst: f32 = 0.0;
+    let (mut first, mut last) = (0.0, 0.0);
+    for step in 0..12 {
+        let a = cpu.step().expect("cpu step");
+        let b = gpu.step().expect("gpu step");
+        assert_eq!((a.rays, a.samples), (b.rays, b.samples));
+        worst = worst.max((a.loss - b.loss).abs() / a.loss);
+        if step == 0 {
+            first = b.loss;
+        }
+        last = b.loss;
+    }
+    eprintln!(
+        "paper model, 12 steps: worst relative loss difference {worst:.1e}; gpu {first} -> {last}"
+    );
+    assert!(worst < 1e-2, "losses differ by {worst}");
+    assert!(
+        last < first,
+        "the GPU engine did not learn: {first} -> {last}"
+    );
+    // Rendering the CPU's weights on the GPU gives the CPU's pixels.
+    gpu.engine.set_state(cpu.engine.state()).expect("state");
+    let camera = scene.cameras(Split::Test)[0].clone();
+    let world: Vec<_> = (0..camera.height)
+        .flat_map(|j| (0..camera.width).map(move |i| (i, j)))
+        .map(|(i, j)| camera.ray(i, j))
+        .collect();
+    let batch = nerf::views::RenderSettings::of_scene(&scene, [1.0; 3]).ray_batch(&world, 0);
+    let (mut oa, mut ob) = (
+        vec![nerf::stage::RayOutput::default(); batch.len()],
+        vec![nerf::stage::RayOutput::default(); batch.len()],
+    );
+    cpu.engine.render_rays(&batch, &mut oa, &|_| {});
+    gpu.engine.render_rays(&batch, &mut ob, &|_| {});
+    for (x, y) in oa.iter().zip(&ob) {
+        for c in 0..3 {
+            assert!((x.rgb[c] - y.rgb[c]).abs() < 1e-3, "{x:?} vs {y:?}");
+        }
+    }
+}

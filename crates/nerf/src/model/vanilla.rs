@@ -239,6 +239,39 @@ fn pass_backward(
 }
 
 impl VanillaModel {
+    /// For an engine that runs the networks elsewhere (the GPU engine): the paper's coarse
+    /// samples of `rays` (stratified with the rays' own streams when given, bin midpoints
+    /// otherwise), packed with one unit view direction per ray.
+    pub fn pack_coarse<'w>(
+        &self,
+        ws: &'w mut ChunkWorkspace,
+        rays: &RayBatch,
+        rngs: Option<&mut [Rng]>,
+    ) -> &'w PackedSamples {
+        let n_c = self.config.n_coarse;
+        coarse_samples(ws, rays, n_c, rngs);
+        pack(&mut ws.samples, rays, &ws.t_coarse, n_c);
+        &ws.samples
+    }
+
+    /// After [`pack_coarse`](Self::pack_coarse): the fine pass's samples (importance
+    /// samples from the coarse compositing weights `coarse_weights`, `rays x n_coarse`,
+    /// merged with the coarse ones), packed.
+    pub fn pack_fine<'w>(
+        &self,
+        ws: &'w mut ChunkWorkspace,
+        rays: &RayBatch,
+        coarse_weights: &[f32],
+        rngs: Option<&mut [Rng]>,
+    ) -> &'w PackedSamples {
+        let (n_c, n_f) = (self.config.n_coarse, self.config.n_fine);
+        ws.weights.clear();
+        ws.weights.extend_from_slice(coarse_weights);
+        fine_samples(ws, rays.len(), n_c, n_f, rngs);
+        pack(&mut ws.samples, rays, &ws.t_fine, n_c + n_f);
+        &ws.samples
+    }
+
     fn coarse_range(&self) -> std::ops::Range<usize> {
         0..self.coarse.num_params()
     }

@@ -18,16 +18,15 @@ use rayon::prelude::*;
 
 use super::device::Gpu;
 use super::field::{Activations, GpuFastField};
-use super::finite::count_nonfinite;
 use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
-use super::{adam, loss, volume};
+use super::params::{check_device, report_device_failure, DeviceParams};
+use super::{loss, volume};
 use crate::data::pixels::TrainingRays;
 use crate::data::Dataset;
 use crate::engine::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
-use crate::error::{NerfError, Result};
+use crate::error::Result;
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
-use crate::nn::adam::{Adam, DirtyStep};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
 use crate::render::march::{render_marched, MarchWorkspace};
@@ -45,13 +44,8 @@ pub struct GpuEngine {
     /// The host side: layout, occupancy grid and marching.
     model: FastModel,
     field: GpuFastField,
-    n_params: usize,
-    params: Handle,
-    grads: Handle,
-    adam_m: Handle,
-    adam_v: Handle,
-    /// Adam's configuration and step count (its moments are on the device).
-    adam: Adam,
+    /// Parameters, gradients and Adam's moments.
+    state: DeviceParams,
     check_finite: bool,
     chunk_rays: usize,
     /// The occupancy grid on the device, and the marcher that reads it.
@@ -67,17 +61,10 @@ impl GpuEngine {
         let model = FastModel::new(config.clone());
         let field = GpuFastField::new(&gpu, &model.field);
         let (occupancy, marcher) = GpuEngine::upload_occupancy(&gpu, &model);
-        let params = model.init_params(seed);
-        let n = params.len();
         GpuEngine {
-            params: gpu.upload(&params),
-            grads: gpu.zeros(n),
-            adam_m: gpu.zeros(n),
-            adam_v: gpu.zeros(n),
-            adam: Adam::new(options.adam, 0),
+            state: DeviceParams::new(&gpu, &model.init_params(seed), options.adam),
             check_finite: options.check_finite,
             chunk_rays: options.chunk_rays.max(1),
-            n_params: n,
             config: ModelConfig::Fast(config),
             model,
             field,
@@ -92,9 +79,12 @@ impl GpuEngine {
     /// Densities of `positions` (`n x 3`, at most `DENSITY_CHUNK` points) into `out`.
     fn density_chunk(&self, positions: &[f32], out: &mut [f32]) -> Result<()> {
         let n = out.len();
-        let acts = self
-            .field
-            .density(&self.gpu, &self.params, &self.gpu.upload(positions), n);
+        let acts = self.field.density(
+            &self.gpu,
+            &self.state.values,
+            &self.gpu.upload(positions),
+            n,
+        );
         out.copy_from_slice(&self.gpu.read(&acts.sigma, n)?);
         Ok(())
     }
@@ -144,7 +134,7 @@ impl GpuEngine {
             return Ok(());
         }
         let dt = self.model.config.step_length();
-        let (gpu, field, params) = (&self.gpu, &self.field, &self.params);
+        let (gpu, field, params) = (&self.gpu, &self.field, &self.state.values);
         let density = |points: &Handle, n: usize| field.density(gpu, params, points, n).sigma;
         self.occupancy
             .update(gpu, &config, steps_done, seed, dt, &density);
@@ -173,21 +163,6 @@ impl GpuEngine {
             g.bound,
         );
         (occupancy, marcher)
-    }
-
-    /// Reads `n` floats back for the NERF_CHECK_FINITE checks.
-    fn check(
-        &self,
-        check: &FiniteCheck,
-        stage: &'static str,
-        buffer: &'static str,
-        h: &Handle,
-        n: usize,
-    ) -> Result<()> {
-        if check.enabled() {
-            check.check(stage, buffer, &self.gpu.read(h, n)?);
-        }
-        Ok(())
     }
 }
 
@@ -228,9 +203,11 @@ impl Engine for GpuEngine {
         let gpu = &self.gpu;
         let check = FiniteCheck::new(self.check_finite);
 
-        let acts = self.field.forward(gpu, &self.params, &positions, &dirs, n);
-        self.check(&check, "field.forward", "sigma", &acts.sigma, n)?;
-        self.check(&check, "field.forward", "rgb", &acts.rgb, n * 3)?;
+        let acts = self
+            .field
+            .forward(gpu, &self.state.values, &positions, &dirs, n);
+        check_device(gpu, &check, "field.forward", "sigma", &acts.sigma, n)?;
+        check_device(gpu, &check, "field.forward", "rgb", &acts.rgb, n * 3)?;
         let weights = gpu.floats(n);
         let out = gpu.floats(rays * volume::OUT_WORDS);
         volume::composite(
@@ -242,7 +219,8 @@ impl Engine for GpuEngine {
             &weights,
             &out,
         );
-        self.check(
+        check_device(
+            gpu,
             &check,
             "composite",
             "ray outputs",
@@ -263,56 +241,43 @@ impl Engine for GpuEngine {
             &d_sigma,
             &d_rgb,
         );
-        self.check(&check, "loss.backward", "d_sigma", &d_sigma, n)?;
-        self.check(&check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
-        self.field
-            .backward(gpu, &self.params, &self.grads, &acts, &d_sigma, &d_rgb);
-        self.check(
+        check_device(gpu, &check, "loss.backward", "d_sigma", &d_sigma, n)?;
+        check_device(gpu, &check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
+        self.field.backward(
+            gpu,
+            &self.state.values,
+            &self.state.grads,
+            &acts,
+            &d_sigma,
+            &d_rgb,
+        );
+        check_device(
+            gpu,
             &check,
             "field.backward",
             "parameter gradients",
-            &self.grads,
-            self.n_params,
+            &self.state.grads,
+            self.state.n,
         )?;
-        let bad = count_nonfinite(gpu, &self.grads, self.n_params)?;
         // Per ray, summed in ray order in f64: the CPU engine's loss to rounding.
         let sse: f64 = gpu.read(&sse, rays)?.iter().map(|&e| e as f64).sum();
         let scale = mean_scale(rays);
         let loss = (sse * scale) as f32;
         if let Some(e) = check.take(step + 1) {
-            self.grads = gpu.zeros(self.n_params);
+            self.state.clear_grads(gpu);
             return Err(e);
         }
-        if !loss.is_finite() || bad > 0 {
-            self.grads = gpu.zeros(self.n_params);
-            let what = if loss.is_finite() {
-                format!("{bad} gradients are not finite (the loss was a finite {loss})")
-            } else {
-                format!("the loss is {loss}")
-            };
-            return Err(NerfError::Diverged {
-                step: step + 1,
-                what,
-            });
-        }
         let rule = self.model.update_rule();
-        let adam_step = self.adam.begin_step(spec.lr);
-        adam::step(
+        self.state
+            .finish_step(gpu, step, loss, spec.lr, scale as f32, rule)?;
+        check_device(
             gpu,
-            &self.adam.config,
-            adam_step,
-            DirtyStep {
-                scale: scale as f32,
-                lazy_end: rule.lazy_end,
-                weight_decay: rule.weight_decay,
-            },
-            self.n_params,
-            &self.params,
-            &self.adam_m,
-            &self.adam_v,
-            &self.grads,
-        );
-        self.check(&check, "adam", "parameters", &self.params, self.n_params)?;
+            &check,
+            "adam",
+            "parameters",
+            &self.state.values,
+            self.state.n,
+        )?;
         if let Some(e) = check.take(step + 1) {
             return Err(e);
         }
@@ -372,43 +337,12 @@ impl Engine for GpuEngine {
     }
 
     fn state(&self) -> EngineState {
-        let read = |h: &Handle| {
-            self.gpu.read(h, self.n_params).unwrap_or_else(|e| {
-                report_device_failure(&e);
-                vec![f32::NAN; self.n_params]
-            })
-        };
-        EngineState {
-            params: read(&self.params),
-            adam_m: read(&self.adam_m),
-            adam_v: read(&self.adam_v),
-            adam_t: self.adam.t,
-            buffers: self.model.buffers(),
-        }
+        self.state.state(&self.gpu, self.model.buffers())
     }
 
     fn set_state(&mut self, state: EngineState) -> Result<()> {
-        let n = self.n_params;
         let buffers = self.model.buffer_layout().total;
-        if state.params.len() != n
-            || state.adam_m.len() != n
-            || state.adam_v.len() != n
-            || state.buffers.len() != buffers
-        {
-            return Err(NerfError::Config(format!(
-                "state does not fit this model: {} parameters and {} buffer values expected, \
-                 got {} and {}",
-                n,
-                buffers,
-                state.params.len(),
-                state.buffers.len()
-            )));
-        }
-        self.params = self.gpu.upload(&state.params);
-        self.adam_m = self.gpu.upload(&state.adam_m);
-        self.adam_v = self.gpu.upload(&state.adam_v);
-        self.grads = self.gpu.zeros(n);
-        self.adam.t = state.adam_t;
+        self.state.set_state(&self.gpu, &state, buffers)?;
         self.model.load_buffers(state.buffers);
         (self.occupancy, self.marcher) = GpuEngine::upload_occupancy(&self.gpu, &self.model);
         Ok(())
@@ -423,13 +357,6 @@ impl Engine for GpuEngine {
     fn touched_fraction(&self) -> f64 {
         1.0
     }
-}
-
-/// Rendering and density queries cannot return an error through the engine seam: a failed
-/// device read is reported once on stderr and its values come back as NaN.
-fn report_device_failure(e: &NerfError) {
-    static SAID: std::sync::Once = std::sync::Once::new();
-    SAID.call_once(|| eprintln!("error: {e}; the affected values are NaN"));
 }
 
 /// The engine's field as a [`Field`] whose parameters are on the device (the host
@@ -451,7 +378,7 @@ impl Field for DeviceField<'_> {
     type Context = DeviceFieldContext;
 
     fn num_params(&self) -> usize {
-        self.engine.n_params
+        self.engine.state.n
     }
 
     fn forward<'c>(
@@ -469,7 +396,7 @@ impl Field for DeviceField<'_> {
             .collect();
         let acts = e.field.forward(
             &e.gpu,
-            &e.params,
+            &e.state.values,
             &e.gpu.upload(input.positions),
             &e.gpu.upload(&dirs),
             n,
@@ -498,16 +425,16 @@ impl Field for DeviceField<'_> {
     ) {
         let Some(acts) = &ctx.acts else { return };
         let e = self.engine;
-        let g = e.gpu.zeros(e.n_params);
+        let g = e.gpu.zeros(e.state.n);
         e.field.backward(
             &e.gpu,
-            &e.params,
+            &e.state.values,
             &g,
             acts,
             &e.gpu.upload(d_output.d_sigma),
             &e.gpu.upload(d_output.d_rgb),
         );
-        match e.gpu.read(&g, e.n_params) {
+        match e.gpu.read(&g, e.state.n) {
             Ok(values) => {
                 for (a, v) in grads.dense().iter_mut().zip(values) {
                     *a += v;

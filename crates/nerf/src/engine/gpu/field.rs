@@ -73,7 +73,7 @@ fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32) {
 }
 
 #[cube(launch_unchecked)]
-fn sigmoid_in_place(v: &mut [f32]) {
+pub(super) fn sigmoid_in_place(v: &mut [f32]) {
     let i = ABSOLUTE_POS;
     if i < v.len() {
         v[i] = 1.0 / (1.0 + f32::exp(-v[i]));
@@ -82,7 +82,7 @@ fn sigmoid_in_place(v: &mut [f32]) {
 
 /// `d_logit = d_rgb * y (1 - y)` through the output sigmoid.
 #[cube(launch_unchecked)]
-fn sigmoid_bwd(d_rgb: &[f32], rgb: &[f32], d_logit: &mut [f32]) {
+pub(super) fn sigmoid_bwd(d_rgb: &[f32], rgb: &[f32], d_logit: &mut [f32]) {
     let i = ABSOLUTE_POS;
     if i < d_logit.len() {
         let y = rgb[i];

@@ -34,10 +34,13 @@ pub mod loss;
 pub mod march;
 pub mod mlp;
 pub mod occupancy;
+pub mod params;
+pub mod vanilla;
+pub mod vanilla_net;
 pub mod volume;
 
 use crate::engine::{Device, Engine, EngineOptions};
-use crate::error::{NerfError, Result};
+use crate::error::Result;
 use crate::model::ModelConfig;
 
 /// The GPU engine for `model` on `device` (`Auto`: CUDA, then a hardware wgpu adapter,
@@ -64,12 +67,11 @@ pub fn open(
             options,
             seed,
         ))),
-        // Auto keeps such a model on the CPU; asking for a GPU by name is an error.
-        ModelConfig::Vanilla(_) if device == Device::Auto => Ok(super::open(model, options, seed)),
-        ModelConfig::Vanilla(_) => Err(NerfError::Device(format!(
-            "the paper's (vanilla) model has no GPU engine yet; train it with --device cpu \
-             (found {})",
-            gpu.name
+        ModelConfig::Vanilla(config) => Ok(Box::new(vanilla::GpuVanillaEngine::new(
+            gpu,
+            config.clone(),
+            options,
+            seed,
         ))),
     }
 }

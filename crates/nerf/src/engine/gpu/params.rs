@@ -1,0 +1,153 @@
+//! A model's trainable state on the device: parameters, their gradient buffer and Adam's
+//! moments, with the end of every training step (refuse a diverged step, else one Adam
+//! update) and the host copies checkpoints need. Both GPU engines keep theirs here.
+
+use cubecl::server::Handle;
+
+use super::adam;
+use super::device::Gpu;
+use super::finite::count_nonfinite;
+use crate::engine::EngineState;
+use crate::error::{NerfError, Result};
+use crate::model::UpdateRule;
+use crate::nn::adam::{Adam, AdamConfig, DirtyStep};
+use crate::stage::finite::FiniteCheck;
+
+pub struct DeviceParams {
+    pub n: usize,
+    pub values: Handle,
+    /// Gradients of the summed squared error; Adam clears them.
+    pub grads: Handle,
+    m: Handle,
+    v: Handle,
+    /// Adam's configuration and step count (its moments are `m` and `v`).
+    adam: Adam,
+}
+
+impl DeviceParams {
+    pub fn new(gpu: &Gpu, init: &[f32], adam: AdamConfig) -> Self {
+        let n = init.len();
+        DeviceParams {
+            n,
+            values: gpu.upload(init),
+            grads: gpu.zeros(n),
+            m: gpu.zeros(n),
+            v: gpu.zeros(n),
+            adam: Adam::new(adam, 0),
+        }
+    }
+
+    /// Ends step `step` (0-based) whose summed squared errors give `loss` (the mean, via
+    /// `scale`): refused, with the gradients cleared and the parameters untouched, when the
+    /// loss or a gradient is not finite; else one Adam update under `rule`.
+    pub fn finish_step(
+        &mut self,
+        gpu: &Gpu,
+        step: u64,
+        loss: f32,
+        lr: f32,
+        scale: f32,
+        rule: UpdateRule,
+    ) -> Result<()> {
+        let bad = count_nonfinite(gpu, &self.grads, self.n)?;
+        if !loss.is_finite() || bad > 0 {
+            self.clear_grads(gpu);
+            let what = if loss.is_finite() {
+                format!("{bad} gradients are not finite (the loss was a finite {loss})")
+            } else {
+                format!("the loss is {loss}")
+            };
+            return Err(NerfError::Diverged {
+                step: step + 1,
+                what,
+            });
+        }
+        let update = self.adam.begin_step(lr);
+        adam::step(
+            gpu,
+            &self.adam.config,
+            update,
+            DirtyStep {
+                scale,
+                lazy_end: rule.lazy_end,
+                weight_decay: rule.weight_decay,
+            },
+            self.n,
+            &self.values,
+            &self.m,
+            &self.v,
+            &self.grads,
+        );
+        Ok(())
+    }
+
+    pub fn clear_grads(&mut self, gpu: &Gpu) {
+        self.grads = gpu.zeros(self.n);
+    }
+
+    /// Host copies, with the model's non-trainable `buffers`. A failed read (a lost
+    /// device) is reported once and reads as NaN, which a checkpoint refuses to save.
+    pub fn state(&self, gpu: &Gpu, buffers: Vec<f32>) -> EngineState {
+        let read = |h: &Handle| {
+            gpu.read(h, self.n).unwrap_or_else(|e| {
+                report_device_failure(&e);
+                vec![f32::NAN; self.n]
+            })
+        };
+        EngineState {
+            params: read(&self.values),
+            adam_m: read(&self.m),
+            adam_v: read(&self.v),
+            adam_t: self.adam.t,
+            buffers,
+        }
+    }
+
+    /// Replaces the state from host copies, checking the sizes (`buffers` values of the
+    /// model's own buffers expected).
+    pub fn set_state(&mut self, gpu: &Gpu, state: &EngineState, buffers: usize) -> Result<()> {
+        let n = self.n;
+        if state.params.len() != n
+            || state.adam_m.len() != n
+            || state.adam_v.len() != n
+            || state.buffers.len() != buffers
+        {
+            return Err(NerfError::Config(format!(
+                "state does not fit this model: {} parameters and {} buffer values expected, \
+                 got {} and {}",
+                n,
+                buffers,
+                state.params.len(),
+                state.buffers.len()
+            )));
+        }
+        self.values = gpu.upload(&state.params);
+        self.m = gpu.upload(&state.adam_m);
+        self.v = gpu.upload(&state.adam_v);
+        self.grads = gpu.zeros(n);
+        self.adam.t = state.adam_t;
+        Ok(())
+    }
+}
+
+/// NERF_CHECK_FINITE on the device: reads `n` floats of `h` back and checks them.
+pub fn check_device(
+    gpu: &Gpu,
+    check: &FiniteCheck,
+    stage: &'static str,
+    buffer: &'static str,
+    h: &Handle,
+    n: usize,
+) -> Result<()> {
+    if check.enabled() {
+        check.check(stage, buffer, &gpu.read(h, n)?);
+    }
+    Ok(())
+}
+
+/// Rendering and density queries cannot return an error through the engine seam: a failed
+/// device read is reported once on stderr and its values come back as NaN.
+pub fn report_device_failure(e: &NerfError) {
+    static SAID: std::sync::Once = std::sync::Once::new();
+    SAID.call_once(|| eprintln!("error: {e}; the affected values are NaN"));
+}

@@ -1,0 +1,374 @@
+//! The GPU engine for the paper's model: both networks' forward and backward, compositing,
+//! the loss and Adam on the device, where the parameters, gradients and moments live.
+//!
+//! Work mapping of a step: the host draws the rays and their stratified depths (the CPU
+//! engine's code: the same rays and samples) and uploads the packed samples; the device
+//! runs the coarse pass forward and backward; its compositing weights come back (4 bytes
+//! per sample) for the host to draw the importance samples from, exactly as on the CPU;
+//! the device runs the fine pass forward and backward, and Adam. The host reads back one
+//! float per ray per pass (the loss) and one count (non-finite gradients). Rendering goes
+//! through the same two passes in chunks of rays.
+
+use cubecl::server::Handle;
+use rayon::prelude::*;
+
+use super::device::Gpu;
+use super::loss;
+use super::params::{check_device, report_device_failure, DeviceParams};
+use super::vanilla_net::{GpuVanillaNet, VanillaActs};
+use super::volume::{self, GpuSamples, OUT_WORDS};
+use crate::data::pixels::TrainingRays;
+use crate::data::Dataset;
+use crate::engine::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
+use crate::error::Result;
+use crate::model::vanilla::ChunkWorkspace;
+use crate::model::{Model, ModelConfig, VanillaModel, VanillaModelConfig};
+use crate::nn::ParamLayout;
+use crate::render::loss::mean_scale;
+use crate::stage::finite::FiniteCheck;
+use crate::stage::{PackedSamples, RayBatch, RayOutput};
+
+/// Points per device call of density queries.
+const DENSITY_CHUNK: usize = 1 << 15;
+
+/// The paper's model on one GPU.
+pub struct GpuVanillaEngine {
+    gpu: Gpu,
+    config: ModelConfig,
+    /// The host side: layout, sampling.
+    model: VanillaModel,
+    coarse: GpuVanillaNet,
+    fine: Option<GpuVanillaNet>,
+    state: DeviceParams,
+    check_finite: bool,
+    chunk_rays: usize,
+    rays: TrainingRays,
+    ws: ChunkWorkspace,
+}
+
+/// One pass (coarse or fine) of a batch of rays, forward done.
+struct Pass {
+    samples: GpuSamples,
+    acts: VanillaActs,
+    weights: Handle,
+    out: Handle,
+}
+
+impl GpuVanillaEngine {
+    pub fn new(gpu: Gpu, config: VanillaModelConfig, options: EngineOptions, seed: u64) -> Self {
+        let model = VanillaModel::new(config.clone());
+        let n = model.layout.total;
+        let coarse = GpuVanillaNet::new(&model.coarse, 0, n);
+        let fine = model
+            .fine
+            .as_ref()
+            .map(|f| GpuVanillaNet::new(f, model.coarse.num_params(), n));
+        GpuVanillaEngine {
+            state: DeviceParams::new(&gpu, &model.init_params(seed), options.adam),
+            check_finite: options.check_finite,
+            chunk_rays: options.chunk_rays.max(1),
+            config: ModelConfig::Vanilla(config),
+            model,
+            coarse,
+            fine,
+            gpu,
+            rays: TrainingRays::default(),
+            ws: ChunkWorkspace::default(),
+        }
+    }
+
+    /// Uploads packed `samples` and runs `net` forward and compositing over `backgrounds`.
+    fn pass(&self, net: &GpuVanillaNet, samples: &PackedSamples, backgrounds: &Handle) -> Pass {
+        let gpu = &self.gpu;
+        let (rays, n) = (samples.rays(), samples.len());
+        let offsets: Vec<u32> = samples.offsets.iter().map(|&o| o as u32).collect();
+        let spd = samples.samples_per_dir.max(1);
+        let dirs: Vec<f32> = (0..n).flat_map(|s| samples.dirs[s / spd]).collect();
+        let on_device = GpuSamples {
+            offsets: gpu.upload_u32(&offsets),
+            t: gpu.upload(&samples.t),
+            dt: gpu.upload(&samples.dt),
+            rays,
+            len: n,
+        };
+        let acts = net.forward(
+            gpu,
+            &self.state.values,
+            &gpu.upload(samples.positions.as_flattened()),
+            &gpu.upload(&dirs),
+            n,
+        );
+        let (weights, out) = (gpu.floats(n), gpu.floats(rays * OUT_WORDS));
+        volume::composite(
+            gpu,
+            &on_device,
+            &acts.sigma,
+            &acts.rgb,
+            backgrounds,
+            &weights,
+            &out,
+        );
+        Pass {
+            samples: on_device,
+            acts,
+            weights,
+            out,
+        }
+    }
+
+    /// The loss of `pass` against `targets` and its backward into the gradients; returns
+    /// the pass's summed squared error.
+    fn backward(
+        &self,
+        net: &GpuVanillaNet,
+        pass: &Pass,
+        backgrounds: &Handle,
+        targets: &Handle,
+        check: &FiniteCheck,
+    ) -> Result<f64> {
+        let gpu = &self.gpu;
+        let (rays, n) = (pass.samples.rays, pass.samples.len);
+        let (sse, d_out) = (gpu.floats(rays), gpu.floats(rays * 3));
+        loss::squared_error_per_ray(gpu, rays, &pass.out, targets, &sse, &d_out);
+        let (d_sigma, d_rgb) = (gpu.floats(n), gpu.floats(n * 3));
+        volume::composite_backward(
+            gpu,
+            &pass.samples,
+            &pass.acts.sigma,
+            &pass.acts.rgb,
+            backgrounds,
+            &pass.out,
+            &d_out,
+            &d_sigma,
+            &d_rgb,
+        );
+        check_device(gpu, check, "loss.backward", "d_sigma", &d_sigma, n)?;
+        check_device(gpu, check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
+        net.backward(
+            gpu,
+            &self.state.values,
+            &self.state.grads,
+            &pass.acts,
+            &d_sigma,
+            &d_rgb,
+        );
+        // Per ray, summed in ray order in f64: the CPU engine's loss to rounding.
+        Ok(gpu.read(&sse, rays)?.iter().map(|&e| e as f64).sum())
+    }
+
+    fn check_forward(&self, check: &FiniteCheck, pass: &Pass) -> Result<()> {
+        let n = pass.samples.len;
+        check_device(
+            &self.gpu,
+            check,
+            "field.forward",
+            "sigma",
+            &pass.acts.sigma,
+            n,
+        )?;
+        check_device(
+            &self.gpu,
+            check,
+            "field.forward",
+            "rgb",
+            &pass.acts.rgb,
+            n * 3,
+        )
+    }
+
+    /// Renders one chunk of rays (bin-midpoint coarse samples, evenly spaced importance
+    /// samples, as the CPU engine renders).
+    fn render_chunk(&self, rays: &RayBatch, out: &mut [RayOutput]) -> Result<()> {
+        let gpu = &self.gpu;
+        let mut ws = ChunkWorkspace::default();
+        let backgrounds = gpu.upload(rays.backgrounds.as_flattened());
+        let samples = self.model.pack_coarse(&mut ws, rays, None);
+        let mut pass = self.pass(&self.coarse, samples, &backgrounds);
+        if let Some(fine) = &self.fine {
+            let weights = gpu.read(&pass.weights, pass.samples.len)?;
+            let samples = self.model.pack_fine(&mut ws, rays, &weights, None);
+            pass = self.pass(fine, samples, &backgrounds);
+        }
+        let values = gpu.read(&pass.out, rays.len() * OUT_WORDS)?;
+        for (o, v) in out.iter_mut().zip(values.chunks_exact(OUT_WORDS)) {
+            *o = RayOutput {
+                rgb: [v[0], v[1], v[2]],
+                depth: v[3],
+                opacity: v[4],
+            };
+        }
+        Ok(())
+    }
+}
+
+impl Engine for GpuVanillaEngine {
+    fn describe(&self) -> String {
+        format!("wgpu, {}", self.gpu.name)
+    }
+
+    fn model_config(&self) -> &ModelConfig {
+        &self.config
+    }
+
+    fn param_layout(&self) -> &ParamLayout {
+        self.model.layout()
+    }
+
+    fn buffer_layout(&self) -> ParamLayout {
+        self.model.buffer_layout()
+    }
+
+    fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
+        let step = spec.sampling.step;
+        let batch = spec.batch_rays.max(1);
+        let mut rays = std::mem::take(&mut self.rays);
+        let mut ws = std::mem::take(&mut self.ws);
+        rays.draw(data, &spec.sampling, 0..batch as u64);
+        let result = (|| -> Result<(f64, f64, usize)> {
+            let gpu = &self.gpu;
+            let check = FiniteCheck::new(self.check_finite);
+            let backgrounds = gpu.upload(rays.rays.backgrounds.as_flattened());
+            let targets = gpu.upload(rays.targets.as_flattened());
+            let samples = self
+                .model
+                .pack_coarse(&mut ws, &rays.rays, Some(&mut rays.rngs));
+            let coarse = self.pass(&self.coarse, samples, &backgrounds);
+            self.check_forward(&check, &coarse)?;
+            let coarse_sse =
+                self.backward(&self.coarse, &coarse, &backgrounds, &targets, &check)?;
+            let mut evaluated = coarse.samples.len;
+            let mut fine_sse = None;
+            if let Some(fine) = &self.fine {
+                let weights = gpu.read(&coarse.weights, coarse.samples.len)?;
+                let samples =
+                    self.model
+                        .pack_fine(&mut ws, &rays.rays, &weights, Some(&mut rays.rngs));
+                let pass = self.pass(fine, samples, &backgrounds);
+                self.check_forward(&check, &pass)?;
+                fine_sse = Some(self.backward(fine, &pass, &backgrounds, &targets, &check)?);
+                evaluated += pass.samples.len;
+            }
+            check_device(
+                gpu,
+                &check,
+                "field.backward",
+                "parameter gradients",
+                &self.state.grads,
+                self.state.n,
+            )?;
+            if let Some(e) = check.take(step + 1) {
+                return Err(e);
+            }
+            Ok((
+                coarse_sse + fine_sse.unwrap_or(0.0),
+                fine_sse.unwrap_or(coarse_sse),
+                evaluated,
+            ))
+        })();
+        self.rays = rays;
+        self.ws = ws;
+        let (sse, final_sse, samples) = match result {
+            Ok(r) => r,
+            Err(e) => {
+                self.state.clear_grads(&self.gpu);
+                return Err(e);
+            }
+        };
+        let scale = mean_scale(batch);
+        let loss = (sse * scale) as f32;
+        let rule = self.model.update_rule();
+        self.state
+            .finish_step(&self.gpu, step, loss, spec.lr, scale as f32, rule)?;
+        let check = FiniteCheck::new(self.check_finite);
+        check_device(
+            &self.gpu,
+            &check,
+            "adam",
+            "parameters",
+            &self.state.values,
+            self.state.n,
+        )?;
+        if let Some(e) = check.take(step + 1) {
+            return Err(e);
+        }
+        Ok(StepStats {
+            step: step + 1,
+            loss,
+            psnr: crate::metrics::psnr_from_mse(final_sse * scale),
+            lr: spec.lr,
+            rays: batch,
+            samples,
+        })
+    }
+
+    fn render_rays(
+        &self,
+        rays: &RayBatch,
+        out: &mut [RayOutput],
+        on_progress: &(dyn Fn(usize) + Sync),
+    ) {
+        let chunk = self.chunk_rays;
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        out[..rays.len()]
+            .par_chunks_mut(chunk)
+            .enumerate()
+            .for_each(|(c, out)| {
+                let part = rays.slice(c * chunk..c * chunk + out.len());
+                if let Err(e) = self.render_chunk(&part, out) {
+                    report_device_failure(&e);
+                    out.fill(RayOutput {
+                        rgb: [f32::NAN; 3],
+                        depth: f32::NAN,
+                        opacity: f32::NAN,
+                    });
+                }
+                let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
+                on_progress(n);
+            });
+    }
+
+    /// The fine network's density (the coarse one's without a fine network).
+    fn density(&self, positions: &[f32], out: &mut [f32]) {
+        assert_eq!(positions.len(), out.len() * 3);
+        let net = self.fine.as_ref().unwrap_or(&self.coarse);
+        for (p, o) in positions
+            .chunks(DENSITY_CHUNK * 3)
+            .zip(out.chunks_mut(DENSITY_CHUNK))
+        {
+            let n = o.len();
+            // Density does not depend on the direction: any unit vector will do.
+            let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.0, 1.0]).collect();
+            let acts = net.forward(
+                &self.gpu,
+                &self.state.values,
+                &self.gpu.upload(p),
+                &self.gpu.upload(&dirs),
+                n,
+            );
+            match self.gpu.read(&acts.sigma, n) {
+                Ok(v) => o.copy_from_slice(&v),
+                Err(e) => {
+                    report_device_failure(&e);
+                    o.fill(f32::NAN);
+                }
+            }
+        }
+    }
+
+    fn state(&self) -> EngineState {
+        self.state.state(&self.gpu, Vec::new())
+    }
+
+    fn set_state(&mut self, state: EngineState) -> Result<()> {
+        self.state.set_state(&self.gpu, &state, 0)
+    }
+
+    fn occupancy(&self) -> Option<f64> {
+        None
+    }
+
+    /// Every parameter goes through the device's dense Adam pass.
+    fn touched_fraction(&self) -> f64 {
+        1.0
+    }
+}
