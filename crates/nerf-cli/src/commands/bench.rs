@@ -98,9 +98,8 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     println!(
-        "\n{} ({} threads), fast model on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        "\n{}, fast model on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
         r.engine,
-        r.threads,
         r.scene,
         r.warmup_steps,
         100.0 * r.occupied_fraction

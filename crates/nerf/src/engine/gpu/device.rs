@@ -4,6 +4,7 @@ use cubecl::client::Client;
 use cubecl::device::WgpuDeviceKind;
 use cubecl::ir::{ElemType, FloatKind, Type};
 
+use super::mlp::Path;
 use crate::error::{NerfError, Result};
 
 /// An opened adapter.
@@ -15,6 +16,10 @@ pub struct Gpu {
     /// A software adapter (lavapipe, llvmpipe, WARP): correct, but slower than the CPU
     /// engine.
     pub software: bool,
+    /// The dense layers' kernels: tiled through workgroup memory on a hardware GPU, plain
+    /// on a software adapter (where lavapipe runs a workgroup's barriers as separate loops
+    /// and the tiled kernels measured 4x slower); `NERF_GPU_MATMUL=plain|tiled` overrides.
+    pub matmul: Path,
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
     /// scattered with a compare-and-swap loop on their bits.
     pub float_atomics: bool,
@@ -31,7 +36,14 @@ impl Gpu {
             .contains(cubecl::ir::features::AtomicUsage::Add);
         let identity = &client.properties().identity;
         let software = identity.physical.is_none();
+        let matmul = match std::env::var("NERF_GPU_MATMUL").as_deref() {
+            Ok("plain") => Path::Plain,
+            Ok("tiled") => Path::Tiled,
+            _ if software => Path::Plain,
+            _ => Path::Tiled,
+        };
         Gpu {
+            matmul,
             name: format!(
                 "{runtime}: {}{}",
                 identity.name,

@@ -169,7 +169,7 @@ impl GpuEngine {
 impl Engine for GpuEngine {
     fn describe(&self) -> String {
         format!(
-            "wgpu, {}{}",
+            "{}{}",
             self.gpu.name,
             if self.gpu.float_atomics {
                 ""

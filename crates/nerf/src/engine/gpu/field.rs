@@ -400,6 +400,7 @@ impl GpuFastField {
 mod tests {
     use super::*;
     use crate::encoding::HashGridConfig;
+    use crate::engine::gpu::mlp::Path;
     use crate::field::fast::FastWorkspace;
     use crate::field::FastFieldConfig;
     use crate::nn::GradBuffer;
@@ -467,37 +468,43 @@ mod tests {
         };
         field.backward(&params, &mut ws, d, &mut grads.all());
 
-        let gf = GpuFastField::new(&gpu, &field);
-        let p = gpu.upload(&params);
-        let g = gpu.zeros(field.num_params());
-        let acts = gf.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
-        gf.backward(
-            &gpu,
-            &p,
-            &g,
-            &acts,
-            &gpu.upload(&d_sigma),
-            &gpu.upload(&d_rgb),
-        );
-        let sigma = gpu.read(&acts.sigma, n).expect("read");
-        let rgb = gpu.read(&acts.rgb, n * 3).expect("read");
-        let got = gpu.read(&g, field.num_params()).expect("read");
-        assert!(
-            worst(&sigma, &want_sigma) < 1e-4,
-            "sigma {}",
-            worst(&sigma, &want_sigma)
-        );
-        assert!(
-            worst(&rgb, &want_rgb) < 1e-5,
-            "rgb {}",
-            worst(&rgb, &want_rgb)
-        );
-        for t in &field.layout.tensors {
-            let e = worst(&got[t.range()], &grads.values[t.range()]);
-            assert!(e < 1e-4, "gradient of {}: {e}", t.name);
+        for path in [Path::Plain, Path::Tiled] {
+            let gpu = Gpu {
+                matmul: path,
+                ..gpu.clone()
+            };
+            let gf = GpuFastField::new(&gpu, &field);
+            let p = gpu.upload(&params);
+            let g = gpu.zeros(field.num_params());
+            let acts = gf.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
+            gf.backward(
+                &gpu,
+                &p,
+                &g,
+                &acts,
+                &gpu.upload(&d_sigma),
+                &gpu.upload(&d_rgb),
+            );
+            let sigma = gpu.read(&acts.sigma, n).expect("read");
+            let rgb = gpu.read(&acts.rgb, n * 3).expect("read");
+            let got = gpu.read(&g, field.num_params()).expect("read");
+            assert!(
+                worst(&sigma, &want_sigma) < 1e-4,
+                "sigma {}",
+                worst(&sigma, &want_sigma)
+            );
+            assert!(
+                worst(&rgb, &want_rgb) < 1e-5,
+                "rgb {}",
+                worst(&rgb, &want_rgb)
+            );
+            for t in &field.layout.tensors {
+                let e = worst(&got[t.range()], &grads.values[t.range()]);
+                assert!(e < 1e-4, "gradient of {}: {e}", t.name);
+            }
+            // The density-only pass gives the same densities.
+            let alone = gf.density(&gpu, &p, &gpu.upload(&pos), n);
+            assert_eq!(gpu.read(&alone.sigma, n).expect("read"), sigma);
         }
-        // The density-only pass gives the same densities.
-        let alone = gf.density(&gpu, &p, &gpu.upload(&pos), n);
-        assert_eq!(gpu.read(&alone.sigma, n).expect("read"), sigma);
     }
 }

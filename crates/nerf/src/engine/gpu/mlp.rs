@@ -3,23 +3,35 @@
 //! model's parameter vector exactly as the CPU lays them out (`in x out`, row-major, the
 //! bias after them), so one offset names a layer.
 //!
-//! Work mapping: forward and the input gradient run one thread per output value (sample,
-//! unit), each a dot product over the layer's width read from global memory (the weights
-//! stay in cache: 64 x 64 floats). The weight gradient `dW = x^T dy` is a reduction over
-//! samples: threads own one weight each for a slice of [`ROWS_PER_PARTIAL`] samples and
-//! write a partial sum; a second kernel adds the partials into the gradient buffer in a
-//! fixed order, so a step's gradients do not depend on thread timing.
+//! Work mapping: on a hardware GPU the forward, the input gradient and the weight gradient
+//! are tiled products (`gemm`: 16 x 16 output tiles staged through workgroup memory); the
+//! plain kernels here (one thread per output value, a dot product from global memory) are
+//! the reference the tiled path is tested against, the fallback for grids too tall for one
+//! launch, and the choice on software adapters (`Gpu::matmul`). The weight gradient `dW = x^T dy` is a reduction over samples: it is split
+//! into slices of [`ROWS_PER_PARTIAL`] samples, each writing a partial sum, and a second
+//! kernel adds the partials into the gradient buffer in a fixed order, so a step's
+//! gradients do not depend on thread timing.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::device::Gpu;
+use super::gemm::{self, Epilogue, View};
 use super::launch::grid;
 
 /// Threads per workgroup.
 const GROUP: u32 = 256;
 /// Samples summed by one thread of the weight-gradient kernel.
 pub const ROWS_PER_PARTIAL: usize = 256;
+
+/// Which kernels a layer runs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Path {
+    /// One thread per output value, a dot product from global memory.
+    Plain,
+    /// Tiled products through workgroup memory (`gemm`).
+    Tiled,
+}
 
 /// A layer's shape and where it sits in the parameter vector.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -155,8 +167,48 @@ impl Dense {
         y: &Handle,
         n: usize,
     ) {
+        self.forward_with(gpu.matmul, gpu, params, n_params, x, y, n)
+    }
+
+    /// [`forward`](Self::forward) through the kernels of `path`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward_with(
+        &self,
+        path: Path,
+        gpu: &Gpu,
+        params: &Handle,
+        n_params: usize,
+        x: &Handle,
+        y: &Handle,
+        n: usize,
+    ) {
         if n == 0 {
             return;
+        }
+        if path == Path::Tiled {
+            let (ni, no) = (self.inputs, self.outputs);
+            let a = View {
+                buf: x,
+                len: n * ni,
+                off: 0,
+                outer: ni,
+                reduce: 1,
+            };
+            let b = View {
+                buf: params,
+                len: n_params,
+                off: self.weight,
+                outer: 1,
+                reduce: no,
+            };
+            let epilogue = Epilogue {
+                bias: self.bias.map(|off| (params, n_params, off)),
+                relu: self.relu,
+                mask: None,
+            };
+            if gemm::matmul(gpu, (n, no, ni), a, b, y, ni, epilogue) {
+                return;
+            }
         }
         let (count, dim) = grid(n * self.outputs, GROUP);
         // SAFETY: `x` holds `n x inputs` floats, `y` `n x outputs`, and the parameter
@@ -194,66 +246,138 @@ impl Dense {
         dx: Option<(&Handle, bool)>,
         n: usize,
     ) {
+        let io = (x, dy, dx);
+        self.backward_with(gpu.matmul, gpu, params, grads, n_params, io, n)
+    }
+
+    /// [`backward`](Self::backward) through the kernels of `path`.
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    pub fn backward_with(
+        &self,
+        path: Path,
+        gpu: &Gpu,
+        params: &Handle,
+        grads: &Handle,
+        n_params: usize,
+        (x, dy, dx): (&Handle, &Handle, Option<(&Handle, bool)>),
+        n: usize,
+    ) {
         if n == 0 {
             return;
         }
         let (ni, no) = (self.inputs, self.outputs);
         let parts = n.div_ceil(ROWS_PER_PARTIAL);
-        let per = (ni + usize::from(self.bias.is_some())) * no;
-        let partial = gpu.floats(parts * per);
-        // SAFETY: shapes as in `forward`; `partial` holds `parts x per` floats and each
-        // kernel bounds-checks the buffer it writes.
-        unsafe {
-            let (count, dim) = grid(parts * per, GROUP);
-            dense_bwd_weight_partial::launch_unchecked(
-                &gpu.client,
-                count,
-                dim,
-                BufferArg::from_raw_parts(x.clone(), n * ni),
-                BufferArg::from_raw_parts(dy.clone(), n * no),
-                BufferArg::from_raw_parts(partial.clone(), parts * per),
-                n as u32,
-                ni as u32,
-                no as u32,
-                u32::from(self.bias.is_some()),
-                ROWS_PER_PARTIAL as u32,
+        // Partial sums of dW (`parts x ni x no`) and db (`parts x no`).
+        let partial_w = gpu.floats(parts * ni * no);
+        let x_view = View {
+            buf: x,
+            len: n * ni,
+            off: 0,
+            outer: 1,
+            reduce: ni,
+        };
+        let dy_view = View {
+            buf: dy,
+            len: n * no,
+            off: 0,
+            outer: 1,
+            reduce: no,
+        };
+        let tiled = path == Path::Tiled
+            && gemm::matmul(
+                gpu,
+                (ni, no, n),
+                x_view,
+                dy_view,
+                &partial_w,
+                ROWS_PER_PARTIAL,
+                Epilogue::default(),
             );
-            let add = |len: usize, first: usize, off: usize| {
+        // SAFETY: shapes as in `forward`; the partial buffers hold `parts x ni x no` and
+        // `parts x no` floats, and each kernel bounds-checks the buffer it writes.
+        unsafe {
+            let weight_partials = |inputs: usize, out: &Handle, len: usize| {
+                let (count, dim) = grid(len, GROUP);
+                dense_bwd_weight_partial::launch_unchecked(
+                    &gpu.client,
+                    count,
+                    dim,
+                    BufferArg::from_raw_parts(x.clone(), n * ni),
+                    BufferArg::from_raw_parts(dy.clone(), n * no),
+                    BufferArg::from_raw_parts(out.clone(), len),
+                    n as u32,
+                    inputs as u32,
+                    no as u32,
+                    u32::from(inputs == 0),
+                    ROWS_PER_PARTIAL as u32,
+                )
+            };
+            if !tiled {
+                weight_partials(ni, &partial_w, parts * ni * no);
+            }
+            let add = |partial: &Handle, len: usize, off: usize| {
                 let (count, dim) = grid(len, GROUP);
                 add_partials::launch_unchecked(
                     &gpu.client,
                     count,
                     dim,
-                    BufferArg::from_raw_parts(partial.clone(), parts * per),
+                    BufferArg::from_raw_parts(partial.clone(), parts * len),
                     BufferArg::from_raw_parts(grads.clone(), n_params),
                     len as u32,
-                    per as u32,
-                    first as u32,
+                    len as u32,
+                    0,
                     parts as u32,
                     off as u32,
                 )
             };
-            add(ni * no, 0, self.weight);
-            // The bias row follows the weights in every partial.
+            add(&partial_w, ni * no, self.weight);
             if let Some(b) = self.bias {
-                add(no, ni * no, b);
+                // With no input rows the partial kernel sums `dy` alone: the bias row.
+                let partial_b = gpu.floats(parts * no);
+                weight_partials(0, &partial_b, parts * no);
+                add(&partial_b, no, b);
             }
-            if let Some((dx, relu_in)) = dx {
-                let (count, dim) = grid(n * ni, GROUP);
-                dense_bwd_input::launch_unchecked(
-                    &gpu.client,
-                    count,
-                    dim,
-                    BufferArg::from_raw_parts(dy.clone(), n * no),
-                    BufferArg::from_raw_parts(params.clone(), n_params),
-                    BufferArg::from_raw_parts(x.clone(), n * ni),
-                    BufferArg::from_raw_parts(dx.clone(), n * ni),
-                    ni as u32,
-                    no as u32,
-                    self.weight as u32,
-                    u32::from(relu_in),
-                );
+        }
+        let Some((dx, relu_in)) = dx else { return };
+        if path == Path::Tiled {
+            let a = View {
+                buf: dy,
+                len: n * no,
+                off: 0,
+                outer: no,
+                reduce: 1,
+            };
+            let b = View {
+                buf: params,
+                len: n_params,
+                off: self.weight,
+                outer: no,
+                reduce: 1,
+            };
+            let epilogue = Epilogue {
+                mask: relu_in.then_some((x, n * ni)),
+                ..Epilogue::default()
+            };
+            if gemm::matmul(gpu, (n, ni, no), a, b, dx, no, epilogue) {
+                return;
             }
+        }
+        // SAFETY: as above; `dx` holds `n x ni` floats.
+        unsafe {
+            let (count, dim) = grid(n * ni, GROUP);
+            dense_bwd_input::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(dy.clone(), n * no),
+                BufferArg::from_raw_parts(params.clone(), n_params),
+                BufferArg::from_raw_parts(x.clone(), n * ni),
+                BufferArg::from_raw_parts(dx.clone(), n * ni),
+                ni as u32,
+                no as u32,
+                self.weight as u32,
+                u32::from(relu_in),
+            );
         }
     }
 }
@@ -273,7 +397,8 @@ mod tests {
     }
 
     /// A layer with bias and ReLU over 600 samples (three weight-gradient slices, the last
-    /// partial) against plain loops on the CPU: outputs, dx, dW and db within 1e-5.
+    /// partial; tiles cut by every edge) against plain loops on the CPU, through both the
+    /// plain and the tiled kernels: outputs and dx within 1e-5, dW and db within 1e-4.
     #[test]
     fn dense_layer_matches_the_cpu_forward_and_backward() {
         let Some(gpu) = super::super::device::test_gpu() else {
@@ -328,29 +453,28 @@ mod tests {
         }
 
         let (p, xh, dyh) = (gpu.upload(&params), gpu.upload(&x), gpu.upload(&dy));
-        let (y, dx) = (gpu.floats(n * no), gpu.floats(n * ni));
-        // Gradients start non-zero: the layer adds into them.
-        let start: Vec<f32> = (0..n_params).map(|i| i as f32 * 0.01).collect();
-        let grads = gpu.upload(&start);
-        layer.forward(&gpu, &p, n_params, &xh, &y, n);
-        layer.backward(&gpu, &p, &grads, n_params, &xh, &dyh, Some((&dx, true)), n);
-        let g = gpu.read(&grads, n_params).expect("read");
-        assert!(
-            worst(&gpu.read(&y, n * no).expect("read"), &want_y) < 1e-5,
-            "y"
-        );
-        assert!(
-            worst(&gpu.read(&dx, n * ni).expect("read"), &want_dx) < 1e-5,
-            "dx"
-        );
-        let got_dw: Vec<f32> = (0..ni * no).map(|j| g[4 + j] - start[4 + j]).collect();
-        assert!(worst(&got_dw, &want_dw) < 1e-4, "dW");
-        let got_db: Vec<f32> = (0..no)
-            .map(|o| g[4 + ni * no + o] - start[4 + ni * no + o])
-            .collect();
-        assert!(worst(&got_db, &want_db) < 1e-4, "db");
-        // Slots outside the layer are untouched.
-        assert_eq!(&g[..4], &start[..4]);
-        assert_eq!(&g[n_params - 3..], &start[n_params - 3..]);
+        for path in [Path::Plain, Path::Tiled] {
+            let (y, dx) = (gpu.floats(n * no), gpu.floats(n * ni));
+            // Gradients start non-zero: the layer adds into them.
+            let start: Vec<f32> = (0..n_params).map(|i| i as f32 * 0.01).collect();
+            let grads = gpu.upload(&start);
+            layer.forward_with(path, &gpu, &p, n_params, &xh, &y, n);
+            let io = (&xh, &dyh, Some((&dx, true)));
+            layer.backward_with(path, &gpu, &p, &grads, n_params, io, n);
+            let g = gpu.read(&grads, n_params).expect("read");
+            let got_y = gpu.read(&y, n * no).expect("read");
+            assert!(worst(&got_y, &want_y) < 1e-5, "y ({path:?})");
+            let got_dx = gpu.read(&dx, n * ni).expect("read");
+            assert!(worst(&got_dx, &want_dx) < 1e-5, "dx ({path:?})");
+            let got_dw: Vec<f32> = (0..ni * no).map(|j| g[4 + j] - start[4 + j]).collect();
+            assert!(worst(&got_dw, &want_dw) < 1e-4, "dW ({path:?})");
+            let got_db: Vec<f32> = (0..no)
+                .map(|o| g[4 + ni * no + o] - start[4 + ni * no + o])
+                .collect();
+            assert!(worst(&got_db, &want_db) < 1e-4, "db ({path:?})");
+            // Slots outside the layer are untouched.
+            assert_eq!(&g[..4], &start[..4]);
+            assert_eq!(&g[n_params - 3..], &start[n_params - 3..]);
+        }
     }
 }

@@ -6,7 +6,9 @@
 //!   missing; [`device`]: opening one, and what it can do (float atomics);
 //! * [`engine`]: [`engine::GpuEngine`], the fast model's training step, rendering and
 //!   density queries with parameters, gradients, Adam's moments and the occupancy grid on
-//!   the device;
+//!   the device; [`vanilla`]: [`vanilla::GpuVanillaEngine`], the paper's model; [`params`]:
+//!   the trainable state both keep on the device;
+//! * [`vanilla_net`]: the paper's network forward and backward;
 //! * [`march`]: occupancy-grid marching with sample compaction (count, prefix sum, budget
 //!   cut, packed write); [`occupancy`]: the grid's refresh;
 //! * [`field`]: the fast field forward and backward, built from [`hash_grid`] (the
@@ -20,14 +22,16 @@
 //!
 //! Not on the device yet: drawing the training rays (the host draws them with the CPU
 //! engine's code, `data::pixels`, every camera model included, and uploads 17 floats per
-//! ray), rendering's marching (the host marches in rounds; the field runs on the device),
-//! and the paper's model.
+//! ray), the paper's model's sampling (stratified and importance samples are drawn on the
+//! host), and rendering's marching (the host marches in rounds; the field runs on the
+//! device).
 
 pub mod adam;
 pub mod device;
 pub mod engine;
 pub mod field;
 pub mod finite;
+pub mod gemm;
 pub mod hash_grid;
 pub mod launch;
 pub mod loss;
@@ -44,7 +48,7 @@ use crate::error::Result;
 use crate::model::ModelConfig;
 
 /// The GPU engine for `model` on `device` (`Auto`: CUDA, then a hardware wgpu adapter,
-/// else the CPU engine).
+/// else the CPU engine); both models have one.
 pub fn open(
     device: Device,
     model: &ModelConfig,

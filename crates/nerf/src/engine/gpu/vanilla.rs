@@ -203,7 +203,7 @@ impl GpuVanillaEngine {
 
 impl Engine for GpuVanillaEngine {
     fn describe(&self) -> String {
-        format!("wgpu, {}", self.gpu.name)
+        self.gpu.name.clone()
     }
 
     fn model_config(&self) -> &ModelConfig {

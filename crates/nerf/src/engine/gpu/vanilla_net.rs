@@ -527,6 +527,7 @@ impl GpuVanillaNet {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::gpu::mlp::Path;
     use crate::field::{VanillaConfig, VanillaWorkspace};
     use crate::nn::GradBuffer;
     use crate::rng::Rng;
@@ -606,39 +607,45 @@ mod tests {
             let base = 5;
             let mut all = vec![0.5; base];
             all.extend_from_slice(&params);
-            let gn = GpuVanillaNet::new(&net, base, all.len());
-            let dirs: Vec<f32> = (0..n)
-                .flat_map(|s| ray_dirs[3 * (s / spr)..][..3].to_vec())
-                .collect();
-            let p = gpu.upload(&all);
-            let g = gpu.zeros(all.len());
-            let acts = gn.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
-            gn.backward(
-                &gpu,
-                &p,
-                &g,
-                &acts,
-                &gpu.upload(&d_sigma),
-                &gpu.upload(&d_rgb),
-            );
-            let sigma = gpu.read(&acts.sigma, n).expect("read");
-            let rgb = gpu.read(&acts.rgb, n * 3).expect("read");
-            let got = gpu.read(&g, all.len()).expect("read");
-            assert!(
-                worst(&sigma, &want_sigma) < 1e-4,
-                "sigma {}",
-                worst(&sigma, &want_sigma)
-            );
-            assert!(
-                worst(&rgb, &want_rgb) < 1e-4,
-                "rgb {}",
-                worst(&rgb, &want_rgb)
-            );
-            assert!(got[..base].iter().all(|&v| v == 0.0), "outside the net");
-            for t in &net.layout.tensors {
-                let r = t.range();
-                let e = worst(&got[base + r.start..base + r.end], &grads.values[r]);
-                assert!(e < 1e-4, "gradient of {} (view {view}): {e}", t.name);
+            for path in [Path::Plain, Path::Tiled] {
+                let gpu = Gpu {
+                    matmul: path,
+                    ..gpu.clone()
+                };
+                let gn = GpuVanillaNet::new(&net, base, all.len());
+                let dirs: Vec<f32> = (0..n)
+                    .flat_map(|s| ray_dirs[3 * (s / spr)..][..3].to_vec())
+                    .collect();
+                let p = gpu.upload(&all);
+                let g = gpu.zeros(all.len());
+                let acts = gn.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
+                gn.backward(
+                    &gpu,
+                    &p,
+                    &g,
+                    &acts,
+                    &gpu.upload(&d_sigma),
+                    &gpu.upload(&d_rgb),
+                );
+                let sigma = gpu.read(&acts.sigma, n).expect("read");
+                let rgb = gpu.read(&acts.rgb, n * 3).expect("read");
+                let got = gpu.read(&g, all.len()).expect("read");
+                assert!(
+                    worst(&sigma, &want_sigma) < 1e-4,
+                    "sigma {}",
+                    worst(&sigma, &want_sigma)
+                );
+                assert!(
+                    worst(&rgb, &want_rgb) < 1e-4,
+                    "rgb {}",
+                    worst(&rgb, &want_rgb)
+                );
+                assert!(got[..base].iter().all(|&v| v == 0.0), "outside the net");
+                for t in &net.layout.tensors {
+                    let r = t.range();
+                    let e = worst(&got[base + r.start..base + r.end], &grads.values[r]);
+                    assert!(e < 1e-4, "gradient of {} (view {view}): {e}", t.name);
+                }
             }
         }
     }

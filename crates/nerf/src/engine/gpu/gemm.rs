@@ -1,0 +1,169 @@
+//! A tiled matrix product for the dense layers: `C = A B` over strided views, in 16 x 16
+//! output tiles, each computed by one 16 x 16 workgroup that stages the matching 16 x 16
+//! tiles of `A` and `B` in workgroup memory (every value read from global memory once per
+//! tile instead of once per output). The reduction can be split into parts along `k`
+//! (the third grid axis), each writing its own output, for weight gradients whose `k` is
+//! the batch. An epilogue adds a bias, applies a ReLU, or zeroes where a mask is not
+//! positive (the backward of the ReLU that made the mask).
+
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::device::Gpu;
+
+/// Output tile side (and workgroup side).
+pub const TILE: usize = 16;
+
+/// Strides and epilogue of one product, in the order the kernel reads them.
+#[derive(CubeType, CubeLaunch, Clone, Copy)]
+pub struct Gemm {
+    m: u32,
+    n: u32,
+    k: u32,
+    /// `A(i, l) = a[a_off + i a_si + l a_sl]`.
+    a_off: u32,
+    a_si: u32,
+    a_sl: u32,
+    /// `B(l, j) = b[b_off + l b_sl + j b_sj]`.
+    b_off: u32,
+    b_sl: u32,
+    b_sj: u32,
+    /// `C(i, j) = c[c_off + part c_part + i n + j]`; part `p` sums `l` in
+    /// `[p k_part, (p + 1) k_part)`.
+    c_part: u32,
+    k_part: u32,
+    /// Epilogue: 1 adds `bias[bias_off + j]`; 1 applies a ReLU; 1 zeroes `C(i, j)` where
+    /// `mask[i n + j] <= 0`.
+    has_bias: u32,
+    bias_off: u32,
+    relu: u32,
+    has_mask: u32,
+}
+
+#[cube(launch_unchecked)]
+fn gemm_tiled(a: &[f32], b: &[f32], bias: &[f32], mask: &[f32], c: &mut [f32], g: Gemm) {
+    let tx = UNIT_POS_X as usize;
+    let ty = UNIT_POS_Y as usize;
+    let col = CUBE_POS_X as usize * 16 + tx;
+    let row = CUBE_POS_Y as usize * 16 + ty;
+    let part = CUBE_POS_Z as usize;
+    let (m, n) = (g.m as usize, g.n as usize);
+    let first = part * g.k_part as usize;
+    let last = usize::min(first + g.k_part as usize, g.k as usize);
+    let mut a_tile = Shared::<[f32]>::new_slice(256usize);
+    let mut b_tile = Shared::<[f32]>::new_slice(256usize);
+    let mut acc = 0.0f32;
+    let mut l0 = first;
+    while l0 < last {
+        // Stage A(row, l0 + tx) and B(l0 + ty, col); zeros past the edges.
+        let la = l0 + tx;
+        let mut av = 0.0f32;
+        if row < m && la < last {
+            av = a[g.a_off as usize + row * g.a_si as usize + la * g.a_sl as usize];
+        }
+        a_tile[ty * 16 + tx] = av;
+        let lb = l0 + ty;
+        let mut bv = 0.0f32;
+        if col < n && lb < last {
+            bv = b[g.b_off as usize + lb * g.b_sl as usize + col * g.b_sj as usize];
+        }
+        b_tile[ty * 16 + tx] = bv;
+        sync_cube();
+        for kk in 0..16usize {
+            acc += a_tile[ty * 16 + kk] * b_tile[kk * 16 + tx];
+        }
+        sync_cube();
+        l0 += 16;
+    }
+    if row < m && col < n {
+        if g.has_bias == 1 {
+            acc += bias[g.bias_off as usize + col];
+        }
+        if g.relu == 1 {
+            acc = f32::max(acc, 0.0);
+        }
+        if g.has_mask == 1 && mask[row * n + col] <= 0.0 {
+            acc = 0.0;
+        }
+        c[g.c_part as usize * part + row * n + col] = acc;
+    }
+}
+
+/// A strided operand: element (outer index `i`, reduced index `l`) at
+/// `buf[off + i outer + l reduce]`; `i` is `A`'s row or `B`'s column.
+#[derive(Clone, Copy, Debug)]
+pub struct View<'a> {
+    pub buf: &'a Handle,
+    /// Floats in `buf`.
+    pub len: usize,
+    pub off: usize,
+    pub outer: usize,
+    pub reduce: usize,
+}
+
+/// The epilogue of a product.
+#[derive(Clone, Copy, Default)]
+pub struct Epilogue<'a> {
+    /// A bias vector: `(buffer, its length, offset)`.
+    pub bias: Option<(&'a Handle, usize, usize)>,
+    pub relu: bool,
+    /// `(mask, its length)`, laid out as `C`.
+    pub mask: Option<(&'a Handle, usize)>,
+}
+
+/// `C = A B` (`m x k` by `k x n`) into `c` (`parts x m x n` when the reduction is split
+/// into `parts` of `k_part`), through `epilogue`. Returns false (launching nothing) when the
+/// grid would exceed 65535 tiles down `m`: the caller takes its plain kernel then.
+#[allow(clippy::too_many_arguments)]
+pub fn matmul(
+    gpu: &Gpu,
+    (m, n, k): (usize, usize, usize),
+    a: View,
+    b: View,
+    c: &Handle,
+    k_part: usize,
+    epilogue: Epilogue,
+) -> bool {
+    let parts = k.div_ceil(k_part.max(1)).max(1);
+    let (gx, gy) = (n.div_ceil(TILE), m.div_ceil(TILE));
+    if gy > 65535 || parts > 65535 || m == 0 || n == 0 {
+        return m == 0 || n == 0;
+    }
+    let none = gpu.floats(1);
+    let (bias, bias_len, bias_off) = epilogue.bias.map_or((&none, 1, 0), |b| b);
+    let (mask, mask_len) = epilogue.mask.map_or((&none, 1), |m| m);
+    let g = GemmLaunch::new(
+        m as u32,
+        n as u32,
+        k as u32,
+        a.off as u32,
+        a.outer as u32,
+        a.reduce as u32,
+        b.off as u32,
+        b.reduce as u32,
+        b.outer as u32,
+        (m * n) as u32,
+        k_part.max(1) as u32,
+        u32::from(epilogue.bias.is_some()),
+        bias_off as u32,
+        u32::from(epilogue.relu),
+        u32::from(epilogue.mask.is_some()),
+    );
+    // SAFETY: the views' lengths are those of their buffers and every index the kernel
+    // forms stays below them for the shapes given (the callers build the views from the
+    // layer's shapes); rows and columns past `m` and `n` are never read or written.
+    unsafe {
+        gemm_tiled::launch_unchecked(
+            &gpu.client,
+            CubeCount::Static(gx as u32, gy as u32, parts as u32),
+            CubeDim::new_2d(TILE as u32, TILE as u32),
+            BufferArg::from_raw_parts(a.buf.clone(), a.len),
+            BufferArg::from_raw_parts(b.buf.clone(), b.len),
+            BufferArg::from_raw_parts(bias.clone(), bias_len),
+            BufferArg::from_raw_parts(mask.clone(), mask_len),
+            BufferArg::from_raw_parts(c.clone(), parts * m * n),
+            g,
+        );
+    }
+    true
+}
