@@ -47,7 +47,35 @@ enum Command {
     Bench(commands::bench::BenchArgs),
 }
 
+/// Mesa's Vulkan drivers print "error: XDG_RUNTIME_DIR is invalid or not set" (six
+/// times) when a process without one (a container, a CI job, a service) looks for a GPU,
+/// which every command does under `--device auto`. Nothing fails; the driver only wants a
+/// private runtime folder, so one is given: `nerf-runtime-<uid>` under the temporary
+/// folder, 0700, used only when it is ours and private. Called first, while the process
+/// has one thread.
+#[cfg(target_os = "linux")]
+fn quiet_graphics_drivers() {
+    use std::os::unix::fs::{DirBuilderExt, MetadataExt};
+    if std::env::var_os("XDG_RUNTIME_DIR").is_some() {
+        return;
+    }
+    let Ok(me) = std::fs::metadata("/proc/self").map(|m| m.uid()) else {
+        return;
+    };
+    let dir = std::env::temp_dir().join(format!("nerf-runtime-{me}"));
+    let _ = std::fs::DirBuilder::new().mode(0o700).create(&dir);
+    if let Ok(m) = std::fs::metadata(&dir) {
+        if m.is_dir() && m.uid() == me && m.mode() & 0o077 == 0 {
+            std::env::set_var("XDG_RUNTIME_DIR", &dir);
+        }
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn quiet_graphics_drivers() {}
+
 fn main() {
+    quiet_graphics_drivers();
     let cli = Cli::parse();
     if let Some(n) = cli.threads {
         if let Err(e) = rayon::ThreadPoolBuilder::new()

@@ -91,26 +91,20 @@ impl Gpu {
         )))
     }
 
-    /// A hardware adapter through wgpu (discrete, then integrated, then virtual), for
-    /// `--device auto`; software adapters are slower than the CPU engine and not taken.
+    /// A hardware adapter through wgpu, for `--device auto`: the best adapter each API
+    /// offers (wgpu ranks discrete before integrated before software), taken unless it is
+    /// a software one, which is slower than the CPU engine.
     pub fn wgpu_hardware() -> Option<Gpu> {
-        use WgpuDeviceKind::*;
-        for kind in [DiscreteGpu(0), IntegratedGpu(0), VirtualGpu(0)] {
-            for device in [
-                cubecl::Device::vulkan(kind.clone()),
-                cubecl::Device::metal_msl(kind.clone()),
-                cubecl::Device::dx12(kind.clone()),
-            ]
-            .into_iter()
-            .flatten()
-            {
-                let gpu = Gpu::from_device(device, "wgpu");
-                if !gpu.software {
-                    return Some(gpu);
-                }
-            }
-        }
-        None
+        let kind = WgpuDeviceKind::default;
+        [
+            ("wgpu/vulkan", cubecl::Device::vulkan(kind())),
+            ("wgpu/metal", cubecl::Device::metal_msl(kind())),
+            ("wgpu/dx12", cubecl::Device::dx12(kind())),
+        ]
+        .into_iter()
+        .filter_map(|(api, d)| d.ok().map(|d| (api, d)))
+        .map(|(api, d)| Gpu::from_device(d, api))
+        .find(|gpu| !gpu.software)
     }
 
     /// `--device cuda`: the first CUDA GPU (kernels compiled at run time by NVRTC, loaded
