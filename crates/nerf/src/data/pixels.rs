@@ -50,6 +50,39 @@ impl TrainingRays {
         }
     }
 
+    /// [`draw`](Self::draw) spread over the rayon threads in blocks: the same rays in the
+    /// same order (each is a function of its index alone), for an engine whose host only
+    /// draws rays while a device does the rest.
+    pub fn draw_parallel(
+        &mut self,
+        data: &Dataset,
+        how: &PixelSampling,
+        range: std::ops::Range<u64>,
+    ) {
+        use rayon::prelude::*;
+        const BLOCK: u64 = 256;
+        let starts: Vec<u64> = (range.start..range.end).step_by(BLOCK as usize).collect();
+        let blocks: Vec<TrainingRays> = starts
+            .par_iter()
+            .map(|&s| {
+                let mut block = TrainingRays::default();
+                block.draw(data, how, s..(s + BLOCK).min(range.end));
+                block
+            })
+            .collect();
+        self.draw(data, how, 0..0);
+        for b in blocks {
+            let r = &mut self.rays;
+            r.origins.extend_from_slice(&b.rays.origins);
+            r.dirs.extend_from_slice(&b.rays.dirs);
+            r.view_dirs.extend_from_slice(&b.rays.view_dirs);
+            r.backgrounds.extend_from_slice(&b.rays.backgrounds);
+            r.pixels.extend_from_slice(&b.rays.pixels);
+            self.targets.extend_from_slice(&b.targets);
+            self.rngs.extend(b.rngs);
+        }
+    }
+
     /// Appends ray `k` of the step: a uniformly random training pixel (inside the central
     /// `crop` fraction while warming up; among the pixels its mask keeps, if it has one),
     /// warped into the scene's ray space.
@@ -87,5 +120,44 @@ impl TrainingRays {
         self.targets
             .push(view.image.composite_pixel(pixel, background));
         self.rngs.push(rng);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::data::synth::{self, SynthOptions};
+    use crate::data::Split;
+
+    /// Drawn in parallel blocks, a step's rays are the sequential draw's, ray for ray.
+    #[test]
+    fn parallel_draw_is_the_sequential_draw() {
+        let opts = SynthOptions {
+            size: 8,
+            supersample: 1,
+            ..Default::default()
+        };
+        let data = synth::dataset(&opts, Split::Train, 3);
+        let how = PixelSampling {
+            seed: 5,
+            step: 9,
+            crop: 0.5,
+            background: Background::Random,
+        };
+        let (mut a, mut b) = (TrainingRays::default(), TrainingRays::default());
+        a.draw(&data, &how, 3..1000);
+        b.draw_parallel(&data, &how, 3..1000);
+        assert_eq!(b.len(), 997);
+        assert_eq!(a.rays.origins, b.rays.origins);
+        assert_eq!(a.rays.dirs, b.rays.dirs);
+        assert_eq!(a.rays.view_dirs, b.rays.view_dirs);
+        assert_eq!(a.rays.backgrounds, b.rays.backgrounds);
+        assert_eq!(a.rays.pixels, b.rays.pixels);
+        assert_eq!(a.targets, b.targets);
+        assert_eq!((a.rays.near, a.rays.far), (b.rays.near, b.rays.far));
+        // The streams continue alike (the lattice jitter is their next draw).
+        for (x, y) in a.rngs.iter().zip(&b.rngs) {
+            assert_eq!(x.clone().uniform(), y.clone().uniform());
+        }
     }
 }

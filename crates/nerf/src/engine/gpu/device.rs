@@ -18,7 +18,7 @@ pub struct Gpu {
     pub software: bool,
     /// The dense layers' kernels: tiled through workgroup memory on a hardware GPU, plain
     /// on a software adapter (where lavapipe runs a workgroup's barriers as separate loops
-    /// and the tiled kernels measured 4x slower); `NERF_GPU_MATMUL=plain|tiled` overrides.
+    /// and the tiled kernels measured 2.5-3x slower); `NERF_GPU_MATMUL=plain|tiled` overrides.
     pub matmul: Path,
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
     /// scattered with a compare-and-swap loop on their bits.

@@ -34,6 +34,11 @@ use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput, Grads, RayBatch, RayOutput};
 
+/// Rays per rendering chunk and samples per round of the renderer (about 70 MB of
+/// activations on the device per chunk in flight).
+const RENDER_CHUNK_RAYS: usize = 1 << 14;
+const RENDER_ROUND_SAMPLES: usize = 1 << 16;
+
 /// Points per device call of density queries.
 const DENSITY_CHUNK: usize = 1 << 16;
 
@@ -106,7 +111,7 @@ impl GpuEngine {
         let mut want = (self.last_rays + self.last_rays / 4 + 16).clamp(64, max_rays);
         let mut rays = std::mem::take(&mut self.rays);
         loop {
-            rays.draw(data, &spec.sampling, 0..want as u64);
+            rays.draw_parallel(data, &spec.sampling, 0..want as u64);
             // Each ray's first draw after its pixel is its lattice jitter, as in
             // `FastModel::march_block`.
             let jitter: Vec<f32> = rays.rngs.iter_mut().map(|r| r.uniform()).collect();
@@ -298,7 +303,8 @@ impl Engine for GpuEngine {
         out: &mut [RayOutput],
         on_progress: &(dyn Fn(usize) + Sync),
     ) {
-        let chunk = self.chunk_rays;
+        // Few, large device calls: every round of the renderer is a round trip.
+        let chunk = self.chunk_rays.max(RENDER_CHUNK_RAYS);
         let done = std::sync::atomic::AtomicUsize::new(0);
         let field = DeviceField { engine: self };
         let marcher = self.model.marcher(rays.near, rays.far);
@@ -313,7 +319,7 @@ impl Engine for GpuEngine {
                     &[],
                     &marcher,
                     &self.model.grid,
-                    self.model.config.batch_samples,
+                    self.model.config.batch_samples.max(RENDER_ROUND_SAMPLES),
                     &part,
                     &mut ws,
                     out,

@@ -223,7 +223,7 @@ impl Engine for GpuVanillaEngine {
         let batch = spec.batch_rays.max(1);
         let mut rays = std::mem::take(&mut self.rays);
         let mut ws = std::mem::take(&mut self.ws);
-        rays.draw(data, &spec.sampling, 0..batch as u64);
+        rays.draw_parallel(data, &spec.sampling, 0..batch as u64);
         let result = (|| -> Result<(f64, f64, usize)> {
             let gpu = &self.gpu;
             let check = FiniteCheck::new(self.check_finite);
