@@ -137,3 +137,14 @@ pub fn test_gpu() -> Option<Gpu> {
         .map_err(|e| eprintln!("skipping the GPU kernel test: {e}"))
         .ok()
 }
+
+/// The largest difference of two equally long vectors relative to `1 + |b|`: the
+/// tolerance measure of the GPU kernel tests.
+#[cfg(test)]
+pub fn worst(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs() / (1.0 + y.abs()))
+        .fold(0.0, f32::max)
+}

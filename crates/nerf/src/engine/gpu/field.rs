@@ -400,20 +400,13 @@ impl GpuFastField {
 mod tests {
     use super::*;
     use crate::encoding::HashGridConfig;
+    use crate::engine::gpu::device::worst;
     use crate::engine::gpu::mlp::Path;
     use crate::field::fast::FastWorkspace;
     use crate::field::FastFieldConfig;
     use crate::nn::GradBuffer;
     use crate::rng::Rng;
     use crate::stage::{Field, FieldGrad, FieldInput};
-
-    fn worst(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs() / (1.0 + y.abs()))
-            .fold(0.0, f32::max)
-    }
 
     /// A small field with large random weights (every path carries signal) over 700
     /// samples: sigma, rgb and every parameter's gradient against the CPU field, within

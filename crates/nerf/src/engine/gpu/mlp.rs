@@ -385,16 +385,9 @@ impl Dense {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::gpu::device::worst;
     use crate::nn::linalg::{matmul, MatRef};
     use crate::rng::Rng;
-
-    fn worst(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs() / (1.0 + y.abs()))
-            .fold(0.0, f32::max)
-    }
 
     /// A layer with bias and ReLU over 600 samples (three weight-gradient slices, the last
     /// partial; tiles cut by every edge) against plain loops on the CPU, through both the

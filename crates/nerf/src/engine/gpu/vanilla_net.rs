@@ -527,19 +527,12 @@ impl GpuVanillaNet {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::gpu::device::worst;
     use crate::engine::gpu::mlp::Path;
     use crate::field::{VanillaConfig, VanillaWorkspace};
     use crate::nn::GradBuffer;
     use crate::rng::Rng;
     use crate::stage::{Field, FieldGrad, FieldInput};
-
-    fn worst(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs() / (1.0 + y.abs()))
-            .fold(0.0, f32::max)
-    }
 
     /// Small networks of both head kinds, with a skip, both encoding forms: sigma, rgb and
     /// every parameter's gradient against the CPU network on the same 96 samples (16 rays

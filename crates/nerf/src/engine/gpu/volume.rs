@@ -212,6 +212,7 @@ pub fn composite_backward(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::engine::gpu::device::worst;
     use crate::render::volume::{composite_packed, composite_packed_bwd};
     use crate::rng::Rng;
     use crate::stage::{FieldOutput, PackedSamples, RayOutput};
@@ -229,14 +230,6 @@ mod tests {
 
     fn upload(gpu: &Gpu, v: &[f32]) -> Handle {
         gpu.client.create_from_slice(f32::as_bytes(v))
-    }
-
-    fn worst(a: &[f32], b: &[f32]) -> f32 {
-        assert_eq!(a.len(), b.len());
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs() / (1.0 + y.abs()))
-            .fold(0.0, f32::max)
     }
 
     /// Rays of 0 to 40 samples (the paper's sampler's last "infinite" delta on some),
