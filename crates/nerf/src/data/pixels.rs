@@ -83,34 +83,19 @@ impl TrainingRays {
         }
     }
 
-    /// Appends ray `k` of the step: a uniformly random training pixel (inside the central
-    /// `crop` fraction while warming up; among the pixels its mask keeps, if it has one),
-    /// warped into the scene's ray space.
+    /// Appends ray `k` of the step ([`PixelChoice::draw`]), warped into the scene's ray
+    /// space.
     pub fn push(&mut self, data: &Dataset, how: &PixelSampling, k: u64) {
-        let mut rng = Rng::for_stream(how.seed, how.step, k);
-        let v = rng.below(data.views.len());
+        let PixelChoice {
+            view: v,
+            pixel,
+            background,
+            rng,
+        } = PixelChoice::draw(data, how, k);
         let view = &data.views[v];
-        let (w, h) = (view.image.width, view.image.height);
-        let (cw, ch) = (
-            ((w as f32 * how.crop) as usize).max(1),
-            ((h as f32 * how.crop) as usize).max(1),
-        );
-        let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
-        let (i, j) = match &view.kept_pixels {
-            Some(kept) => {
-                let p = kept[rng.below(kept.len())] as usize;
-                (p % w, p / w)
-            }
-            None => (x0 + rng.below(cw), y0 + rng.below(ch)),
-        };
-        let world = view.camera.ray(i, j);
+        let w = view.image.width;
+        let world = view.camera.ray(pixel % w, pixel / w);
         let (origin, dir) = data.space.warp(world.origin, world.dir);
-        let background = match how.background {
-            Background::White => [1.0; 3],
-            Background::Black => [0.0; 3],
-            Background::Random => [rng.uniform(), rng.uniform(), rng.uniform()],
-        };
-        let pixel = j * w + i;
         self.rays.push(
             crate::camera::Ray { origin, dir },
             world.dir,
@@ -120,6 +105,54 @@ impl TrainingRays {
         self.targets
             .push(view.image.composite_pixel(pixel, background));
         self.rngs.push(rng);
+    }
+}
+
+/// Which pixel ray `k` of a step sees, and its background: the random part of a training
+/// ray (the rest follows from the view's camera and image, on the host in
+/// [`TrainingRays::push`] or on a GPU from these indices).
+#[derive(Clone, Debug)]
+pub struct PixelChoice {
+    pub view: usize,
+    /// `row * width + column` in the view's image.
+    pub pixel: usize,
+    pub background: [f32; 3],
+    /// The ray's random stream after these draws (its samples' positions come next).
+    pub rng: Rng,
+}
+
+impl PixelChoice {
+    /// Ray `k` of the step: a uniformly random training pixel (inside the central `crop`
+    /// fraction while warming up; among the pixels its mask keeps, if it has one).
+    pub fn draw(data: &Dataset, how: &PixelSampling, k: u64) -> PixelChoice {
+        let mut rng = Rng::for_stream(how.seed, how.step, k);
+        let v = rng.below(data.views.len());
+        let view = &data.views[v];
+        let (w, h) = (view.image.width, view.image.height);
+        let (cw, ch) = (
+            ((w as f32 * how.crop) as usize).max(1),
+            ((h as f32 * how.crop) as usize).max(1),
+        );
+        let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
+        let pixel = match &view.kept_pixels {
+            Some(kept) => kept[rng.below(kept.len())] as usize,
+            None => {
+                let i = x0 + rng.below(cw);
+                let j = y0 + rng.below(ch);
+                j * w + i
+            }
+        };
+        let background = match how.background {
+            Background::White => [1.0; 3],
+            Background::Black => [0.0; 3],
+            Background::Random => [rng.uniform(), rng.uniform(), rng.uniform()],
+        };
+        PixelChoice {
+            view: v,
+            pixel,
+            background,
+            rng,
+        }
     }
 }
 

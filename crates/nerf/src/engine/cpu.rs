@@ -195,17 +195,9 @@ impl<M: Model> Engine for CpuEngine<M> {
         out: &mut [RayOutput],
         on_progress: &(dyn Fn(usize) + Sync),
     ) {
-        let chunk = self.chunk_rays;
-        let done = std::sync::atomic::AtomicUsize::new(0);
-        out[..rays.len()]
-            .par_chunks_mut(chunk)
-            .enumerate()
-            .for_each(|(c, out)| {
-                let part = rays.slice(c * chunk..c * chunk + out.len());
-                self.with_workspace(|ws| self.model.render_chunk(&self.params, &part, ws, out));
-                let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
-                on_progress(n);
-            });
+        super::render_in_chunks(rays, out, self.chunk_rays, on_progress, |part, out| {
+            self.with_workspace(|ws| self.model.render_chunk(&self.params, part, ws, out))
+        });
     }
 
     fn density(&self, positions: &[f32], out: &mut [f32]) {

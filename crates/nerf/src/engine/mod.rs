@@ -171,3 +171,27 @@ pub fn open_on(
         ))),
     }
 }
+
+/// Renders `rays` into `out` in chunks of `chunk` rays, in parallel, `render_chunk` doing
+/// one chunk; `on_progress` hears how many rays are done after each chunk. Every engine's
+/// `render_rays` is this loop around its own chunk renderer.
+pub fn render_in_chunks(
+    rays: &RayBatch,
+    out: &mut [RayOutput],
+    chunk: usize,
+    on_progress: &(dyn Fn(usize) + Sync),
+    render_chunk: impl Fn(&RayBatch, &mut [RayOutput]) + Sync,
+) {
+    use rayon::prelude::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let chunk = chunk.max(1);
+    let done = AtomicUsize::new(0);
+    out[..rays.len()]
+        .par_chunks_mut(chunk)
+        .enumerate()
+        .for_each(|(c, out)| {
+            let part = rays.slice(c * chunk..c * chunk + out.len());
+            render_chunk(&part, out);
+            on_progress(done.fetch_add(out.len(), Ordering::Relaxed) + out.len());
+        });
+}

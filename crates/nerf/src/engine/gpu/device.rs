@@ -145,6 +145,18 @@ pub fn worst(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
     a.iter()
         .zip(b)
-        .map(|(x, y)| (x - y).abs() / (1.0 + y.abs()))
+        .map(|(x, y)| {
+            if x == y || (x.is_nan() && y.is_nan()) {
+                return 0.0;
+            }
+            // A NaN here (one side NaN, or an infinity against a finite value) is as
+            // wrong as can be; `max` would drop it.
+            let e = (x - y).abs() / (1.0 + y.abs());
+            if e.is_nan() {
+                f32::INFINITY
+            } else {
+                e
+            }
+        })
         .fold(0.0, f32::max)
 }

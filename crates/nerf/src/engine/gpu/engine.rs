@@ -3,36 +3,37 @@
 //! optimiser there, reading back one float per ray (the loss) and one count (non-finite
 //! gradients).
 //!
-//! Work mapping of a step: the host draws the step's rays exactly as the CPU engine does
-//! (`data::pixels`: same pixels, backgrounds and lattice jitters), uploads them, and the
-//! device marches them through the occupancy grid (`march`: the same samples as the CPU
-//! marcher while the grids agree), cuts them at the sample budget (two numbers read back),
-//! and runs the field, compositing, the loss, the backward and Adam. Every
+//! Work mapping of a step: the host draws which pixels the step's rays see exactly as the
+//! CPU engine does (`data::pixels`: same pixels, backgrounds and lattice jitters), and the
+//! device makes the rays from those indices (`rays`: the training images and cameras are
+//! on the device), marches them through the occupancy grid (`march`: the same samples as
+//! the CPU marcher while the grids agree), cuts them at the sample budget (two numbers read
+//! back), and runs the field, compositing, the loss, the backward and Adam. Every
 //! `update_every` steps it refreshes the occupancy grid (`occupancy`) and the host takes
-//! a copy for rendering and checkpoints. Rendering marches on the host in rounds
-//! (`render::march`) and evaluates each round's samples on the device through
-//! [`DeviceField`], a [`Field`] like any other.
+//! a copy (for checkpoints, and each rendered ray's span). Rendering (`render`) marches,
+//! evaluates and composites on the device in rounds, with early termination.
 
 use cubecl::server::Handle;
 use rayon::prelude::*;
 
 use super::device::Gpu;
-use super::field::{Activations, GpuFastField};
+use super::field::GpuFastField;
 use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
-use super::params::{check_device, report_device_failure, DeviceParams};
-use super::{loss, volume};
-use crate::data::pixels::TrainingRays;
+use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
+use super::rays::GpuViews;
+use super::{loss, render, volume};
+use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
-use crate::engine::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
+use crate::engine::{render_in_chunks, Engine, EngineOptions, EngineState, StepSpec, StepStats};
 use crate::error::Result;
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
-use crate::render::march::{render_marched, MarchWorkspace};
+use crate::render::march::Marcher;
 use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
-use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput, Grads, RayBatch, RayOutput};
+use crate::stage::{RayBatch, RayOutput};
 
 /// Rays per rendering chunk and samples per round of the renderer (about 70 MB of
 /// activations on the device per chunk in flight).
@@ -41,6 +42,18 @@ const RENDER_ROUND_SAMPLES: usize = 1 << 16;
 
 /// Points per device call of density queries.
 const DENSITY_CHUNK: usize = 1 << 16;
+
+/// A step's rays on the device, cut at the sample budget: their packed samples with
+/// positions and view directions, and the targets and backgrounds of the rays marched
+/// (`cut.rays` of them count).
+struct StepRays {
+    cut: Cut,
+    samples: volume::GpuSamples,
+    positions: Handle,
+    dirs: Handle,
+    targets: Handle,
+    backgrounds: Handle,
+}
 
 /// The fast model on one GPU.
 pub struct GpuEngine {
@@ -56,7 +69,11 @@ pub struct GpuEngine {
     /// The occupancy grid on the device, and the marcher that reads it.
     occupancy: GpuOccupancy,
     marcher: GpuMarcher,
-    /// The training rays of the last step (buffers reused), and how many it kept.
+    /// The training views on the device, with the dataset they came from (`None` inside:
+    /// too large for the device, so the host draws whole rays into `rays`).
+    views: Option<((usize, usize), Option<GpuViews>)>,
+    /// The training rays drawn on the host (buffers reused), and how many the last step
+    /// kept.
     rays: TrainingRays,
     last_rays: usize,
 }
@@ -76,6 +93,7 @@ impl GpuEngine {
             gpu,
             occupancy,
             marcher,
+            views: None,
             rays: TrainingRays::default(),
             last_rays: 0,
         }
@@ -94,29 +112,20 @@ impl GpuEngine {
         Ok(())
     }
 
-    /// Draws the step's rays on the host (the same rays as the CPU engine: `data::pixels`)
-    /// and marches them on the device until the sample budget is reached; returns the
-    /// rays drawn, the cut, and the packed samples with their positions and directions.
-    #[allow(clippy::type_complexity)]
-    fn march_step(
-        &mut self,
-        data: &Dataset,
-        spec: &StepSpec,
-    ) -> Result<(TrainingRays, Cut, volume::GpuSamples, Handle, Handle)> {
+    /// Draws the step's rays (the same rays as the CPU engine: `data::pixels`) and marches
+    /// them on the device until the sample budget is reached.
+    fn march_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepRays> {
         let marcher = self.model.marcher(data.near, data.far);
         let budget = self.model.config.samples_per_step;
         // As the CPU engine: rays that find no occupied cell add no samples, and this
         // bound ends a step whose grid is (nearly) empty.
         let max_rays = budget.max(64);
         let mut want = (self.last_rays + self.last_rays / 4 + 16).clamp(64, max_rays);
-        let mut rays = std::mem::take(&mut self.rays);
+        if !matches!(&self.views, Some((key, _)) if *key == GpuViews::key_of(data)) {
+            self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
+        }
         loop {
-            rays.draw_parallel(data, &spec.sampling, 0..want as u64);
-            // Each ray's first draw after its pixel is its lattice jitter, as in
-            // `FastModel::march_block`.
-            let jitter: Vec<f32> = rays.rngs.iter_mut().map(|r| r.uniform()).collect();
-            let on_device =
-                GpuRays::new(&self.gpu, &marcher, &self.model.grid, &rays.rays, &jitter);
+            let (on_device, targets, backgrounds) = self.draw_rays(data, spec, &marcher, want);
             let counted = self.marcher.count(&self.gpu, &on_device);
             let cut = self
                 .marcher
@@ -125,10 +134,48 @@ impl GpuEngine {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
                     self.marcher.write(&self.gpu, &on_device, &counted, cut);
-                return Ok((rays, cut, samples, positions, dirs));
+                return Ok(StepRays {
+                    cut,
+                    samples,
+                    positions,
+                    dirs,
+                    targets,
+                    backgrounds,
+                });
             }
             want = (want * 2).min(max_rays);
         }
+    }
+
+    /// Rays `0..want` of the step on the device, with their targets and backgrounds: made
+    /// there from the pixels the host picks (`rays`), or drawn whole on the host where the
+    /// views are not on the device.
+    fn draw_rays(
+        &mut self,
+        data: &Dataset,
+        spec: &StepSpec,
+        marcher: &Marcher,
+        want: usize,
+    ) -> (GpuRays, Handle, Handle) {
+        let gpu = &self.gpu;
+        if let Some((_, Some(views))) = &self.views {
+            let mut choices: Vec<PixelChoice> = (0..want as u64)
+                .into_par_iter()
+                .map(|k| PixelChoice::draw(data, &spec.sampling, k))
+                .collect();
+            // Each ray's first draw after its pixel is its lattice jitter, as in
+            // `FastModel::march_block`.
+            let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
+            let bound = self.model.grid.bound;
+            return views.generate(gpu, &data.space, marcher, bound, &choices, &jitter);
+        }
+        let rays = &mut self.rays;
+        rays.draw_parallel(data, &spec.sampling, 0..want as u64);
+        let jitter: Vec<f32> = rays.rngs.iter_mut().map(|r| r.uniform()).collect();
+        let on_device = GpuRays::new(gpu, marcher, &self.model.grid, &rays.rays, &jitter);
+        let targets = gpu.upload(rays.targets.as_flattened());
+        let backgrounds = gpu.upload(rays.rays.backgrounds.as_flattened());
+        (on_device, targets, backgrounds)
     }
 
     /// Re-evaluates the occupancy grid on the device when the schedule says so, then
@@ -198,13 +245,15 @@ impl Engine for GpuEngine {
 
     fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
         let step = spec.sampling.step;
-        let (drawn, cut, samples, positions, dirs) = self.march_step(data, spec)?;
+        let StepRays {
+            cut,
+            samples,
+            positions,
+            dirs,
+            targets,
+            backgrounds,
+        } = self.march_step(data, spec)?;
         let (rays, n) = (cut.rays, cut.samples);
-        let backgrounds = self
-            .gpu
-            .upload(drawn.rays.backgrounds[..rays].as_flattened());
-        let targets = self.gpu.upload(drawn.targets[..rays].as_flattened());
-        self.rays = drawn;
         let gpu = &self.gpu;
         let check = FiniteCheck::new(self.check_finite);
 
@@ -305,41 +354,33 @@ impl Engine for GpuEngine {
     ) {
         // Few, large device calls: every round of the renderer is a round trip.
         let chunk = self.chunk_rays.max(RENDER_CHUNK_RAYS);
-        let done = std::sync::atomic::AtomicUsize::new(0);
-        let field = DeviceField { engine: self };
         let marcher = self.model.marcher(rays.near, rays.far);
-        out[..rays.len()]
-            .par_chunks_mut(chunk)
-            .enumerate()
-            .for_each(|(c, out)| {
-                let part = rays.slice(c * chunk..c * chunk + out.len());
-                let mut ws = MarchWorkspace::default();
-                render_marched(
-                    &field,
-                    &[],
-                    &marcher,
-                    &self.model.grid,
-                    self.model.config.batch_samples.max(RENDER_ROUND_SAMPLES),
-                    &part,
-                    &mut ws,
-                    out,
-                );
-                let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
-                on_progress(n);
-            });
+        let (gpu, params) = (&self.gpu, &self.state.values);
+        let field = |positions: &Handle, dirs: &Handle, n: usize| {
+            let acts = self.field.forward(gpu, params, positions, dirs, n);
+            (acts.sigma, acts.rgb)
+        };
+        render_in_chunks(rays, out, chunk, on_progress, |part, out| {
+            let rendered = render::render_rays(
+                gpu,
+                &self.marcher,
+                &marcher,
+                &self.model.grid,
+                &field,
+                self.model.config.batch_samples.max(RENDER_ROUND_SAMPLES),
+                part,
+            );
+            match rendered {
+                Ok(r) => out.copy_from_slice(&r),
+                Err(e) => fail_rays(&e, out),
+            }
+        });
     }
 
     fn density(&self, positions: &[f32], out: &mut [f32]) {
-        assert_eq!(positions.len(), out.len() * 3);
-        for (p, o) in positions
-            .chunks(DENSITY_CHUNK * 3)
-            .zip(out.chunks_mut(DENSITY_CHUNK))
-        {
-            if let Err(e) = self.density_chunk(p, o) {
-                report_device_failure(&e);
-                o.fill(f32::NAN);
-            }
-        }
+        density_in_chunks(positions, out, DENSITY_CHUNK, |p, o| {
+            self.density_chunk(p, o)
+        });
     }
 
     fn state(&self) -> EngineState {
@@ -362,101 +403,5 @@ impl Engine for GpuEngine {
     /// gradient are skipped inside it); there are no untouched blocks to report.
     fn touched_fraction(&self) -> f64 {
         1.0
-    }
-}
-
-/// The engine's field as a [`Field`] whose parameters are on the device (the host
-/// `params` passed to it are ignored): what the host-side renderer evaluates each round
-/// through.
-struct DeviceField<'a> {
-    engine: &'a GpuEngine,
-}
-
-/// Host copies of a batch's outputs, and the device activations for a backward.
-#[derive(Default)]
-struct DeviceFieldContext {
-    sigma: Vec<f32>,
-    rgb: Vec<f32>,
-    acts: Option<Activations>,
-}
-
-impl Field for DeviceField<'_> {
-    type Context = DeviceFieldContext;
-
-    fn num_params(&self) -> usize {
-        self.engine.state.n
-    }
-
-    fn forward<'c>(
-        &self,
-        _params: &[f32],
-        input: FieldInput,
-        ctx: &'c mut DeviceFieldContext,
-    ) -> FieldOutput<'c> {
-        let (e, n) = (self.engine, input.len());
-        let dirs: Vec<f32> = (0..n)
-            .flat_map(|s| {
-                let d = &input.dirs[3 * (s / input.samples_per_dir)..][..3];
-                [d[0], d[1], d[2]]
-            })
-            .collect();
-        let acts = e.field.forward(
-            &e.gpu,
-            &e.state.values,
-            &e.gpu.upload(input.positions),
-            &e.gpu.upload(&dirs),
-            n,
-        );
-        let read = |h: &Handle, len: usize| {
-            e.gpu.read(h, len).unwrap_or_else(|err| {
-                report_device_failure(&err);
-                vec![f32::NAN; len]
-            })
-        };
-        ctx.sigma = read(&acts.sigma, n);
-        ctx.rgb = read(&acts.rgb, n * 3);
-        ctx.acts = Some(acts);
-        FieldOutput {
-            sigma: &ctx.sigma,
-            rgb: &ctx.rgb,
-        }
-    }
-
-    fn backward(
-        &self,
-        _params: &[f32],
-        ctx: &mut DeviceFieldContext,
-        d_output: FieldGrad,
-        grads: &mut Grads,
-    ) {
-        let Some(acts) = &ctx.acts else { return };
-        let e = self.engine;
-        let g = e.gpu.zeros(e.state.n);
-        e.field.backward(
-            &e.gpu,
-            &e.state.values,
-            &g,
-            acts,
-            &e.gpu.upload(d_output.d_sigma),
-            &e.gpu.upload(d_output.d_rgb),
-        );
-        match e.gpu.read(&g, e.state.n) {
-            Ok(values) => {
-                for (a, v) in grads.dense().iter_mut().zip(values) {
-                    *a += v;
-                }
-            }
-            Err(err) => report_device_failure(&err),
-        }
-    }
-
-    fn density(
-        &self,
-        _params: &[f32],
-        positions: &[f32],
-        _ctx: &mut DeviceFieldContext,
-        out: &mut [f32],
-    ) {
-        self.engine.density(positions, out);
     }
 }

@@ -191,7 +191,7 @@ impl GpuHashGrid {
         debug_assert_eq!(words.len(), grid.levels.len() * LEVEL_WORDS);
         let end = grid.param_range().end;
         GpuHashGrid {
-            levels: gpu.client.create_from_slice(u32::as_bytes(&words)),
+            levels: gpu.upload_u32(&words),
             n_levels: grid.levels.len(),
             num_params: end,
         }
@@ -289,22 +289,12 @@ impl GpuHashGrid {
 mod tests {
     use super::*;
     use crate::encoding::hash_grid::HashGridConfig;
+    use crate::engine::gpu::device::test_gpu;
     use crate::nn::{GradBuffer, ParamLayout};
     use crate::rng::Rng;
 
-    fn gpu() -> Option<Gpu> {
-        match Gpu::vulkan() {
-            Ok(g) => Some(g),
-            Err(e) => {
-                eprintln!("skipping the GPU kernel test: {e}");
-                None
-            }
-        }
-    }
-
     fn read(gpu: &Gpu, h: Handle) -> Vec<f32> {
-        let bytes = gpu.client.read_one(h).expect("read back");
-        f32::from_bytes(&bytes).to_vec()
+        gpu.read(&h, usize::MAX).expect("read back")
     }
 
     /// A small grid with dense coarse levels and hashed fine ones (table of 2^10), random
@@ -332,14 +322,14 @@ mod tests {
     /// The kernel against the CPU reference on the same inputs: values within 1e-5.
     #[test]
     fn encode_matches_the_cpu() {
-        let Some(gpu) = gpu() else { return };
+        let Some(gpu) = test_gpu() else { return };
         let (grid, params, points) = setup();
         let n = points.len() / 3;
         let mut want = vec![0.0; n * grid.dims()];
         grid.encode_reference(&params, &points, &mut want);
         let g = GpuHashGrid::new(&gpu, &grid);
-        let p = gpu.client.create_from_slice(f32::as_bytes(&params));
-        let x = gpu.client.create_from_slice(f32::as_bytes(&points));
+        let p = gpu.upload(&params);
+        let x = gpu.upload(&points);
         let out = gpu.client.empty(n * grid.dims() * 4);
         g.encode(&gpu, &p, &x, n, &out);
         let got = read(&gpu, out);
@@ -355,7 +345,7 @@ mod tests {
     /// run in any order, so the sums are rounded differently).
     #[test]
     fn encode_bwd_matches_the_cpu_with_both_scatters() {
-        let Some(gpu) = gpu() else { return };
+        let Some(gpu) = test_gpu() else { return };
         let (grid, params, points) = setup();
         let n = points.len() / 3;
         let mut rng = Rng::new(9);
@@ -364,8 +354,8 @@ mod tests {
         grid.encode_bwd(&points, &d_out, &mut buffer.all());
         let want = buffer.values.clone();
         let g = GpuHashGrid::new(&gpu, &grid);
-        let x = gpu.client.create_from_slice(f32::as_bytes(&points));
-        let d = gpu.client.create_from_slice(f32::as_bytes(&d_out));
+        let x = gpu.upload(&points);
+        let d = gpu.upload(&d_out);
         let mut scatters = vec![Scatter::CompareAndSwap];
         if gpu.float_atomics {
             scatters.push(Scatter::FloatAtomic);
@@ -376,9 +366,7 @@ mod tests {
             );
         }
         for scatter in scatters {
-            let grads = gpu
-                .client
-                .create_from_slice(f32::as_bytes(&vec![0.0f32; params.len()]));
+            let grads = gpu.zeros(params.len());
             g.encode_bwd(&gpu, scatter, &x, &d, n, &grads);
             let got = read(&gpu, grads);
             let worst = got

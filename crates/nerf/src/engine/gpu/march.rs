@@ -20,7 +20,7 @@ use super::volume::GpuSamples;
 use crate::error::Result;
 use crate::math::{length, scale};
 use crate::render::contraction::FAR_N;
-use crate::render::march::Marcher;
+use crate::render::march::{Marcher, MIN_TRANSMITTANCE};
 use crate::render::occupancy::OccupancyGrid;
 use crate::stage::RayBatch;
 
@@ -71,8 +71,9 @@ fn contract_scale(n: f32) -> f32 {
     select(n <= 1.0, 1.0, (2.0 - 1.0 / n) / n)
 }
 
-/// Marches ray `r` from `start[r]` to `end[r]`; with `write`, stores its samples from
-/// slot `first`. Returns the samples taken.
+/// Marches ray `r` from depth `t0` to `t_end`, taking at most `max_samples` samples; with
+/// `write`, stores them from slot `first`, and with `resume`, stores in `next[r]` the depth
+/// at which a later march of the same ray goes on. Returns the samples taken.
 #[cube]
 #[allow(clippy::too_many_arguments)]
 fn march_ray(
@@ -80,8 +81,9 @@ fn march_ray(
     origins: &[f32],
     dirs: &[f32],
     views: &[f32],
-    start: &[f32],
-    end: &[f32],
+    t0: f32,
+    t_end: f32,
+    max_samples: u32,
     occ: &[u32],
     p: MarchParams,
     first: usize,
@@ -89,7 +91,9 @@ fn march_ray(
     dt_out: &mut [f32],
     pos_out: &mut [f32],
     dir_out: &mut [f32],
+    next: &mut [f32],
     #[comptime] write: bool,
+    #[comptime] resume: bool,
 ) -> u32 {
     let ox = origins[3 * r];
     let oy = origins[3 * r + 1];
@@ -101,14 +105,12 @@ fn march_ray(
     let bound = p.bound;
     let cell = p.cell;
     let dt = p.dt;
-    let max_samples = p.max_samples;
     let contract = p.contract;
     let inner = p.inner;
     let far_n = p.far_n;
-    let mut t = start[r];
-    let t_end = end[r];
+    let mut t = t0;
     let mut added = 0u32;
-    let mut running = t < t_end;
+    let mut running = t < t_end && max_samples > 0;
     while running {
         let x = ox + t * dx;
         let y = oy + t * dy;
@@ -172,6 +174,9 @@ fn march_ray(
             running = t < t_end && added < max_samples;
         }
     }
+    if resume {
+        next[r] = t;
+    }
     added
 }
 
@@ -192,6 +197,7 @@ fn march_rays(
     dt_out: &mut [f32],
     pos_out: &mut [f32],
     dir_out: &mut [f32],
+    next: &mut [f32],
     rays: u32,
     p: MarchParams,
     #[comptime] write: bool,
@@ -203,10 +209,76 @@ fn march_rays(
             first = offsets[r] as usize;
         }
         let n = march_ray(
-            r, origins, dirs, views, start, end, occ, p, first, t_out, dt_out, pos_out, dir_out,
+            r,
+            origins,
+            dirs,
+            views,
+            start[r],
+            end[r],
+            p.max_samples,
+            occ,
+            p,
+            first,
+            t_out,
+            dt_out,
+            pos_out,
+            dir_out,
+            next,
             write,
+            false,
         );
         if !write {
+            counts[r] = n;
+        }
+    }
+}
+
+/// A rendering round over rays `r < rays`: count (`write` false: `counts[r]`) or write
+/// (`write` true: from slot `offsets[r]`, then the ray's resume depth in `next[r]` and its
+/// running sample count in `taken[r]`) the ray's next samples, at most `per_ray`. A ray is
+/// done once its transmittance (`state[STATE_WORDS r]`) falls below `min_trans`, its
+/// samples reach the marcher's cap, or it leaves its span.
+#[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
+fn march_round(
+    origins: &[f32],
+    dirs: &[f32],
+    views: &[f32],
+    next: &mut [f32],
+    end: &[f32],
+    state: &[f32],
+    taken: &mut [u32],
+    occ: &[u32],
+    offsets: &[u32],
+    counts: &mut [u32],
+    t_out: &mut [f32],
+    dt_out: &mut [f32],
+    pos_out: &mut [f32],
+    dir_out: &mut [f32],
+    rays: u32,
+    per_ray: u32,
+    min_trans: f32,
+    p: MarchParams,
+    #[comptime] write: bool,
+) {
+    let r = ABSOLUTE_POS;
+    if r < rays as usize {
+        let used = taken[r];
+        let mut budget = 0u32;
+        if state[STATE_WORDS * r] >= min_trans && used < p.max_samples {
+            budget = u32::min(per_ray, p.max_samples - used);
+        }
+        let mut first = 0usize;
+        if write {
+            first = offsets[r] as usize;
+        }
+        let n = march_ray(
+            r, origins, dirs, views, next[r], end[r], budget, occ, p, first, t_out, dt_out,
+            pos_out, dir_out, next, write, write,
+        );
+        if write {
+            taken[r] = used + n;
+        } else {
             counts[r] = n;
         }
     }
@@ -295,11 +367,11 @@ fn find_cut(offsets: &[u32], counts: &[u32], cut: &mut [u32], n: u32, budget: u3
 /// each marches over (its first lattice depth, jittered, to its exit; empty when it
 /// misses the box).
 pub struct GpuRays {
-    origins: Handle,
-    dirs: Handle,
-    views: Handle,
-    start: Handle,
-    end: Handle,
+    pub(super) origins: Handle,
+    pub(super) dirs: Handle,
+    pub(super) views: Handle,
+    pub(super) start: Handle,
+    pub(super) end: Handle,
     pub len: usize,
 }
 
@@ -341,6 +413,32 @@ impl GpuRays {
             start: gpu.upload(&start),
             end: gpu.upload(&end),
             len: n,
+        }
+    }
+}
+
+/// Floats of a ray's running result while rendering: transmittance, rgb, depth, opacity.
+pub const STATE_WORDS: usize = 6;
+
+/// Rays being rendered in rounds on the device: the rays (whose `start` is each ray's resume
+/// depth, advanced by every round), each ray's running result (`STATE_WORDS` floats,
+/// transmittance first) and its samples so far.
+pub struct RoundState {
+    pub rays: GpuRays,
+    pub state: Handle,
+    pub taken: Handle,
+}
+
+impl RoundState {
+    /// Rays that have taken no samples yet: transmittance 1, the rest 0.
+    pub fn new(gpu: &Gpu, rays: GpuRays) -> Self {
+        let n = rays.len;
+        let mut state = vec![0.0; STATE_WORDS * n.max(1)];
+        state.iter_mut().step_by(STATE_WORDS).for_each(|t| *t = 1.0);
+        RoundState {
+            state: gpu.upload(&state),
+            taken: gpu.upload_u32(&vec![0; n.max(1)]),
+            rays,
         }
     }
 }
@@ -412,71 +510,43 @@ impl GpuMarcher {
     pub fn count(&self, gpu: &Gpu, rays: &GpuRays) -> Counted {
         let n = rays.len;
         let counts = gpu.upload_u32(&vec![0; n.max(1)]);
-        let offsets = gpu.upload_u32(&vec![0; n.max(1)]);
-        if n == 0 {
-            return Counted { counts, offsets };
+        if n > 0 {
+            let none = gpu.floats(1);
+            let unused = gpu.upload_u32(&[0]);
+            // SAFETY: every buffer holds the length given with it (rays: `n` or `3n` floats,
+            // the grid `res^3` cells); the count pass writes only `counts[r]` for `r < n`
+            // (its sample outputs and `next` are never touched).
+            unsafe {
+                let (c, d) = grid(n, GROUP);
+                march_rays::launch_unchecked(
+                    &gpu.client,
+                    c,
+                    d,
+                    BufferArg::from_raw_parts(rays.origins.clone(), 3 * n),
+                    BufferArg::from_raw_parts(rays.dirs.clone(), 3 * n),
+                    BufferArg::from_raw_parts(rays.views.clone(), 3 * n),
+                    BufferArg::from_raw_parts(rays.start.clone(), n),
+                    BufferArg::from_raw_parts(rays.end.clone(), n),
+                    BufferArg::from_raw_parts(self.occ.clone(), self.cells()),
+                    BufferArg::from_raw_parts(unused.clone(), 1),
+                    BufferArg::from_raw_parts(counts.clone(), n),
+                    BufferArg::from_raw_parts(none.clone(), 1),
+                    BufferArg::from_raw_parts(none.clone(), 1),
+                    BufferArg::from_raw_parts(none.clone(), 1),
+                    BufferArg::from_raw_parts(none.clone(), 1),
+                    BufferArg::from_raw_parts(none.clone(), 1),
+                    n as u32,
+                    self.params(),
+                    false,
+                );
+            }
         }
-        let blocks = n.div_ceil(SCAN_BLOCK);
-        let totals = gpu.upload_u32(&vec![0; blocks + 1]);
-        let none = gpu.floats(1);
-        let cells = self.res.pow(3);
-        // SAFETY: every buffer holds the length given with it (rays: `n` or `3n` floats,
-        // the grid `res^3` cells, the scan's `blocks + 1` totals); the count pass writes
-        // only `counts[r]` for `r < n` (its sample outputs are never touched), and each
-        // scan pass bounds-checks its index against `n` or `blocks`.
-        unsafe {
-            let (c, d) = grid(n, GROUP);
-            march_rays::launch_unchecked(
-                &gpu.client,
-                c,
-                d,
-                BufferArg::from_raw_parts(rays.origins.clone(), 3 * n),
-                BufferArg::from_raw_parts(rays.dirs.clone(), 3 * n),
-                BufferArg::from_raw_parts(rays.views.clone(), 3 * n),
-                BufferArg::from_raw_parts(rays.start.clone(), n),
-                BufferArg::from_raw_parts(rays.end.clone(), n),
-                BufferArg::from_raw_parts(self.occ.clone(), cells),
-                BufferArg::from_raw_parts(totals.clone(), 1),
-                BufferArg::from_raw_parts(counts.clone(), n),
-                BufferArg::from_raw_parts(none.clone(), 1),
-                BufferArg::from_raw_parts(none.clone(), 1),
-                BufferArg::from_raw_parts(none.clone(), 1),
-                BufferArg::from_raw_parts(none.clone(), 1),
-                n as u32,
-                self.params(),
-                false,
-            );
-            let (c, d) = grid(blocks, GROUP);
-            scan_blocks::launch_unchecked(
-                &gpu.client,
-                c,
-                d,
-                BufferArg::from_raw_parts(counts.clone(), n),
-                BufferArg::from_raw_parts(offsets.clone(), n),
-                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
-                n as u32,
-                SCAN_BLOCK as u32,
-            );
-            let (c, d) = grid(1, 1);
-            scan_totals::launch_unchecked(
-                &gpu.client,
-                c,
-                d,
-                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
-                blocks as u32,
-            );
-            let (c, d) = grid(n, GROUP);
-            scan_add::launch_unchecked(
-                &gpu.client,
-                c,
-                d,
-                BufferArg::from_raw_parts(offsets.clone(), n),
-                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
-                n as u32,
-                SCAN_BLOCK as u32,
-            );
-        }
+        let offsets = scan(gpu, &counts, n);
         Counted { counts, offsets }
+    }
+
+    fn cells(&self) -> usize {
+        self.res.pow(3)
     }
 
     /// Where the budget of `budget` samples (or `max_rays` rays) cuts `n` counted rays;
@@ -529,19 +599,15 @@ impl GpuMarcher {
         counted: &Counted,
         cut: Cut,
     ) -> (GpuSamples, Handle, Handle) {
-        let (k, n) = (cut.rays, cut.samples);
-        let t = gpu.floats(n);
-        let dt = gpu.floats(n);
-        let positions = gpu.floats(3 * n);
-        let dirs = gpu.floats(3 * n);
-        // CSR offsets of the kept rays: their slots, then the total.
-        let offsets = gpu.upload_u32(&vec![0; k + 1]);
-        if k > 0 {
-            let cells = self.res.pow(3);
-            let none = gpu.upload_u32(&[0]);
-            // SAFETY: as in `count`; the kept rays' slots end at `n`, the buffers' length.
+        let none = gpu.upload_u32(&[0]);
+        let unused = gpu.floats(1);
+        self.pack(gpu, rays.len, counted, cut, |out: &PackOutputs| {
+            let k = cut.rays as u32;
+            // SAFETY: as in `count`; the kept rays' slots end at `cut.samples`, the output
+            // buffers' length.
             unsafe {
-                let (c, d) = grid(k, GROUP);
+                let [t, dt, positions, dirs] = out.args();
+                let (c, d) = grid(cut.rays, GROUP);
                 march_rays::launch_unchecked(
                     &gpu.client,
                     c,
@@ -551,23 +617,54 @@ impl GpuMarcher {
                     BufferArg::from_raw_parts(rays.views.clone(), 3 * rays.len),
                     BufferArg::from_raw_parts(rays.start.clone(), rays.len),
                     BufferArg::from_raw_parts(rays.end.clone(), rays.len),
-                    BufferArg::from_raw_parts(self.occ.clone(), cells),
+                    BufferArg::from_raw_parts(self.occ.clone(), self.cells()),
                     BufferArg::from_raw_parts(counted.offsets.clone(), rays.len),
                     BufferArg::from_raw_parts(none.clone(), 1),
-                    BufferArg::from_raw_parts(t.clone(), n.max(1)),
-                    BufferArg::from_raw_parts(dt.clone(), n.max(1)),
-                    BufferArg::from_raw_parts(positions.clone(), 3 * n.max(1)),
-                    BufferArg::from_raw_parts(dirs.clone(), 3 * n.max(1)),
-                    k as u32,
+                    t,
+                    dt,
+                    positions,
+                    dirs,
+                    BufferArg::from_raw_parts(unused.clone(), 1),
+                    k,
                     self.params(),
                     true,
                 );
+            }
+        })
+    }
+
+    /// Allocates the packed outputs of `cut`, runs `march` (the write pass of the kept
+    /// rays) into them, and adds the kept rays' CSR offsets.
+    fn pack(
+        &self,
+        gpu: &Gpu,
+        marched: usize,
+        counted: &Counted,
+        cut: Cut,
+        march: impl FnOnce(&PackOutputs),
+    ) -> (GpuSamples, Handle, Handle) {
+        let (k, n) = (cut.rays, cut.samples);
+        let (t, dt) = (gpu.floats(n), gpu.floats(n));
+        let (positions, dirs) = (gpu.floats(3 * n), gpu.floats(3 * n));
+        // CSR offsets of the kept rays: their slots, then the total.
+        let offsets = gpu.upload_u32(&vec![0; k + 1]);
+        if k > 0 {
+            let out = PackOutputs {
+                t: t.clone(),
+                dt: dt.clone(),
+                positions: positions.clone(),
+                dirs: dirs.clone(),
+                n,
+            };
+            march(&out);
+            // SAFETY: `counted.offsets` holds a slot per marched ray, `offsets` `k + 1`.
+            unsafe {
                 let (c, d) = grid(k + 1, GROUP);
                 csr_offsets::launch_unchecked(
                     &gpu.client,
                     c,
                     d,
-                    BufferArg::from_raw_parts(counted.offsets.clone(), rays.len),
+                    BufferArg::from_raw_parts(counted.offsets.clone(), marched),
                     BufferArg::from_raw_parts(offsets.clone(), k + 1),
                     k as u32,
                     n as u32,
@@ -583,6 +680,194 @@ impl GpuMarcher {
         };
         (samples, positions, dirs)
     }
+
+    /// A rendering round, pass 1 and 2: every ray still worth marching (transmittance at
+    /// least `min_trans` in `state`, under its sample cap `taken`) counts its next samples,
+    /// at most `per_ray`, from where its last round stopped; then the counts are scanned.
+    pub fn count_round(&self, gpu: &Gpu, round: &RoundState, per_ray: usize) -> Counted {
+        let n = round.rays.len;
+        let counts = gpu.upload_u32(&vec![0; n.max(1)]);
+        if n > 0 {
+            // SAFETY: `count` plus the round's state (`taken`: `n`, `state`: `STATE_WORDS n`);
+            // the count pass writes only `counts[r]` for `r < n`.
+            unsafe {
+                self.launch_round(
+                    gpu,
+                    round,
+                    n,
+                    per_ray,
+                    &counts,
+                    &counts,
+                    &PackOutputs::none(gpu),
+                    false,
+                );
+            }
+        }
+        let offsets = scan(gpu, &counts, n);
+        Counted { counts, offsets }
+    }
+
+    /// A rendering round, pass 3: the first `cut.rays` rays write their samples (packed as
+    /// [`GpuMarcher::write`] packs them), advance their resume depths and add to `taken`.
+    pub fn write_round(
+        &self,
+        gpu: &Gpu,
+        round: &RoundState,
+        counted: &Counted,
+        cut: Cut,
+        per_ray: usize,
+    ) -> (GpuSamples, Handle, Handle) {
+        let unused = gpu.upload_u32(&[0]);
+        self.pack(gpu, round.rays.len, counted, cut, |out: &PackOutputs| {
+            // SAFETY: as in `count_round`; the kept rays' slots end at `cut.samples`.
+            unsafe {
+                self.launch_round(
+                    gpu,
+                    round,
+                    cut.rays,
+                    per_ray,
+                    &counted.offsets,
+                    &unused,
+                    out,
+                    true,
+                );
+            }
+        })
+    }
+
+    /// Launches `march_round` over the first `k` rays of `round`.
+    ///
+    /// # Safety
+    /// `offsets` holds a slot per ray of `round` when `write`, `counts` one per ray when
+    /// not, and the outputs hold every slot written.
+    #[allow(clippy::too_many_arguments)]
+    unsafe fn launch_round(
+        &self,
+        gpu: &Gpu,
+        round: &RoundState,
+        k: usize,
+        per_ray: usize,
+        offsets: &Handle,
+        counts: &Handle,
+        out: &PackOutputs,
+        write: bool,
+    ) {
+        let (n, rays) = (round.rays.len, &round.rays);
+        let (c, d) = grid(k, GROUP);
+        // SAFETY: see the function's contract; the rays' buffers hold `n` or `3n` floats.
+        unsafe {
+            let [t, dt, positions, dirs] = out.args();
+            march_round::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(rays.origins.clone(), 3 * n),
+                BufferArg::from_raw_parts(rays.dirs.clone(), 3 * n),
+                BufferArg::from_raw_parts(rays.views.clone(), 3 * n),
+                BufferArg::from_raw_parts(rays.start.clone(), n),
+                BufferArg::from_raw_parts(rays.end.clone(), n),
+                BufferArg::from_raw_parts(round.state.clone(), STATE_WORDS * n),
+                BufferArg::from_raw_parts(round.taken.clone(), n),
+                BufferArg::from_raw_parts(self.occ.clone(), self.cells()),
+                BufferArg::from_raw_parts(offsets.clone(), if write { n } else { 1 }),
+                BufferArg::from_raw_parts(counts.clone(), if write { 1 } else { n }),
+                t,
+                dt,
+                positions,
+                dirs,
+                k as u32,
+                per_ray.min(u32::MAX as usize) as u32,
+                MIN_TRANSMITTANCE,
+                self.params(),
+                write,
+            );
+        }
+    }
+}
+
+/// The four packed sample outputs of a write pass (`n` samples; placeholders of one
+/// value in a count pass).
+struct PackOutputs {
+    t: Handle,
+    dt: Handle,
+    positions: Handle,
+    dirs: Handle,
+    n: usize,
+}
+
+impl PackOutputs {
+    fn none(gpu: &Gpu) -> PackOutputs {
+        let none = gpu.floats(1);
+        PackOutputs {
+            t: none.clone(),
+            dt: none.clone(),
+            positions: none.clone(),
+            dirs: none,
+            n: 0,
+        }
+    }
+
+    /// The kernel arguments: depths, step lengths, positions, directions.
+    ///
+    /// # Safety
+    /// The handles hold `n` (or one) and `3n` (or three) floats.
+    unsafe fn args(&self) -> [BufferArg; 4] {
+        let n = self.n.max(1);
+        let p = if self.n == 0 { 1 } else { 3 * n };
+        // SAFETY: see the function's contract.
+        unsafe {
+            [
+                BufferArg::from_raw_parts(self.t.clone(), n),
+                BufferArg::from_raw_parts(self.dt.clone(), n),
+                BufferArg::from_raw_parts(self.positions.clone(), p),
+                BufferArg::from_raw_parts(self.dirs.clone(), p),
+            ]
+        }
+    }
+}
+
+/// The exclusive prefix sums of `n` counts (passes 1 to 3 of the scan).
+fn scan(gpu: &Gpu, counts: &Handle, n: usize) -> Handle {
+    let offsets = gpu.upload_u32(&vec![0; n.max(1)]);
+    if n == 0 {
+        return offsets;
+    }
+    let blocks = n.div_ceil(SCAN_BLOCK);
+    let totals = gpu.upload_u32(&vec![0; blocks + 1]);
+    // SAFETY: `counts` and `offsets` hold `n` values, `totals` `blocks + 1`; each pass
+    // bounds-checks its index against `n` or `blocks`.
+    unsafe {
+        let (c, d) = grid(blocks, GROUP);
+        scan_blocks::launch_unchecked(
+            &gpu.client,
+            c,
+            d,
+            BufferArg::from_raw_parts(counts.clone(), n),
+            BufferArg::from_raw_parts(offsets.clone(), n),
+            BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+            n as u32,
+            SCAN_BLOCK as u32,
+        );
+        let (c, d) = grid(1, 1);
+        scan_totals::launch_unchecked(
+            &gpu.client,
+            c,
+            d,
+            BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+            blocks as u32,
+        );
+        let (c, d) = grid(n, GROUP);
+        scan_add::launch_unchecked(
+            &gpu.client,
+            c,
+            d,
+            BufferArg::from_raw_parts(offsets.clone(), n),
+            BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+            n as u32,
+            SCAN_BLOCK as u32,
+        );
+    }
+    offsets
 }
 
 /// The kept rays' slots followed by the total: the CSR offsets compositing reads.

@@ -10,21 +10,23 @@
 //!   the trainable state both keep on the device;
 //! * [`vanilla_net`]: the paper's network forward and backward;
 //! * [`march`]: occupancy-grid marching with sample compaction (count, prefix sum, budget
-//!   cut, packed write); [`occupancy`]: the grid's refresh;
+//!   cut, packed write), for training steps and rendering rounds; [`occupancy`]: the
+//!   grid's refresh;
 //! * [`field`]: the fast field forward and backward, built from [`hash_grid`] (the
 //!   multiresolution hash encoding; gradients scattered with float atomics, or a
 //!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
+//! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient;
 //! * [`adam`]: the optimiser step over the whole parameter vector (lazy for hash tables);
 //! * [`finite`]: counting non-finite gradients before the optimiser runs;
+//! * [`rays`]: training rays made from pixel indices, with the images and cameras on the
+//!   device (lens distortion through per-lens tables);
 //! * [`launch`]: launch grids and host/device copies.
 //!
-//! Not on the device yet: drawing the training rays (the host draws them with the CPU
-//! engine's code, `data::pixels`, every camera model included, and uploads 17 floats per
-//! ray), the paper's model's sampling (stratified and importance samples are drawn on the
-//! host), and rendering's marching (the host marches in rounds; the field runs on the
-//! device).
+//! Not on the device yet: the paper's model's sampling (stratified and importance samples
+//! are drawn on the host), and the random choice of each training ray's pixel (drawn on
+//! the host so both engines train on the same rays; 6 words a ray go up).
 
 pub mod adam;
 pub mod device;
@@ -39,6 +41,8 @@ pub mod march;
 pub mod mlp;
 pub mod occupancy;
 pub mod params;
+pub mod rays;
+pub mod render;
 pub mod vanilla;
 pub mod vanilla_net;
 pub mod volume;

@@ -12,6 +12,7 @@ use crate::error::{NerfError, Result};
 use crate::model::UpdateRule;
 use crate::nn::adam::{Adam, AdamConfig, DirtyStep};
 use crate::stage::finite::FiniteCheck;
+use crate::stage::RayOutput;
 
 pub struct DeviceParams {
     pub n: usize,
@@ -150,4 +151,31 @@ pub fn check_device(
 pub fn report_device_failure(e: &NerfError) {
     static SAID: std::sync::Once = std::sync::Once::new();
     SAID.call_once(|| eprintln!("error: {e}; the affected values are NaN"));
+}
+
+/// Rays whose device work failed: reported (once) and NaN.
+pub fn fail_rays(e: &NerfError, out: &mut [RayOutput]) {
+    report_device_failure(e);
+    out.fill(RayOutput {
+        rgb: [f32::NAN; 3],
+        depth: f32::NAN,
+        opacity: f32::NAN,
+    });
+}
+
+/// Density queries in device calls of at most `chunk` points, `query` answering one;
+/// a failed call's densities are NaN (reported once).
+pub fn density_in_chunks(
+    positions: &[f32],
+    out: &mut [f32],
+    chunk: usize,
+    query: impl Fn(&[f32], &mut [f32]) -> Result<()>,
+) {
+    assert_eq!(positions.len(), out.len() * 3);
+    for (p, o) in positions.chunks(chunk * 3).zip(out.chunks_mut(chunk)) {
+        if let Err(e) = query(p, o) {
+            report_device_failure(&e);
+            o.fill(f32::NAN);
+        }
+    }
 }

@@ -10,16 +10,15 @@
 //! through the same two passes in chunks of rays.
 
 use cubecl::server::Handle;
-use rayon::prelude::*;
 
 use super::device::Gpu;
 use super::loss;
-use super::params::{check_device, report_device_failure, DeviceParams};
+use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
 use super::vanilla_net::{GpuVanillaNet, VanillaActs};
 use super::volume::{self, GpuSamples, OUT_WORDS};
 use crate::data::pixels::TrainingRays;
 use crate::data::Dataset;
-use crate::engine::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
+use crate::engine::{render_in_chunks, Engine, EngineOptions, EngineState, StepSpec, StepStats};
 use crate::error::Result;
 use crate::model::vanilla::ChunkWorkspace;
 use crate::model::{Model, ModelConfig, VanillaModel, VanillaModelConfig};
@@ -307,34 +306,17 @@ impl Engine for GpuVanillaEngine {
         out: &mut [RayOutput],
         on_progress: &(dyn Fn(usize) + Sync),
     ) {
-        let chunk = self.chunk_rays;
-        let done = std::sync::atomic::AtomicUsize::new(0);
-        out[..rays.len()]
-            .par_chunks_mut(chunk)
-            .enumerate()
-            .for_each(|(c, out)| {
-                let part = rays.slice(c * chunk..c * chunk + out.len());
-                if let Err(e) = self.render_chunk(&part, out) {
-                    report_device_failure(&e);
-                    out.fill(RayOutput {
-                        rgb: [f32::NAN; 3],
-                        depth: f32::NAN,
-                        opacity: f32::NAN,
-                    });
-                }
-                let n = done.fetch_add(out.len(), std::sync::atomic::Ordering::Relaxed) + out.len();
-                on_progress(n);
-            });
+        render_in_chunks(rays, out, self.chunk_rays, on_progress, |part, out| {
+            if let Err(e) = self.render_chunk(part, out) {
+                fail_rays(&e, out);
+            }
+        });
     }
 
     /// The fine network's density (the coarse one's without a fine network).
     fn density(&self, positions: &[f32], out: &mut [f32]) {
-        assert_eq!(positions.len(), out.len() * 3);
         let net = self.fine.as_ref().unwrap_or(&self.coarse);
-        for (p, o) in positions
-            .chunks(DENSITY_CHUNK * 3)
-            .zip(out.chunks_mut(DENSITY_CHUNK))
-        {
+        density_in_chunks(positions, out, DENSITY_CHUNK, |p, o| {
             let n = o.len();
             // Density does not depend on the direction: any unit vector will do.
             let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.0, 1.0]).collect();
@@ -345,14 +327,9 @@ impl Engine for GpuVanillaEngine {
                 &self.gpu.upload(&dirs),
                 n,
             );
-            match self.gpu.read(&acts.sigma, n) {
-                Ok(v) => o.copy_from_slice(&v),
-                Err(e) => {
-                    report_device_failure(&e);
-                    o.fill(f32::NAN);
-                }
-            }
-        }
+            o.copy_from_slice(&self.gpu.read(&acts.sigma, n)?);
+            Ok(())
+        });
     }
 
     fn state(&self) -> EngineState {

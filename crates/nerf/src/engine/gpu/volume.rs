@@ -212,24 +212,13 @@ pub fn composite_backward(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::engine::gpu::device::worst;
+    use crate::engine::gpu::device::{test_gpu, worst};
     use crate::render::volume::{composite_packed, composite_packed_bwd};
     use crate::rng::Rng;
     use crate::stage::{FieldOutput, PackedSamples, RayOutput};
 
-    fn gpu() -> Option<Gpu> {
-        Gpu::vulkan()
-            .map_err(|e| eprintln!("skipping the GPU kernel test: {e}"))
-            .ok()
-    }
-
     fn read(gpu: &Gpu, h: Handle) -> Vec<f32> {
-        let bytes = gpu.client.read_one(h).expect("read back");
-        f32::from_bytes(&bytes).to_vec()
-    }
-
-    fn upload(gpu: &Gpu, v: &[f32]) -> Handle {
-        gpu.client.create_from_slice(f32::as_bytes(v))
+        gpu.read(&h, usize::MAX).expect("read back")
     }
 
     /// Rays of 0 to 40 samples (the paper's sampler's last "infinite" delta on some),
@@ -237,7 +226,7 @@ mod tests {
     /// 1e-5 relative.
     #[test]
     fn compositing_matches_the_cpu_forward_and_backward() {
-        let Some(gpu) = gpu() else { return };
+        let Some(gpu) = test_gpu() else { return };
         let mut rng = Rng::new(5);
         let mut samples = PackedSamples::default();
         samples.clear();
@@ -290,20 +279,20 @@ mod tests {
 
         let offsets: Vec<u32> = samples.offsets.iter().map(|&o| o as u32).collect();
         let gs = GpuSamples {
-            offsets: gpu.client.create_from_slice(u32::as_bytes(&offsets)),
-            t: upload(&gpu, &samples.t),
-            dt: upload(&gpu, &samples.dt),
+            offsets: gpu.upload_u32(&offsets),
+            t: gpu.upload(&samples.t),
+            dt: gpu.upload(&samples.dt),
             rays,
             len: n,
         };
-        let (s, c) = (upload(&gpu, &sigma), upload(&gpu, &rgb));
-        let b = upload(&gpu, bgs.as_flattened());
+        let (s, c) = (gpu.upload(&sigma), gpu.upload(&rgb));
+        let b = gpu.upload(bgs.as_flattened());
         let (w, o) = (
             gpu.client.empty(n * 4),
             gpu.client.empty(rays * OUT_WORDS * 4),
         );
         composite(&gpu, &gs, &s, &c, &b, &w, &o);
-        let d = upload(&gpu, d_out.as_flattened());
+        let d = gpu.upload(d_out.as_flattened());
         let (ds, dc) = (gpu.client.empty(n * 4), gpu.client.empty(n * 3 * 4));
         composite_backward(&gpu, &gs, &s, &c, &b, &o, &d, &ds, &dc);
 

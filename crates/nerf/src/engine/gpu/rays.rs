@@ -1,0 +1,474 @@
+//! Training rays made on the device from pixel indices: the training images and cameras
+//! live on the device ([`GpuViews`], uploaded once per dataset), the host draws only each
+//! ray's random choices ([`PixelChoice`]: view, pixel, background, jitter; 6 words a ray),
+//! and one thread per ray casts the camera ray (`Camera::ray`), warps it into the scene's
+//! ray space (`RaySpace::warp`, NDC included), clips it to the marcher's span
+//! (`Marcher::span`), and gathers its target colour over its background
+//! (`RgbaImage::composite_pixel`): the rays `data::pixels` draws on the host, made where
+//! the marcher reads them.
+//!
+//! Lens distortion has no closed-form inverse (`camera::distortion`: Newton steps in
+//! `f64`), so a view with a distorted lens reads its undistorted image coordinates from a
+//! table the host computes once per distinct lens (two floats a pixel); pinhole views need
+//! none.
+
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::device::Gpu;
+use super::launch::grid;
+use super::march::GpuRays;
+use crate::camera::ray_space::RaySpace;
+use crate::camera::Camera;
+use crate::data::pixels::PixelChoice;
+use crate::data::Dataset;
+use crate::render::march::Marcher;
+
+const GROUP: u32 = 64;
+/// Floats per camera: fx, fy, cx, cy, then the 3x4 camera-to-world matrix by rows.
+const CAM_WORDS: usize = 16;
+/// Words per view: image width, first float of its image, first float of its lens table.
+const META_WORDS: usize = 3;
+/// "No lens table": a pinhole view.
+const NO_TABLE: u32 = u32::MAX;
+/// Most floats the images and lens tables may take on the device (4 GiB); a larger
+/// dataset's rays are drawn on the host.
+const MAX_FLOATS: usize = 1 << 30;
+
+/// The ray space, the marcher's span and the lattice, as the kernel reads them.
+#[derive(CubeType, CubeLaunch, Clone, Copy)]
+pub struct RayGenParams {
+    /// 1: warp into NDC (`ax`, `ay`, `ndc_near`: `camera::ray_space::Ndc`).
+    ndc: u32,
+    ax: f32,
+    ay: f32,
+    ndc_near: f32,
+    /// Near and far along the camera direction; the occupancy box's half-extent.
+    near: f32,
+    far: f32,
+    bound: f32,
+    /// The lattice step, and 1 when space is contracted (the span is all of near..far).
+    dt: f32,
+    contract: u32,
+}
+
+/// One thread per ray: see the module docs. Outputs as `GpuRays` holds them (warped
+/// origin, unit direction, unit view direction, span start with its jitter, span end) and
+/// the target colour (`rays x 3`).
+#[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
+fn generate(
+    chosen_views: &[u32],
+    chosen_pixels: &[u32],
+    backgrounds: &[f32],
+    jitter: &[f32],
+    meta: &[u32],
+    cams: &[f32],
+    tables: &[f32],
+    images: &[f32],
+    origins: &mut [f32],
+    dirs: &mut [f32],
+    views: &mut [f32],
+    start: &mut [f32],
+    end: &mut [f32],
+    targets: &mut [f32],
+    rays: u32,
+    p: RayGenParams,
+) {
+    let r = ABSOLUTE_POS;
+    if r < rays as usize {
+        let v = chosen_views[r] as usize;
+        let pix = chosen_pixels[r];
+        let width = meta[META_WORDS * v];
+        let image = meta[META_WORDS * v + 1] as usize;
+        let table = meta[META_WORDS * v + 2];
+        let c = CAM_WORDS * v;
+        // Normalised image coordinates of the pixel's centre, undistorted: by the pinhole
+        // formula, or from the view's lens table.
+        let i = pix % width;
+        let j = pix / width;
+        let pinhole_u = (f32::cast_from(i) + 0.5 - cams[c + 2]) / cams[c];
+        let pinhole_w = (f32::cast_from(j) + 0.5 - cams[c + 3]) / cams[c + 1];
+        let lens = table != NO_TABLE;
+        let at = select(lens, table as usize + 2 * pix as usize, 0usize);
+        let u = select(lens, tables[at], pinhole_u);
+        let w = select(lens, tables[at + 1], pinhole_w);
+        // The camera looks down -z with y up: (u, -w, -1) in camera axes, to world.
+        let m = c + 4;
+        let wx = cams[m] * u - cams[m + 1] * w - cams[m + 2];
+        let wy = cams[m + 4] * u - cams[m + 5] * w - cams[m + 6];
+        let wz = cams[m + 8] * u - cams[m + 9] * w - cams[m + 10];
+        let mut ox = cams[m + 3];
+        let mut oy = cams[m + 7];
+        let mut oz = cams[m + 11];
+        let mut dx = wx;
+        let mut dy = wy;
+        let mut dz = wz;
+        if p.ndc == 1 {
+            if wz >= -1e-6f32 {
+                // Not heading into the frustum: a ray that misses everything.
+                ox = 0.0f32;
+                oy = 0.0f32;
+                oz = 10.0f32;
+                dx = 0.0f32;
+                dy = 0.0f32;
+                dz = 1.0f32;
+            } else {
+                let n = p.ndc_near;
+                let t = -(n + oz) / wz;
+                let px = ox + t * wx;
+                let py = oy + t * wy;
+                let pz = oz + t * wz;
+                ox = -p.ax * px / pz;
+                oy = -p.ay * py / pz;
+                oz = 1.0 + 2.0 * n / pz;
+                dx = -p.ax * (wx / wz - px / pz);
+                dy = -p.ay * (wy / wz - py / pz);
+                dz = -2.0f32 * n / pz;
+            }
+        }
+        let norm = f32::sqrt(dx * dx + dy * dy + dz * dz);
+        let inv = 1.0 / norm;
+        let ux = dx * inv;
+        let uy = dy * inv;
+        let uz = dz * inv;
+        let view_inv = 1.0 / f32::sqrt(wx * wx + wy * wy + wz * wz);
+        // The span: the box between near and far (`render::occupancy::ray_box`), or all of
+        // near..far in contracted space.
+        let mut t0 = p.near * norm;
+        let mut t1 = p.far * norm;
+        if p.contract == 0 {
+            let b = p.bound;
+            let near_x = slab_near(ox, ux, b);
+            let far_x = slab_far(ox, ux, b);
+            t0 = select(near_x > t0, near_x, t0);
+            t1 = select(far_x < t1, far_x, t1);
+            let near_y = slab_near(oy, uy, b);
+            let far_y = slab_far(oy, uy, b);
+            t0 = select(near_y > t0, near_y, t0);
+            t1 = select(far_y < t1, far_y, t1);
+            let near_z = slab_near(oz, uz, b);
+            let far_z = slab_far(oz, uz, b);
+            t0 = select(near_z > t0, near_z, t0);
+            t1 = select(far_z < t1, far_z, t1);
+        }
+        let hit = t0 < t1;
+        let k = 3 * r;
+        origins[k] = ox;
+        origins[k + 1] = oy;
+        origins[k + 2] = oz;
+        dirs[k] = ux;
+        dirs[k + 1] = uy;
+        dirs[k + 2] = uz;
+        views[k] = wx * view_inv;
+        views[k + 1] = wy * view_inv;
+        views[k + 2] = wz * view_inv;
+        start[r] = select(hit, t0 + jitter[r] * p.dt, 0.0f32);
+        end[r] = select(hit, t1, 0.0f32);
+        let q = image + 4 * pix as usize;
+        let clear = 1.0 - images[q + 3];
+        targets[k] = images[q] + backgrounds[k] * clear;
+        targets[k + 1] = images[q + 1] + backgrounds[k + 1] * clear;
+        targets[k + 2] = images[q + 2] + backgrounds[k + 2] * clear;
+    }
+}
+
+/// Where a ray `o + t d` (one axis) enters the slab `-b..b`, and where it leaves it
+/// (`slab_far`), as `render::occupancy::ray_box` orders them: a ray parallel to the slab
+/// gives infinities or NaN, which the callers' comparisons pass over.
+#[cube]
+fn slab_near(o: f32, d: f32, b: f32) -> f32 {
+    let inv = 1.0 / d;
+    let ta = (-b - o) * inv;
+    let tb = (b - o) * inv;
+    select(ta > tb, tb, ta)
+}
+
+#[cube]
+fn slab_far(o: f32, d: f32, b: f32) -> f32 {
+    let inv = 1.0 / d;
+    let ta = (-b - o) * inv;
+    let tb = (b - o) * inv;
+    select(ta > tb, ta, tb)
+}
+
+/// The training views of one dataset on the device.
+pub struct GpuViews {
+    meta: Handle,
+    cams: Handle,
+    tables: Handle,
+    images: Handle,
+    lens: [usize; 4],
+    /// Which dataset (its views' address and count): a step with another re-uploads.
+    key: (usize, usize),
+}
+
+impl GpuViews {
+    /// Uploads `data`'s images, cameras and lens tables; `None` when they would pass
+    /// `MAX_FLOATS` (the host draws the rays then).
+    pub fn upload(gpu: &Gpu, data: &Dataset) -> Option<GpuViews> {
+        let pixels: usize = data
+            .views
+            .iter()
+            .map(|v| v.image.width * v.image.height)
+            .sum();
+        let (mut meta, mut cams, mut images) = (Vec::new(), Vec::new(), Vec::new());
+        let mut tables: Vec<f32> = Vec::new();
+        // Distinct distorted lenses and where their tables start.
+        let mut lenses: Vec<(Camera, usize)> = Vec::new();
+        if 4 * pixels > MAX_FLOATS {
+            return None;
+        }
+        images.reserve(4 * pixels);
+        for view in &data.views {
+            let cam = &view.camera;
+            let table = if cam.distortion.is_pinhole() {
+                NO_TABLE as usize
+            } else {
+                let same = |(c, _): &&(Camera, usize)| same_lens(c, cam);
+                match lenses.iter().find(same) {
+                    Some((_, at)) => *at,
+                    None => {
+                        let at = tables.len();
+                        if 4 * pixels + at + 2 * cam.width * cam.height > MAX_FLOATS {
+                            return None;
+                        }
+                        tables.extend(lens_table(cam));
+                        lenses.push((cam.clone(), at));
+                        at
+                    }
+                }
+            };
+            let image_at = images.len();
+            if image_at > u32::MAX as usize
+                || (table != NO_TABLE as usize && table > u32::MAX as usize)
+            {
+                return None;
+            }
+            meta.extend([cam.width as u32, image_at as u32, table as u32]);
+            cams.extend([cam.fx, cam.fy, cam.cx, cam.cy]);
+            cams.extend(cam.c2w.iter().flatten());
+            images.extend_from_slice(&view.image.data);
+        }
+        // Pinhole views read (and ignore) the first two values.
+        tables.extend([0.0, 0.0]);
+        Some(GpuViews {
+            lens: [meta.len(), cams.len(), tables.len(), images.len()],
+            meta: gpu.upload_u32(&meta),
+            cams: gpu.upload(&cams),
+            tables: gpu.upload(&tables),
+            images: gpu.upload(&images),
+            key: GpuViews::key_of(data),
+        })
+    }
+
+    /// Which dataset `data` is, as far as the views on the device go.
+    pub fn key_of(data: &Dataset) -> (usize, usize) {
+        (data.views.as_ptr() as usize, data.views.len())
+    }
+
+    /// Whether these are `data`'s views.
+    pub fn is_for(&self, data: &Dataset) -> bool {
+        self.key == GpuViews::key_of(data)
+    }
+
+    /// The rays of `choices` (with their lattice jitters) through `marcher` and a grid of
+    /// half-extent `bound`, and their targets and backgrounds (`rays x 3` each).
+    pub fn generate(
+        &self,
+        gpu: &Gpu,
+        space: &RaySpace,
+        marcher: &Marcher,
+        bound: f32,
+        choices: &[PixelChoice],
+        jitter: &[f32],
+    ) -> (GpuRays, Handle, Handle) {
+        let n = choices.len();
+        let views: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
+        let pixels: Vec<u32> = choices.iter().map(|c| c.pixel as u32).collect();
+        let backgrounds: Vec<f32> = choices.iter().flat_map(|c| c.background).collect();
+        let backgrounds = gpu.upload(&backgrounds);
+        let (origins, dirs, unit_views) = (gpu.floats(3 * n), gpu.floats(3 * n), gpu.floats(3 * n));
+        let (start, end, targets) = (gpu.floats(n), gpu.floats(n), gpu.floats(3 * n));
+        if n > 0 {
+            let (ndc, ax, ay, ndc_near) = match space {
+                RaySpace::World => (0, 1.0, 1.0, 1.0),
+                RaySpace::Ndc(p) => (1, p.ax, p.ay, p.near),
+            };
+            let params = RayGenParamsLaunch::new(
+                ndc,
+                ax,
+                ay,
+                ndc_near,
+                marcher.near,
+                marcher.far,
+                bound,
+                marcher.dt,
+                u32::from(marcher.contract.is_some()),
+            );
+            let [meta, cams, tables, images] = self.lens;
+            // SAFETY: every buffer holds the length given with it; views and pixels index
+            // the uploaded views and their images (drawn from this dataset), and a view's
+            // lens table covers its pixels.
+            unsafe {
+                let (c, d) = grid(n, GROUP);
+                generate::launch_unchecked(
+                    &gpu.client,
+                    c,
+                    d,
+                    BufferArg::from_raw_parts(gpu.upload_u32(&views), n),
+                    BufferArg::from_raw_parts(gpu.upload_u32(&pixels), n),
+                    BufferArg::from_raw_parts(backgrounds.clone(), 3 * n),
+                    BufferArg::from_raw_parts(gpu.upload(jitter), n),
+                    BufferArg::from_raw_parts(self.meta.clone(), meta),
+                    BufferArg::from_raw_parts(self.cams.clone(), cams),
+                    BufferArg::from_raw_parts(self.tables.clone(), tables),
+                    BufferArg::from_raw_parts(self.images.clone(), images),
+                    BufferArg::from_raw_parts(origins.clone(), 3 * n),
+                    BufferArg::from_raw_parts(dirs.clone(), 3 * n),
+                    BufferArg::from_raw_parts(unit_views.clone(), 3 * n),
+                    BufferArg::from_raw_parts(start.clone(), n),
+                    BufferArg::from_raw_parts(end.clone(), n),
+                    BufferArg::from_raw_parts(targets.clone(), 3 * n),
+                    n as u32,
+                    params,
+                );
+            }
+        }
+        let rays = GpuRays {
+            origins,
+            dirs,
+            views: unit_views,
+            start,
+            end,
+            len: n,
+        };
+        (rays, targets, backgrounds)
+    }
+}
+
+/// Whether two cameras undistort every pixel alike.
+fn same_lens(a: &Camera, b: &Camera) -> bool {
+    (a.width, a.height, a.fx, a.fy, a.cx, a.cy, a.distortion)
+        == (b.width, b.height, b.fx, b.fy, b.cx, b.cy, b.distortion)
+}
+
+/// Every pixel centre's undistorted normalised coordinates, as `Camera::ray` computes them.
+fn lens_table(cam: &Camera) -> Vec<f32> {
+    let mut table = Vec::with_capacity(2 * cam.width * cam.height);
+    for j in 0..cam.height {
+        for i in 0..cam.width {
+            let (x, y) = (i as f32 + 0.5, j as f32 + 0.5);
+            let (u, v) = cam
+                .distortion
+                .undistort((x - cam.cx) / cam.fx, (y - cam.cy) / cam.fy);
+            table.extend([u, v]);
+        }
+    }
+    table
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::distortion::{Distortion, LensModel};
+    use crate::camera::ray_space::Ndc;
+    use crate::data::pixels::{PixelSampling, TrainingRays};
+    use crate::data::synth::{self, SynthOptions};
+    use crate::data::{Background, Split};
+    use crate::engine::gpu::device::{test_gpu, worst};
+    use crate::render::occupancy::OccupancyGrid;
+
+    /// The device's rays against the host's (`TrainingRays::push`, then `GpuRays::new`'s
+    /// unit directions and spans) for the same pixel choices: pinhole and distorted lenses,
+    /// world and NDC ray spaces, bounded and contracted marching. Values agree to rounding
+    /// (the device may fuse multiply-adds and divide less exactly), targets exactly.
+    #[test]
+    fn device_rays_are_the_host_rays() {
+        let Some(gpu) = test_gpu() else {
+            return;
+        };
+        let opts = SynthOptions {
+            size: 12,
+            supersample: 1,
+            ..Default::default()
+        };
+        let pinhole = synth::dataset(&opts, Split::Train, 4);
+        let mut distorted = pinhole.clone();
+        for (k, v) in distorted.views.iter_mut().enumerate() {
+            v.camera.distortion = Distortion {
+                model: if k % 2 == 0 {
+                    LensModel::Opencv
+                } else {
+                    LensModel::Fisheye
+                },
+                k: [0.1, -0.05, 0.01, 0.0],
+                p: [0.002, -0.001],
+            };
+        }
+        let mut ndc = pinhole.clone();
+        ndc.space = RaySpace::Ndc(Ndc {
+            ax: 2.0,
+            ay: 2.0,
+            near: 1.0,
+        });
+        (ndc.near, ndc.far) = (0.0, 1.0);
+        let how = PixelSampling {
+            seed: 3,
+            step: 7,
+            crop: 1.0,
+            background: Background::Random,
+        };
+        let n = 600;
+        for (name, data, contract) in [
+            ("pinhole", &pinhole, None),
+            ("distorted", &distorted, None),
+            ("ndc", &ndc, None),
+            ("contracted", &pinhole, Some(0.75)),
+        ] {
+            let marcher = Marcher {
+                dt: 0.01,
+                max_samples: 64,
+                near: data.near,
+                far: data.far,
+                contract,
+            };
+            let grid = OccupancyGrid::new(8, 1.5);
+            let mut choices: Vec<PixelChoice> =
+                (0..n).map(|k| PixelChoice::draw(data, &how, k)).collect();
+            let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
+            let views = GpuViews::upload(&gpu, data).expect("small enough");
+            let (got, targets, backgrounds) =
+                views.generate(&gpu, &data.space, &marcher, grid.bound, &choices, &jitter);
+
+            let mut host = TrainingRays::default();
+            host.draw(data, &how, 0..n);
+            let want = GpuRays::new(&gpu, &marcher, &grid, &host.rays, &jitter);
+            let n = n as usize;
+            let read = |h: &Handle, len: usize| gpu.read(h, len).expect("read");
+            for (what, a, b, len) in [
+                ("origins", &got.origins, &want.origins, 3 * n),
+                ("dirs", &got.dirs, &want.dirs, 3 * n),
+                ("views", &got.views, &want.views, 3 * n),
+                ("start", &got.start, &want.start, n),
+                ("end", &got.end, &want.end, n),
+            ] {
+                let (a, b) = (read(a, len), read(b, len));
+                let err = worst(&a, &b);
+                eprintln!("{name} {what}: worst difference {err:.1e}");
+                assert!(err < 1e-4, "{name} {what}: {err}");
+            }
+            // Some rays hit the box, some miss it (empty spans agree above).
+            let end = read(&want.end, n);
+            assert!(end.iter().any(|&e| e > 0.0), "{name}: no ray hits the box");
+            let t = read(&targets, 3 * n);
+            assert_eq!(t, host.targets.as_flattened(), "{name} targets");
+            let bg = read(&backgrounds, 3 * n);
+            assert_eq!(
+                bg,
+                host.rays.backgrounds.as_flattened(),
+                "{name} backgrounds"
+            );
+        }
+    }
+}

@@ -1,0 +1,143 @@
+//! Rendering with every sample on the device: rays march through the occupancy grid in
+//! rounds (`march`'s round passes: count, prefix sum, cut at the round's sample budget,
+//! packed write), the field evaluates each round's samples, and each ray adds them to its
+//! running result and stops once its transmittance falls below `MIN_TRANSMITTANCE`. This
+//! is the CPU renderer's early termination (`render::march::render_marched`, the same
+//! lattice and the same stopping rule), with the host reading back three numbers per round
+//! and the results at the end.
+
+use cubecl::prelude::*;
+use cubecl::server::Handle;
+
+use super::device::Gpu;
+use super::launch::grid;
+use super::march::{GpuMarcher, GpuRays, RoundState, STATE_WORDS};
+use crate::error::Result;
+use crate::math::length;
+use crate::render::march::Marcher;
+use crate::render::occupancy::OccupancyGrid;
+use crate::stage::{RayBatch, RayOutput};
+
+const GROUP: u32 = 64;
+
+/// Most samples a ray takes in one round (the CPU renderer's cap as well).
+const MAX_PER_RAY: usize = 64;
+
+/// Adds each of the first `rays` rays' round samples (CSR `offsets`) to its running result
+/// in `state` (`render::volume::Accumulator::add`, depth along the camera direction).
+#[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
+fn accumulate(
+    offsets: &[u32],
+    t: &[f32],
+    dt: &[f32],
+    sigma: &[f32],
+    rgb: &[f32],
+    inv_norm: &[f32],
+    state: &mut [f32],
+    rays: u32,
+) {
+    let r = ABSOLUTE_POS;
+    if r < rays as usize {
+        let b = STATE_WORDS * r;
+        let mut trans = state[b];
+        let mut c0 = state[b + 1];
+        let mut c1 = state[b + 2];
+        let mut c2 = state[b + 3];
+        let mut depth = state[b + 4];
+        let mut opacity = state[b + 5];
+        let scale = inv_norm[r];
+        for i in offsets[r] as usize..offsets[r + 1] as usize {
+            let alpha = 1.0 - f32::exp(-sigma[i] * dt[i]);
+            let w = trans * alpha;
+            c0 += w * rgb[3 * i];
+            c1 += w * rgb[3 * i + 1];
+            c2 += w * rgb[3 * i + 2];
+            depth += w * (t[i] * scale);
+            opacity += w;
+            trans *= 1.0 - alpha;
+        }
+        state[b] = trans;
+        state[b + 1] = c0;
+        state[b + 2] = c1;
+        state[b + 3] = c2;
+        state[b + 4] = depth;
+        state[b + 5] = opacity;
+    }
+}
+
+/// A field on the device: densities (`n`) and colours (`n x 3`) of `n` field-space
+/// positions and unit view directions (`n x 3` each).
+pub type DeviceFieldFn<'a> = dyn Fn(&Handle, &Handle, usize) -> (Handle, Handle) + 'a;
+
+/// Renders `rays` through `field`: the grid `device_grid` (a copy of `host_grid`, which
+/// gives each ray its span on the host) marched as `marcher` marches, at most about
+/// `round_samples` samples per round.
+pub fn render_rays(
+    gpu: &Gpu,
+    device_grid: &GpuMarcher,
+    marcher: &Marcher,
+    host_grid: &OccupancyGrid,
+    field: &DeviceFieldFn,
+    round_samples: usize,
+    rays: &RayBatch,
+) -> Result<Vec<RayOutput>> {
+    let n = rays.len();
+    if n == 0 {
+        return Ok(Vec::new());
+    }
+    // The CPU renderer's lattice: the first sample half a step into the span.
+    let round = RoundState::new(
+        gpu,
+        GpuRays::new(gpu, marcher, host_grid, rays, &vec![0.5; n]),
+    );
+    let inv_norm: Vec<f32> = rays.dirs.iter().map(|&d| 1.0 / length(d)).collect();
+    let inv_norm = gpu.upload(&inv_norm);
+    let round_samples = round_samples.max(1);
+    // As many samples per ray as spread the first round's budget over every ray, doubled
+    // each round (rays terminate, so fewer share it), as the CPU renderer does.
+    let mut per_ray = (round_samples / n).clamp(1, MAX_PER_RAY);
+    loop {
+        let counted = device_grid.count_round(gpu, &round, per_ray);
+        let cut = device_grid.cut(gpu, &counted, n, round_samples, n)?;
+        if cut.samples == 0 {
+            break;
+        }
+        let (samples, positions, dirs) =
+            device_grid.write_round(gpu, &round, &counted, cut, per_ray);
+        let (sigma, rgb) = field(&positions, &dirs, cut.samples);
+        let (k, s) = (cut.rays, cut.samples);
+        // SAFETY: `offsets` holds `k + 1` slots ending at `s`, the length of every sample
+        // buffer (`3s` for colours); `inv_norm` and `state` hold the `n >= k` rays.
+        unsafe {
+            let (c, d) = grid(k, GROUP);
+            accumulate::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(samples.offsets.clone(), k + 1),
+                BufferArg::from_raw_parts(samples.t.clone(), s),
+                BufferArg::from_raw_parts(samples.dt.clone(), s),
+                BufferArg::from_raw_parts(sigma, s),
+                BufferArg::from_raw_parts(rgb, 3 * s),
+                BufferArg::from_raw_parts(inv_norm.clone(), n),
+                BufferArg::from_raw_parts(round.state.clone(), STATE_WORDS * n),
+                k as u32,
+            );
+        }
+        per_ray = (per_ray * 2).min(MAX_PER_RAY);
+    }
+    let state = gpu.read(&round.state, STATE_WORDS * n)?;
+    Ok(state
+        .chunks_exact(STATE_WORDS)
+        .zip(&rays.backgrounds)
+        .map(|(s, bg)| {
+            let opacity = s[5];
+            RayOutput {
+                rgb: [0, 1, 2].map(|c| s[1 + c] + (1.0 - opacity) * bg[c]),
+                depth: s[4],
+                opacity,
+            }
+        })
+        .collect())
+}
