@@ -141,3 +141,103 @@ pub fn render_rays(
         })
         .collect())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::encoding::HashGridConfig;
+    use crate::engine::gpu::device::{test_gpu, worst};
+    use crate::engine::gpu::field::GpuFastField;
+    use crate::field::{FastField, FastFieldConfig};
+    use crate::render::march::{render_marched, MarchWorkspace};
+    use crate::rng::Rng;
+    use crate::stage::Field;
+
+    /// A random field over a random half-occupied grid, 300 rays from outside the box (some
+    /// missing it): the device's rounds against the CPU renderer, with a round budget of a
+    /// few samples (many rounds, most cut short) and a large one. Samples past a ray's early
+    /// termination (transmittance below 1e-4) may differ, so results agree within 1e-3.
+    #[test]
+    fn device_rendering_matches_the_cpu_renderer() {
+        let Some(gpu) = test_gpu() else {
+            return;
+        };
+        let field = FastField::new(FastFieldConfig {
+            grid: HashGridConfig {
+                levels: 4,
+                log2_table_size: 8,
+                base_resolution: 2,
+                max_resolution: 32,
+            },
+            hidden: 16,
+            geo_features: 5,
+            bound: 1.5,
+        });
+        let mut rng = Rng::new(4);
+        // Large weights: densities from none to opaque within a few cells.
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-1.5, 1.5))
+            .collect();
+        let thickness: Vec<f32> = (0..16 * 16 * 16)
+            .map(|_| if rng.uniform() < 0.5 { 1.0 } else { 0.0 })
+            .collect();
+        let grid = OccupancyGrid::from_thickness(16, 1.5, thickness, 0.5);
+        let marcher = Marcher {
+            dt: 0.02,
+            max_samples: 200,
+            near: 0.5,
+            far: 8.0,
+            contract: None,
+        };
+        let mut rays = RayBatch::new(marcher.near, marcher.far);
+        for k in 0..300 {
+            let origin = [rng.range(-4.0, 4.0), -4.0, rng.range(-1.0, 1.0)];
+            let target = [rng.range(-2.0, 2.0), 0.0, rng.range(-2.0, 2.0)];
+            let dir = [target[0] - origin[0], 4.0, target[2] - origin[2]];
+            let ray = crate::camera::Ray { origin, dir };
+            let bg = [rng.uniform(), rng.uniform(), rng.uniform()];
+            rays.push(ray, dir, bg, k);
+        }
+        let mut want = vec![RayOutput::default(); rays.len()];
+        let mut ws = MarchWorkspace::default();
+        render_marched(&field, &params, &marcher, &grid, 1 << 16, &rays, &mut ws, &mut want);
+
+        let device_field = GpuFastField::new(&gpu, &field);
+        let device_params = gpu.upload(&params);
+        let field_fn = |p: &Handle, d: &Handle, n: usize| {
+            let acts = device_field.forward(&gpu, &device_params, p, d, n);
+            (acts.sigma, acts.rgb)
+        };
+        let device_grid = GpuMarcher::with_grid(&gpu, &marcher, &grid);
+        let flat = |o: &[RayOutput]| -> Vec<f32> {
+            o.iter()
+                .flat_map(|r| [r.rgb[0], r.rgb[1], r.rgb[2], r.depth, r.opacity])
+                .collect()
+        };
+        for round_samples in [40, 1 << 16] {
+            let got = render_rays(
+                &gpu,
+                &device_grid,
+                &marcher,
+                &grid,
+                &field_fn,
+                round_samples,
+                &rays,
+            )
+            .expect("render");
+            let err = worst(&flat(&got), &flat(&want));
+            eprintln!("round budget {round_samples}: worst difference {err:.1e}");
+            assert!(err < 1e-3, "round budget {round_samples}: {err}");
+        }
+        // Something to compare: opaque rays, empty rays and ones in between.
+        let opacity: Vec<f32> = want.iter().map(|o| o.opacity).collect();
+        let opaque = opacity.iter().filter(|&&o| o > 0.99).count();
+        eprintln!("{opaque} of {} rays opaque", opacity.len());
+        assert!(opacity.iter().any(|&o| o > 0.99), "no opaque ray");
+        assert!(opacity.iter().any(|&o| o == 0.0), "no empty ray");
+        assert!(
+            opacity.iter().any(|&o| o > 0.05 && o < 0.95),
+            "no partly transparent ray"
+        );
+    }
+}
