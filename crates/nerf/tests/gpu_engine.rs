@@ -214,18 +214,30 @@ fn checkpoints_move_between_devices() {
     }
 }
 
-/// Every pixel of the first test view, rendered by `run`'s engine.
-fn render_test_view(run: &LoadedRun) -> Vec<nerf::stage::RayOutput> {
-    let scene = run.config.open_scene(1).expect("scene");
+/// Every pixel of the first test view of `scene`.
+fn test_view_rays(scene: &nerf::data::scene::Scene) -> nerf::stage::RayBatch {
     let camera = scene.cameras(Split::Test)[0].clone();
     let world: Vec<_> = (0..camera.height)
         .flat_map(|j| (0..camera.width).map(move |i| (i, j)))
         .map(|(i, j)| camera.ray(i, j))
         .collect();
-    let batch = nerf::views::RenderSettings::of_scene(&scene, [1.0; 3]).ray_batch(&world, 0);
+    nerf::views::RenderSettings::of_scene(scene, [1.0; 3]).ray_batch(&world, 0)
+}
+
+/// `engine`'s render of `batch`.
+fn render(
+    engine: &dyn nerf::engine::Engine,
+    batch: &nerf::stage::RayBatch,
+) -> Vec<nerf::stage::RayOutput> {
     let mut rendered = vec![nerf::stage::RayOutput::default(); batch.len()];
-    run.engine.render_rays(&batch, &mut rendered, &|_| {});
+    engine.render_rays(batch, &mut rendered, &|_| {});
     rendered
+}
+
+/// Every pixel of the first test view, rendered by `run`'s engine.
+fn render_test_view(run: &LoadedRun) -> Vec<nerf::stage::RayOutput> {
+    let scene = run.config.open_scene(1).expect("scene");
+    render(run.engine.as_ref(), &test_view_rays(&scene))
 }
 
 /// The GPU engine learns the small scene past the CPU test's floor (22 dB).
@@ -300,18 +312,11 @@ fn the_paper_model_trains_alike_on_both_engines() {
     );
     // Rendering the CPU's weights on the GPU gives the CPU's pixels.
     gpu.engine.set_state(cpu.engine.state()).expect("state");
-    let camera = scene.cameras(Split::Test)[0].clone();
-    let world: Vec<_> = (0..camera.height)
-        .flat_map(|j| (0..camera.width).map(move |i| (i, j)))
-        .map(|(i, j)| camera.ray(i, j))
-        .collect();
-    let batch = nerf::views::RenderSettings::of_scene(&scene, [1.0; 3]).ray_batch(&world, 0);
-    let (mut oa, mut ob) = (
-        vec![nerf::stage::RayOutput::default(); batch.len()],
-        vec![nerf::stage::RayOutput::default(); batch.len()],
+    let batch = test_view_rays(&scene);
+    let (oa, ob) = (
+        render(cpu.engine.as_ref(), &batch),
+        render(gpu.engine.as_ref(), &batch),
     );
-    cpu.engine.render_rays(&batch, &mut oa, &|_| {});
-    gpu.engine.render_rays(&batch, &mut ob, &|_| {});
     for (x, y) in oa.iter().zip(&ob) {
         for c in 0..3 {
             assert!((x.rgb[c] - y.rgb[c]).abs() < 1e-3, "{x:?} vs {y:?}");

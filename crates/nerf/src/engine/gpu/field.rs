@@ -397,7 +397,7 @@ impl GpuFastField {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::encoding::HashGridConfig;
     use crate::engine::gpu::device::worst;
@@ -408,15 +408,9 @@ mod tests {
     use crate::rng::Rng;
     use crate::stage::{Field, FieldGrad, FieldInput};
 
-    /// A small field with large random weights (every path carries signal) over 700
-    /// samples: sigma, rgb and every parameter's gradient against the CPU field, within
-    /// 1e-4 relative to (1 + |value|) (sums of 700 terms in another order).
-    #[test]
-    fn the_field_matches_the_cpu_forward_and_backward() {
-        let Some(gpu) = super::super::device::test_gpu() else {
-            return;
-        };
-        let field = FastField::new(FastFieldConfig {
+    /// A field small enough for kernel tests: 4 levels of 2^8 entries, 16-wide layers.
+    pub fn small_field() -> FastField {
+        FastField::new(FastFieldConfig {
             grid: HashGridConfig {
                 levels: 4,
                 log2_table_size: 8,
@@ -426,7 +420,18 @@ mod tests {
             hidden: 16,
             geo_features: 5,
             bound: 1.5,
-        });
+        })
+    }
+
+    /// A small field with large random weights (every path carries signal) over 700
+    /// samples: sigma, rgb and every parameter's gradient against the CPU field, within
+    /// 1e-4 relative to (1 + |value|) (sums of 700 terms in another order).
+    #[test]
+    fn the_field_matches_the_cpu_forward_and_backward() {
+        let Some(gpu) = super::super::device::test_gpu() else {
+            return;
+        };
+        let field = small_field();
         let mut rng = Rng::new(21);
         let params: Vec<f32> = (0..field.num_params())
             .map(|_| rng.range(-0.5, 0.5))

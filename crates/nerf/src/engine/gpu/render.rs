@@ -145,13 +145,11 @@ pub fn render_rays(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::encoding::HashGridConfig;
     use crate::engine::gpu::device::{test_gpu, worst};
+    use crate::engine::gpu::field::tests::small_field;
     use crate::engine::gpu::field::GpuFastField;
-    use crate::field::{FastField, FastFieldConfig};
     use crate::render::march::{render_marched, MarchWorkspace};
     use crate::rng::Rng;
-    use crate::stage::Field;
 
     /// A random field over a random half-occupied grid, 300 rays from outside the box (some
     /// missing it): the device's rounds against the CPU renderer, with a round budget of a
@@ -162,17 +160,7 @@ mod tests {
         let Some(gpu) = test_gpu() else {
             return;
         };
-        let field = FastField::new(FastFieldConfig {
-            grid: HashGridConfig {
-                levels: 4,
-                log2_table_size: 8,
-                base_resolution: 2,
-                max_resolution: 32,
-            },
-            hidden: 16,
-            geo_features: 5,
-            bound: 1.5,
-        });
+        let field = small_field();
         let mut rng = Rng::new(4);
         // Large weights: densities from none to opaque within a few cells.
         let params: Vec<f32> = (0..field.num_params())
@@ -200,7 +188,16 @@ mod tests {
         }
         let mut want = vec![RayOutput::default(); rays.len()];
         let mut ws = MarchWorkspace::default();
-        render_marched(&field, &params, &marcher, &grid, 1 << 16, &rays, &mut ws, &mut want);
+        render_marched(
+            &field,
+            &params,
+            &marcher,
+            &grid,
+            1 << 16,
+            &rays,
+            &mut ws,
+            &mut want,
+        );
 
         let device_field = GpuFastField::new(&gpu, &field);
         let device_params = gpu.upload(&params);
@@ -234,7 +231,7 @@ mod tests {
         let opaque = opacity.iter().filter(|&&o| o > 0.99).count();
         eprintln!("{opaque} of {} rays opaque", opacity.len());
         assert!(opacity.iter().any(|&o| o > 0.99), "no opaque ray");
-        assert!(opacity.iter().any(|&o| o == 0.0), "no empty ray");
+        assert!(opacity.contains(&0.0), "no empty ray");
         assert!(
             opacity.iter().any(|&o| o > 0.05 && o < 0.95),
             "no partly transparent ray"
