@@ -45,6 +45,8 @@ enum Command {
     Demo(nerf::demo::DemoOptions),
     /// Throughput of the training step and of rendering on this machine.
     Bench(commands::bench::BenchArgs),
+    /// Fly around a trained run in the web browser; make and render camera paths.
+    View(nerf_view::ViewOptions),
 }
 
 /// Mesa's Vulkan drivers print "error: XDG_RUNTIME_DIR is invalid or not set" (six
@@ -96,6 +98,7 @@ fn main() {
         Command::Points(a) => commands::points::run(a),
         Command::Demo(a) => commands::demo::run(a),
         Command::Bench(a) => commands::bench::run(a),
+        Command::View(a) => nerf_view::run(&a),
     };
     if let Err(e) = result {
         eprintln!("error: {}", report::message(&e));

@@ -160,24 +160,60 @@ pub fn interpolate(poses: &[Pose], keys: usize, frames: usize) -> Vec<Pose> {
         let az = |p: &Pose| p[1][3].atan2(p[0][3]);
         az(a).total_cmp(&az(b))
     });
-    let n = key.len();
+    through_keyframes(&key, frames, true)
+}
+
+/// `frames` poses along a smooth path through `keys` in their order: positions by
+/// Catmull-Rom splines (through every key), rotations by slerp; `closed` returns to the
+/// first key (the frames then span the loop, the last one short of the start), an open
+/// path ends on the last key. Frame `f` sits at path parameter [`path_parameter`].
+pub fn through_keyframes(keys: &[Pose], frames: usize, closed: bool) -> Vec<Pose> {
+    let n = keys.len();
+    if n == 0 || frames == 0 {
+        return Vec::new();
+    }
+    // Neighbours past an open path's ends repeat the end key.
+    let key = |i: isize| -> &Pose {
+        if closed {
+            &keys[i.rem_euclid(n as isize) as usize]
+        } else {
+            &keys[i.clamp(0, n as isize - 1) as usize]
+        }
+    };
     (0..frames)
         .map(|f| {
-            let u = f as f32 / frames as f32 * n as f32;
-            let (i, t) = (u.floor() as usize % n, u.fract());
-            let p = |k: usize| column(&key[(i + k + n - 1) % n], 3);
-            let (p0, p1, p2, p3) = (p(0), p(1), p(2), p(3));
+            let (i, t) = path_parameter(f, frames, n, closed);
+            let i = i as isize;
+            let p = |k: isize| column(key(i + k), 3);
+            let (p0, p1, p2, p3) = (p(-1), p(0), p(1), p(2));
             let pos: V3 = std::array::from_fn(|c| {
                 0.5 * (2.0 * p1[c]
                     + (p2[c] - p0[c]) * t
                     + (2.0 * p0[c] - 5.0 * p1[c] + 4.0 * p2[c] - p3[c]) * t * t
                     + (3.0 * p1[c] - p0[c] - 3.0 * p2[c] + p3[c]) * t * t * t)
             });
-            let q = slerp(quaternion(&key[i]), quaternion(&key[(i + 1) % n]), t);
+            let q = slerp(quaternion(key(i)), quaternion(key(i + 1)), t);
             let [x, y, z] = rotation(q);
             from_columns(x, y, z, pos)
         })
         .collect()
+}
+
+/// Which segment frame `f` of `frames` falls in on a path through `keys` keys, and how
+/// far along it (0..1): what [`through_keyframes`] uses, for interpolating anything else
+/// that keyframes carry (a field of view).
+pub fn path_parameter(f: usize, frames: usize, keys: usize, closed: bool) -> (usize, f32) {
+    let segments = if closed { keys } else { keys.saturating_sub(1) };
+    if segments == 0 {
+        return (0, 0.0);
+    }
+    let u = if closed || frames < 2 {
+        f as f32 / frames as f32 * segments as f32
+    } else {
+        f as f32 / (frames - 1) as f32 * segments as f32
+    };
+    let i = (u.floor() as usize).min(segments - 1);
+    (i, (u - i as f32).clamp(0.0, 1.0))
 }
 
 #[derive(Deserialize)]
@@ -304,6 +340,37 @@ mod tests {
             .windows(2)
             .map(|w| length(sub(column(&w[1], 3), column(&w[0], 3))))
             .fold(0.0, f32::max)
+    }
+
+    /// An open path starts on its first key, ends on its last and passes through the
+    /// ones between, in the order given.
+    #[test]
+    fn open_paths_run_through_their_keys_in_order() {
+        let keys: Vec<Pose> = [
+            [3.0, 0.0, 1.0],
+            [0.0, 3.0, 1.5],
+            [-3.0, 0.0, 1.0],
+            [0.0, -3.0, 0.5],
+        ]
+        .iter()
+        .map(|&eye| crate::camera::look_at(eye, [0.0; 3], [0.0, 0.0, 1.0]))
+        .collect();
+        let frames = through_keyframes(&keys, 7, false);
+        assert_eq!(frames.len(), 7);
+        for (f, k) in [(0, 0), (2, 1), (4, 2), (6, 3)] {
+            for r in 0..3 {
+                for c in 0..4 {
+                    assert!(
+                        (frames[f][r][c] - keys[k][r][c]).abs() < 1e-4,
+                        "frame {f} vs key {k}: {:?} {:?}",
+                        frames[f],
+                        keys[k]
+                    );
+                }
+            }
+        }
+        assert_eq!(path_parameter(6, 7, 4, false), (2, 1.0));
+        assert_eq!(path_parameter(3, 8, 4, true), (1, 0.5));
     }
 
     #[test]

@@ -1,0 +1,157 @@
+//! Camera paths from the editor: their frames (the Catmull-Rom / slerp interpolation of
+//! `nerf render --path interpolate`, through the keyframes in the order given), saving
+//! them as nerfstudio `camera_path.json` files in the run folder, and rendering them with
+//! the code of `nerf render --path file`.
+
+use std::path::{Path, PathBuf};
+
+use nerf::camera::path::{path_parameter, through_keyframes};
+use nerf::camera::Pose;
+use nerf::frames::{render_frames, FrameProgress, FramesOptions, PathKind};
+use serde_json::json;
+
+use crate::protocol::{check_name, CameraPath};
+use crate::state::Viewer;
+
+/// Where saved paths and their renders go, inside the run folder.
+pub const PATHS_DIR: &str = "camera_paths";
+pub const RENDERS_DIR: &str = "renders";
+
+/// Every frame's pose and vertical field of view.
+pub fn frames(path: &CameraPath) -> (Vec<Pose>, Vec<f32>) {
+    let keys: Vec<Pose> = path.keyframes.iter().map(|k| k.c2w).collect();
+    let n = path.frames();
+    let poses = through_keyframes(&keys, n, path.looped);
+    let fov = (0..n)
+        .map(|f| {
+            let (i, t) = path_parameter(f, n, keys.len(), path.looped);
+            let a = path.keyframes[i].fov_y;
+            let b = path.keyframes[(i + 1) % keys.len()].fov_y;
+            a + (b - a) * t
+        })
+        .collect();
+    (poses, fov)
+}
+
+/// The path as nerfstudio writes `camera_path.json` (what `nerf render --path file`
+/// reads), with the editor's keyframes kept beside it.
+pub fn nerfstudio_json(path: &CameraPath) -> serde_json::Value {
+    let (poses, fov) = frames(path);
+    let aspect = path.width as f32 / path.height as f32;
+    let frames: Vec<_> = poses
+        .iter()
+        .zip(&fov)
+        .map(|(p, f)| {
+            let mut m: Vec<f32> = p.iter().flatten().copied().collect();
+            m.extend([0.0, 0.0, 0.0, 1.0]);
+            json!({"camera_to_world": m, "fov": f, "aspect": aspect})
+        })
+        .collect();
+    json!({
+        "camera_type": "perspective",
+        "render_width": path.width,
+        "render_height": path.height,
+        "seconds": path.seconds,
+        "fps": path.fps,
+        "camera_path": frames,
+        "keyframes": path.keyframes,
+        "loop": path.looped,
+    })
+}
+
+/// Saves `path` as `camera_paths/<name>.json` in the run folder (written whole, then
+/// renamed into place); returns the file.
+pub fn save(run_dir: &Path, name: &str, path: &CameraPath) -> Result<PathBuf, String> {
+    check_name(name).map_err(|e| e.to_string())?;
+    let dir = run_dir.join(PATHS_DIR);
+    nerf::io::create_dir(&dir).map_err(|e| e.to_string())?;
+    let file = dir.join(format!("{name}.json"));
+    nerf::io::write_json(&file, &nerfstudio_json(path)).map_err(|e| e.to_string())?;
+    Ok(file)
+}
+
+/// What rendering a path wrote, relative to the run folder.
+pub struct Rendered {
+    pub folder: String,
+    pub video: Option<String>,
+}
+
+/// Saves `path`, then renders it into `renders/<name>/` with a video beside it
+/// (`renders/<name>.mp4` through ffmpeg, or `.gif` without it), as `nerf render --path
+/// file` does; `on_frame` hears the frames done of all.
+pub fn render(
+    viewer: &Viewer,
+    name: &str,
+    path: &CameraPath,
+    on_frame: &(dyn Fn(usize, usize) + Sync),
+) -> Result<Rendered, String> {
+    let file = save(&viewer.run_dir, name, path)?;
+    let ext = if nerf::video::ffmpeg_available() {
+        "mp4"
+    } else {
+        "gif"
+    };
+    let folder = Path::new(RENDERS_DIR).join(name);
+    let video = Path::new(RENDERS_DIR).join(format!("{name}.{ext}"));
+    let mut opts = FramesOptions::orbit(path.frames(), 1.0, viewer.run_dir.join(&video));
+    opts.path = PathKind::File;
+    opts.camera_path = Some(file);
+    opts.radius = None;
+    opts.fps = path.fps;
+    let run = viewer.model.run.read().unwrap_or_else(|e| e.into_inner());
+    let progress = |p: FrameProgress| on_frame(p.frame, p.frames);
+    render_frames(&run, &opts, &viewer.run_dir.join(&folder), &progress)
+        .map_err(|e| e.to_string())?;
+    Ok(Rendered {
+        folder: folder.display().to_string(),
+        video: Some(video.display().to_string()),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::protocol::Keyframe;
+
+    fn key(eye: [f32; 3], fov_y: f32) -> Keyframe {
+        Keyframe {
+            c2w: nerf::camera::look_at(eye, [0.0; 3], [0.0, 0.0, 1.0]),
+            fov_y,
+        }
+    }
+
+    fn path() -> CameraPath {
+        CameraPath {
+            keyframes: vec![key([4.0, 0.0, 1.0], 30.0), key([0.0, 4.0, 2.0], 50.0)],
+            seconds: 1.0,
+            fps: 5.0,
+            width: 40,
+            height: 30,
+            looped: false,
+        }
+    }
+
+    /// The saved file is what `nerf render --path file` reads: its frames start and end
+    /// on the keyframes, at the path's size, with the field of view between the keys'.
+    #[test]
+    fn saved_paths_load_as_camera_path_files() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let p = path();
+        let file = save(dir.path(), "take_1", &p).expect("save");
+        assert_eq!(file, dir.path().join("camera_paths/take_1.json"));
+        let cams = nerf::camera::path::load_camera_path(&file, None).expect("load");
+        assert_eq!(cams.len(), 5);
+        assert_eq!((cams[0].width, cams[0].height), (40, 30));
+        for (cam, k) in [(&cams[0], &p.keyframes[0]), (&cams[4], &p.keyframes[1])] {
+            for r in 0..3 {
+                for c in 0..4 {
+                    assert!((cam.c2w[r][c] - k.c2w[r][c]).abs() < 1e-4);
+                }
+            }
+            let fov_y = (2.0 * (0.5 * 30.0 / cam.fy).atan()).to_degrees();
+            assert!((fov_y - k.fov_y).abs() < 1e-2, "{fov_y} vs {}", k.fov_y);
+        }
+        assert!(save(dir.path(), "../out", &p).is_err());
+        assert!(!dir.path().join("out.json").exists());
+    }
+}

@@ -1,0 +1,259 @@
+//! Rendering the page's views: each request is rendered first at a preview size chosen to
+//! hold the frame rate, then (once the camera stops) at twice the size and again up to the
+//! full resolution. A newer request cancels the one being rendered between chunks of rays,
+//! so no stale frames queue up.
+
+use std::sync::RwLock;
+use std::time::Instant;
+
+use nerf::camera::{Camera, Ray};
+use nerf::stage::RayOutput;
+use nerf::train::folder::LoadedRun;
+use nerf::views::RenderSettings;
+
+use crate::protocol::{FrameHeader, Mode, ViewCamera, HEADER_BYTES};
+
+/// Rays per engine call between cancellation checks (a few milliseconds of work).
+const CHUNK_RAYS: usize = 4096;
+/// The preview's time budget: 10 frames a second while the camera moves.
+pub const PREVIEW_SECONDS: f64 = 0.1;
+/// Smallest preview scale of the full size (and smallest preview side in pixels).
+const MIN_SCALE: f64 = 1.0 / 16.0;
+const MIN_SIDE: usize = 16;
+
+/// A trained run as the viewer renders it (replaced while a run trains under the viewer).
+pub struct Model {
+    pub run: RwLock<LoadedRun>,
+    pub settings: RenderSettings,
+}
+
+/// One encoded frame: header and JPEG.
+pub struct Frame {
+    pub header: FrameHeader,
+    pub bytes: Vec<u8>,
+}
+
+/// Keeps the preview's size in step with how fast this machine renders this model.
+#[derive(Default)]
+pub struct Pacer {
+    /// Measured seconds per ray (a running average); `None` before the first frame.
+    seconds_per_ray: Option<f64>,
+}
+
+impl Pacer {
+    /// The scale of the full size that renders in [`PREVIEW_SECONDS`].
+    pub fn preview_scale(&self, width: usize, height: usize) -> f64 {
+        let Some(spr) = self.seconds_per_ray else {
+            return 0.25;
+        };
+        let rays = PREVIEW_SECONDS / spr.max(1e-12);
+        (rays / (width * height) as f64)
+            .sqrt()
+            .clamp(MIN_SCALE, 1.0)
+    }
+
+    /// Records that `rays` rays took `seconds`.
+    pub fn record(&mut self, rays: usize, seconds: f64) {
+        if rays < 256 {
+            return;
+        }
+        let s = seconds / rays as f64;
+        self.seconds_per_ray = Some(match self.seconds_per_ray {
+            Some(old) => 0.7 * old + 0.3 * s,
+            None => s,
+        });
+    }
+
+    pub fn seconds_per_ray(&self) -> Option<f64> {
+        self.seconds_per_ray
+    }
+}
+
+/// The scales a request renders at: the preview, then doubling to the full size (only
+/// the preview while the camera moves).
+pub fn levels(preview: f64, moving: bool) -> Vec<f64> {
+    let mut out = vec![preview];
+    if !moving {
+        let mut s = preview;
+        while s < 1.0 {
+            s = (s * 2.0).min(1.0);
+            out.push(s);
+        }
+    }
+    out
+}
+
+/// The image sizes a request renders at ([`levels`] of the full size, without repeats:
+/// small images reach their floor of [`MIN_SIDE`] at several scales).
+pub fn level_sizes(view: &ViewCamera, preview: f64, moving: bool) -> Vec<(usize, usize)> {
+    let mut sizes: Vec<(usize, usize)> = levels(preview, moving)
+        .into_iter()
+        .map(|s| scaled_size(view, s))
+        .collect();
+    sizes.dedup();
+    sizes
+}
+
+/// The size of `camera` at `scale` (each side at least [`MIN_SIDE`] or the full side).
+pub fn scaled_size(camera: &ViewCamera, scale: f64) -> (usize, usize) {
+    let side = |full: usize| {
+        ((full as f64 * scale).round() as usize)
+            .max(MIN_SIDE.min(full))
+            .min(full)
+    };
+    (side(camera.width), side(camera.height))
+}
+
+/// The camera of a view at `width` x `height`.
+pub fn camera_at(view: &ViewCamera, width: usize, height: usize) -> Camera {
+    let aspect = width as f32 / height as f32;
+    let fov_x = 2.0 * (aspect * (view.fov_y.to_radians() / 2.0).tan()).atan();
+    Camera::from_fov_x(width, height, fov_x, view.c2w)
+}
+
+/// Renders `camera` through `model`, or `None` as soon as `cancelled` says so.
+pub fn render(
+    model: &Model,
+    camera: &Camera,
+    cancelled: &dyn Fn() -> bool,
+) -> Option<Vec<RayOutput>> {
+    let run = model.run.read().unwrap_or_else(|e| e.into_inner());
+    let (w, h) = (camera.width, camera.height);
+    let mut out = vec![RayOutput::default(); w * h];
+    for (k, chunk) in out.chunks_mut(CHUNK_RAYS).enumerate() {
+        if cancelled() {
+            return None;
+        }
+        let first = k * CHUNK_RAYS;
+        let world: Vec<Ray> = (first..first + chunk.len())
+            .map(|p| camera.ray(p % w, p / w))
+            .collect();
+        let rays = model.settings.ray_batch(&world, first);
+        run.engine.render_rays(&rays, chunk, &|_| {});
+    }
+    Some(out)
+}
+
+/// The image a mode shows, as 8-bit RGB.
+pub fn to_rgb8(out: &[RayOutput], mode: Mode, settings: &RenderSettings) -> Vec<u8> {
+    let float: Vec<f32> = match mode {
+        Mode::Rgb => out.iter().flat_map(|o| o.rgb).collect(),
+        Mode::Opacity => out.iter().flat_map(|o| [o.opacity; 3]).collect(),
+        Mode::Depth => {
+            let depth: Vec<f32> = out.iter().map(|o| o.depth).collect();
+            let opacity: Vec<f32> = out.iter().map(|o| o.opacity).collect();
+            let (near, far) = nerf::video::auto_depth_range(&depth, &opacity)
+                .unwrap_or((settings.near, settings.far));
+            nerf::video::depth_turbo(&depth, &opacity, near, far)
+        }
+    };
+    float
+        .iter()
+        .map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
+        .collect()
+}
+
+/// Encodes 8-bit RGB as a JPEG.
+pub fn jpeg(rgb: &[u8], width: usize, height: usize) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    let mut encoder = image::codecs::jpeg::JpegEncoder::new_with_quality(&mut bytes, 90);
+    // Encoding into memory fails only for sizes the protocol already refuses.
+    if let Err(e) = encoder.encode(
+        rgb,
+        width as u32,
+        height as u32,
+        image::ExtendedColorType::Rgb8,
+    ) {
+        eprintln!("warning: encoding a {width}x{height} frame failed: {e}");
+    }
+    bytes
+}
+
+/// Renders a request at `w` x `h` and encodes it; `None` when cancelled.
+pub fn render_level(
+    model: &Model,
+    pacer: &mut Pacer,
+    seq: u32,
+    view: &ViewCamera,
+    mode: Mode,
+    (w, h): (usize, usize),
+    cancelled: &dyn Fn() -> bool,
+) -> Option<Frame> {
+    let camera = camera_at(view, w, h);
+    let t0 = Instant::now();
+    let out = render(model, &camera, cancelled)?;
+    let seconds = t0.elapsed().as_secs_f64();
+    pacer.record(w * h, seconds);
+    let rgb = to_rgb8(&out, mode, &model.settings);
+    let header = FrameHeader {
+        seq,
+        width: w as u16,
+        height: h as u16,
+        mode: mode.code(),
+        last: w == view.width && h == view.height,
+        micros: (seconds * 1e6).min(u32::MAX as f64) as u32,
+    };
+    let mut bytes = Vec::with_capacity(HEADER_BYTES + w * h);
+    bytes.extend_from_slice(&header.encode());
+    bytes.extend_from_slice(&jpeg(&rgb, w, h));
+    Some(Frame { header, bytes })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn levels_double_up_to_the_full_size_unless_moving() {
+        assert_eq!(levels(0.125, false), vec![0.125, 0.25, 0.5, 1.0]);
+        assert_eq!(levels(0.3, false), vec![0.3, 0.6, 1.0]);
+        assert_eq!(levels(0.3, true), vec![0.3]);
+        assert_eq!(levels(1.0, false), vec![1.0]);
+    }
+
+    #[test]
+    fn the_preview_shrinks_as_rendering_slows() {
+        let mut pacer = Pacer::default();
+        assert_eq!(pacer.preview_scale(800, 800), 0.25);
+        // 1 microsecond a ray: 100,000 rays in 0.1 s, about 316x316 of 800x800.
+        pacer.record(10_000, 0.01);
+        let s = pacer.preview_scale(800, 800);
+        assert!((s - (100_000.0f64 / 640_000.0).sqrt()).abs() < 1e-9, "{s}");
+        // Ten times slower: a smaller preview, never below 1/16.
+        pacer.record(10_000, 1.0);
+        assert!(pacer.preview_scale(800, 800) < s);
+        pacer.record(10_000, 1e6);
+        assert_eq!(pacer.preview_scale(800, 800), MIN_SCALE);
+    }
+
+    #[test]
+    fn scaled_sizes_stay_within_the_full_size() {
+        let view = ViewCamera {
+            c2w: [
+                [1.0, 0.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0, 0.0],
+                [0.0, 0.0, 1.0, 4.0],
+            ],
+            fov_y: 40.0,
+            width: 640,
+            height: 480,
+        };
+        assert_eq!(scaled_size(&view, 0.25), (160, 120));
+        assert_eq!(scaled_size(&view, 1.0), (640, 480));
+        assert_eq!(scaled_size(&view, 0.001), (16, 16));
+        assert_eq!(
+            level_sizes(&view, 0.25, false),
+            vec![(160, 120), (320, 240), (640, 480)]
+        );
+        let small = ViewCamera {
+            width: 32,
+            height: 32,
+            ..view.clone()
+        };
+        assert_eq!(level_sizes(&small, 0.25, false), vec![(16, 16), (32, 32)]);
+        let c = camera_at(&view, 64, 48);
+        // The vertical field of view is the one asked for.
+        let fov_y = 2.0 * (0.5 * 48.0 / c.fy).atan();
+        assert!((fov_y.to_degrees() - 40.0).abs() < 1e-3);
+    }
+}
