@@ -168,7 +168,7 @@ impl TrainProgress {
                 Some(p) if !p.is_hidden() => p.println(format!("note: {note}")),
                 _ => eprintln!("note: {note}"),
             },
-            Event::Checkpoint { .. } => {}
+            Event::Checkpoint { .. } | Event::Model { .. } => {}
         }
     }
 

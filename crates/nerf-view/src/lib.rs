@@ -9,6 +9,7 @@
 //! run's scene, through the library) and writes only camera paths and renders inside the
 //! run folder, under names it checks.
 
+pub mod live;
 pub mod paths;
 pub mod protocol;
 pub mod render;

@@ -29,11 +29,13 @@ struct Access {
 /// The refusal of a request without the viewer's token (when it has one).
 fn refusal(viewer: &Viewer, access: &Access) -> Option<Response> {
     match &viewer.token {
-        Some(t) if access.token.as_deref() != Some(t.as_str()) => Some((
-            StatusCode::FORBIDDEN,
-            "this viewer needs the token printed by `nerf view` (open the address it printed)",
-        )
-            .into_response()),
+        Some(t) if access.token.as_deref() != Some(t.as_str()) => Some(
+            (
+                StatusCode::FORBIDDEN,
+                "this viewer needs the token printed by `nerf view` (open the address it printed)",
+            )
+                .into_response(),
+        ),
         _ => None,
     }
 }

@@ -106,6 +106,7 @@ pub async fn run(viewer: Arc<Viewer>, mut socket: WebSocket) {
         std::thread::spawn(move || render_worker(model, latest, tx))
     };
     let mut training = viewer.training.subscribe();
+    viewer.watchers.fetch_add(1, Ordering::SeqCst);
     loop {
         tokio::select! {
             incoming = socket.recv() => match incoming {
@@ -135,6 +136,7 @@ pub async fn run(viewer: Arc<Viewer>, mut socket: WebSocket) {
             },
         }
     }
+    viewer.watchers.fetch_sub(1, Ordering::SeqCst);
     latest.close();
     let _ = tokio::task::spawn_blocking(move || worker.join()).await;
 }

@@ -2,12 +2,13 @@
 //! access token, and the channel that carries training progress to every open page.
 
 use std::path::PathBuf;
-use std::sync::atomic::AtomicBool;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, OnceLock, RwLock};
 
 use nerf::camera::Camera;
 use nerf::data::scene::Scene;
 use nerf::data::{Dataset, Split};
+use nerf::engine::EngineState;
 use nerf::train::folder::LoadedRun;
 use nerf::views::RenderSettings;
 use serde::Serialize;
@@ -58,6 +59,8 @@ pub struct Viewer {
     photos: OnceLock<std::result::Result<Dataset, String>>,
     /// A camera path is being rendered (one at a time).
     pub rendering_path: AtomicBool,
+    /// Pages connected now.
+    pub watchers: AtomicUsize,
 }
 
 impl Viewer {
@@ -93,7 +96,21 @@ impl Viewer {
             training: broadcast::channel(64).0,
             photos: OnceLock::new(),
             rendering_path: AtomicBool::new(false),
+            watchers: AtomicUsize::new(0),
         })
+    }
+
+    /// Whether any page is open.
+    pub fn watched(&self) -> bool {
+        self.watchers.load(Ordering::SeqCst) > 0
+    }
+
+    /// Shows the weights of training step `step` from now on.
+    pub fn update(&self, step: u64, state: EngineState) -> nerf::error::Result<()> {
+        let mut run = self.model.run.write().unwrap_or_else(|e| e.into_inner());
+        run.engine.set_state(state)?;
+        run.step = step;
+        Ok(())
     }
 
     /// Training photo `index` as a JPEG (composited over the run's background).

@@ -15,8 +15,8 @@ use base64::Engine as _;
 use nerf::engine::Device;
 use nerf::frames::{render_frames, FramesOptions, PathKind};
 use nerf::train::folder::LoadedRun;
-use nerf_view::render::camera_at;
 use nerf_view::protocol::ViewCamera;
+use nerf_view::render::camera_at;
 use serde_json::{json, Value};
 
 mod common;
@@ -29,7 +29,8 @@ const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
 fn call(addr: SocketAddr, method: &str, path: &str, body: Option<&Value>) -> Value {
     let body = body.map(Value::to_string).unwrap_or_default();
     let mut s = TcpStream::connect(addr).expect("chromedriver");
-    s.set_read_timeout(Some(Duration::from_secs(120))).expect("timeout");
+    s.set_read_timeout(Some(Duration::from_secs(120)))
+        .expect("timeout");
     write!(
         s,
         "{method} {path} HTTP/1.1\r\nHost: localhost\r\nContent-Type: application/json\r\n\
@@ -94,7 +95,10 @@ impl Browser {
         let addr = SocketAddr::new(IpAddr::V4(Ipv4Addr::LOCALHOST), port);
         let t0 = Instant::now();
         while TcpStream::connect(addr).is_err() {
-            assert!(t0.elapsed() < Duration::from_secs(30), "chromedriver did not start");
+            assert!(
+                t0.elapsed() < Duration::from_secs(30),
+                "chromedriver did not start"
+            );
             std::thread::sleep(Duration::from_millis(100));
         }
         let caps = json!({"capabilities": {"alwaysMatch": {
@@ -126,7 +130,11 @@ impl Browser {
 
     /// Runs `script` (a function body) in the page.
     fn js(&self, script: &str) -> Value {
-        self.cmd("POST", "execute/sync", Some(json!({"script": script, "args": []})))
+        self.cmd(
+            "POST",
+            "execute/sync",
+            Some(json!({"script": script, "args": []})),
+        )
     }
 
     fn wait_for(&self, what: &str, script: &str) -> Value {
@@ -145,19 +153,21 @@ impl Browser {
     }
 
     fn click(&self, id: &str) {
-        self.js(&format!("document.getElementById({id:?}).click(); return true;"));
+        self.js(&format!(
+            "document.getElementById({id:?}).click(); return true;"
+        ));
     }
 
     /// A real mouse drag from (x, y) by (dx, dy), in viewport pixels.
     fn drag(&self, (x, y): (i64, i64), (dx, dy): (i64, i64)) {
         let actions = json!({"actions": [{"type": "pointer", "id": "mouse",
-            "parameters": {"pointerType": "mouse"}, "actions": [
-                {"type": "pointerMove", "x": x, "y": y, "origin": "viewport"},
-                {"type": "pointerDown", "button": 0},
-                {"type": "pointerMove", "x": x + dx / 2, "y": y + dy / 2, "duration": 100, "origin": "viewport"},
-                {"type": "pointerMove", "x": x + dx, "y": y + dy, "duration": 100, "origin": "viewport"},
-                {"type": "pointerUp", "button": 0}
-            ]}]});
+        "parameters": {"pointerType": "mouse"}, "actions": [
+            {"type": "pointerMove", "x": x, "y": y, "origin": "viewport"},
+            {"type": "pointerDown", "button": 0},
+            {"type": "pointerMove", "x": x + dx / 2, "y": y + dy / 2, "duration": 100, "origin": "viewport"},
+            {"type": "pointerMove", "x": x + dx, "y": y + dy, "duration": 100, "origin": "viewport"},
+            {"type": "pointerUp", "button": 0}
+        ]}]});
         self.cmd("POST", "actions", Some(actions));
     }
 
@@ -209,7 +219,9 @@ fn final_frame(b: &Browser, what: &str) -> (u64, usize, usize, Vec<u8>) {
 
 /// The page's camera, as it sent it.
 fn page_camera(b: &Browser) -> ViewCamera {
-    let v = b.js("const [w, h] = renderSize(); return {c2w: pose(), fov_y: view.fov, width: w, height: h};");
+    let v = b.js(
+        "const [w, h] = renderSize(); return {c2w: pose(), fov_y: view.fov, width: w, height: h};",
+    );
     serde_json::from_value(v).expect("camera")
 }
 
@@ -225,7 +237,10 @@ fn the_page_draws_the_model_follows_the_mouse_and_saves_paths() {
     let server = nerf_view::start(viewer, IpAddr::V4(Ipv4Addr::LOCALHOST), 0).expect("server");
     browser.goto(&server.url);
     // A small render size keeps the test quick on two cores.
-    browser.wait_for("the scene", "return typeof scene !== 'undefined' && scene !== null;");
+    browser.wait_for(
+        "the scene",
+        "return typeof scene !== 'undefined' && scene !== null;",
+    );
     browser.js("const r = document.getElementById('resolution'); r.value = '320'; r.dispatchEvent(new Event('change')); return true;");
     browser.wait_for("two view requests", "return seq >= 2;");
 

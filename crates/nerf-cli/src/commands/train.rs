@@ -15,9 +15,25 @@ pub fn run(a: TrainOptions) -> Result<()> {
     crate::signals::stop_on_interrupt(&stop)?;
     opts.stop = Some(stop);
     let mut progress = TrainProgress::default();
-    let summary = run::train(&opts, &mut |e| progress.on_event(e));
+    let mut live = match a.view {
+        true => {
+            let live = nerf_view::live::LiveView::start(&opts.config, &opts.out, a.view_port)?;
+            eprintln!("watch it train at {}", live.running.url);
+            Some(live)
+        }
+        false => None,
+    };
+    let summary = run::train(&opts, &mut |e| {
+        if let Some(live) = &mut live {
+            live.on_event(&e);
+        }
+        progress.on_event(e)
+    });
     progress.finish();
     let summary = summary?;
+    if let Some(live) = &live {
+        live.show_checkpoint(&opts.out)?;
+    }
     let out = opts.out.display();
     let resume = format!("nerf train --out {out} --resume");
     let why = match summary.reason {
@@ -44,6 +60,15 @@ pub fn run(a: TrainOptions) -> Result<()> {
     );
     if let StopReason::Interrupted(signal) = summary.reason {
         std::process::exit(crate::signals::exit_code(signal));
+    }
+    if let (Some(live), Some(stop)) = (&live, &opts.stop) {
+        eprintln!(
+            "the viewer stays open at {} with the final model: press Ctrl-C to leave",
+            live.running.url
+        );
+        while stop.load(std::sync::atomic::Ordering::SeqCst) == 0 {
+            std::thread::sleep(std::time::Duration::from_millis(200));
+        }
     }
     Ok(())
 }

@@ -43,4 +43,3 @@ pub fn trained_run(dir: &Path) -> PathBuf {
     run::train(&options, &mut |_| {}).expect("train");
     out
 }
-

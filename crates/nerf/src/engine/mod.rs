@@ -129,6 +129,12 @@ pub enum Device {
     Cuda,
 }
 
+impl std::fmt::Debug for dyn Engine + '_ {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Engine({})", self.describe())
+    }
+}
+
 /// The command line's `--device`, shared by every command that runs a model.
 #[derive(Clone, Copy, Debug, Default, clap::Args)]
 pub struct DeviceArg {

@@ -48,6 +48,13 @@ pub struct TrainOptions {
     /// 200000 vanilla.
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub steps: Option<u64>,
+    /// Watch the model train in the web browser (`nerf view` on the run as it trains;
+    /// the address is printed). Costs training nothing while no page is open.
+    #[arg(long)]
+    pub view: bool,
+    /// Port of the --view page.
+    #[arg(long, default_value_t = 7007)]
+    pub view_port: u16,
     /// Wall-clock budget in minutes: stop (with a checkpoint) when it runs out.
     #[arg(long, value_parser = crate::args::positive_f64, allow_negative_numbers = true)]
     pub minutes: Option<f64>,

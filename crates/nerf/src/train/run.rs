@@ -68,6 +68,12 @@ pub enum Event<'a> {
     Checkpoint {
         step: u64,
     },
+    /// The model after a step, for a live view (`nerf train --view`): a listener that
+    /// wants its weights takes `engine.state()`; one that does not pays nothing.
+    Model {
+        step: u64,
+        engine: &'a dyn crate::engine::Engine,
+    },
     /// Something decided about the run that a user should hear.
     Note(&'a str),
 }
@@ -235,6 +241,10 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         };
         append_line(&mut metrics, &metrics_path, &line)?;
         on_event(Event::Step(&stats));
+        on_event(Event::Model {
+            step: stats.step,
+            engine: trainer.engine.as_ref(),
+        });
         if config.val_every > 0 && stats.step % config.val_every == 0 {
             if let Some(view) = &val_view {
                 let image = out.join("val").join(format!("step_{:07}.png", stats.step));
