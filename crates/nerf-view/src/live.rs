@@ -86,11 +86,11 @@ impl LiveView {
                     });
                 }
             }
-            Event::Model { step, engine } => {
-                if viewer.watched() && due(&mut self.last_snapshot, SNAPSHOT_SECONDS) {
-                    if let Err(e) = viewer.update(*step, engine.state()) {
-                        eprintln!("warning: the live view could not take the weights: {e}");
-                    }
+            Event::Model { step, engine }
+                if viewer.watched() && due(&mut self.last_snapshot, SNAPSHOT_SECONDS) =>
+            {
+                if let Err(e) = viewer.update(*step, engine.state()) {
+                    eprintln!("warning: the live view could not take the weights: {e}");
                 }
             }
             _ => {}
