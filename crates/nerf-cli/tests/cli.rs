@@ -191,6 +191,13 @@ fn errors_name_the_file_and_exit_non_zero() {
         !out.status.success() && err.contains("norun") && err.contains("not a run folder"),
         "{err}"
     );
+    // The viewer refuses a missing run before it listens.
+    let out = nerf(&["view", "--run", "norun", "--device", "cpu"], dir.path());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("norun") && err.contains("not a run folder"),
+        "{err}"
+    );
     // Issue 10 #13: a folder that exists but holds no run says so.
     let out = nerf(&["eval", "--run", "empty"], dir.path());
     let err = String::from_utf8_lossy(&out.stderr);

@@ -400,11 +400,14 @@ function training(msg) {
   ctx.stroke();
   ctx.fillStyle = "#999";
   ctx.fillText(`PSNR ${lo.toFixed(1)}–${hi.toFixed(1)} dB`, 5, 12);
-  // Show the newest model, at most every two seconds, unless the user is moving.
+  // Show the newest model as a preview (the full frame would take the cores from
+  // training), at most every two seconds; the full frame once training stops.
   if (!training.last || performance.now() - training.last > 2000) {
     training.last = performance.now();
-    if (!held.size) requestView(false);
+    if (!held.size) requestView(true);
   }
+  clearTimeout(training.done);
+  training.done = setTimeout(() => requestView(false), 3000);
 }
 
 // ---- start ----

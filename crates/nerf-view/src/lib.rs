@@ -9,6 +9,7 @@
 //! run's scene, through the library) and writes only camera paths and renders inside the
 //! run folder, under names it checks.
 
+pub mod bench;
 pub mod live;
 pub mod paths;
 pub mod protocol;
@@ -40,6 +41,10 @@ pub struct ViewOptions {
     /// Open the page in the default web browser.
     #[arg(long)]
     pub open: bool,
+    /// Measure instead of serving: frames/s at several sizes, the preview a moving camera
+    /// gets, the time to the full frame (seen from the first training camera).
+    #[arg(long)]
+    pub bench: bool,
     #[command(flatten)]
     pub device: nerf::engine::DeviceArg,
 }
@@ -140,6 +145,24 @@ pub fn run(opts: &ViewOptions) -> anyhow::Result<()> {
         run.step,
         run.engine.describe()
     );
+    if opts.bench {
+        let scene = run.config.open_scene(1)?;
+        let settings = nerf::views::RenderSettings::of_scene(&scene, run.config.background.eval_colour());
+        let camera = scene
+            .cameras(nerf::data::Split::Train)
+            .first()
+            .cloned()
+            .context("the run's scene has no training cameras to look from")?;
+        let fov_y = (2.0 * (0.5 * camera.height as f32 / camera.fy).atan()).to_degrees();
+        let model = render::Model {
+            run: std::sync::RwLock::new(run),
+            settings,
+            pool: None,
+        };
+        let report = bench::run(&model, camera.c2w, fov_y, &[150, 300, 600], (800, 600));
+        report.print();
+        return Ok(());
+    }
     let token = token_for(opts.host)?;
     let viewer = Viewer::new(run, opts.run.clone(), token, false)?;
     let running = start(viewer, opts.host, opts.port)?;

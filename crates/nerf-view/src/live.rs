@@ -17,7 +17,7 @@ use crate::protocol::ServerMessage;
 use crate::{start, Running, Viewer};
 
 /// How often an open page gets the newest weights.
-pub const SNAPSHOT_SECONDS: f64 = 2.0;
+pub const SNAPSHOT_SECONDS: f64 = 5.0;
 /// How often an open page gets training figures.
 const PROGRESS_SECONDS: f64 = 0.25;
 

@@ -1,0 +1,127 @@
+//! `nerf view --bench`: how the viewer performs on this machine for a run, through the
+//! code that serves pages (render, colour, JPEG): frames per second at several sizes, the
+//! preview size the pacer picks for a moving camera, the time from a resting camera to
+//! its full-resolution frame, and the input-to-frame latency of a preview.
+
+use std::time::Instant;
+
+use crate::protocol::{Mode, ViewCamera};
+use crate::render::{level_sizes, render_level, Model, Pacer};
+
+/// Frames rendered per size (the median is reported).
+const REPEATS: usize = 5;
+
+/// One row of the report.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SizeFigure {
+    pub width: usize,
+    pub height: usize,
+    pub median_seconds: f64,
+    pub frames_per_second: f64,
+}
+
+/// What `nerf view --bench` measured.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct ViewBench {
+    pub sizes: Vec<SizeFigure>,
+    /// The full size the refinement figures are for.
+    pub full: (usize, usize),
+    /// The preview size for a moving camera at `full`, and its frame time.
+    pub preview: (usize, usize),
+    pub preview_seconds: f64,
+    /// From a resting camera's request to its full-resolution frame (every level).
+    pub refine_seconds: f64,
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+/// Benchmarks `model` seen from `c2w` with vertical field of view `fov_y` (degrees), at
+/// heights `heights` (4:3), refinement at `full`.
+pub fn run(
+    model: &Model,
+    c2w: [[f32; 4]; 3],
+    fov_y: f32,
+    heights: &[usize],
+    full: (usize, usize),
+) -> ViewBench {
+    let never = || false;
+    let mut pacer = Pacer::default();
+    let view = |width, height| ViewCamera {
+        c2w,
+        fov_y,
+        width,
+        height,
+    };
+    let mut sizes = Vec::new();
+    for &h in heights {
+        let w = h * 4 / 3;
+        let v = view(w, h);
+        let times: Vec<f64> = (0..REPEATS)
+            .map(|_| {
+                let t0 = Instant::now();
+                render_level(model, &mut pacer, 0, &v, Mode::Rgb, (w, h), &never);
+                t0.elapsed().as_secs_f64()
+            })
+            .collect();
+        let t = median(times);
+        sizes.push(SizeFigure {
+            width: w,
+            height: h,
+            median_seconds: t,
+            frames_per_second: 1.0 / t,
+        });
+    }
+    let v = view(full.0, full.1);
+    let preview_scale = pacer.preview_scale(full.0, full.1);
+    let preview = level_sizes(&v, preview_scale, true)[0];
+    let preview_seconds = median(
+        (0..REPEATS)
+            .map(|_| {
+                let t0 = Instant::now();
+                render_level(model, &mut pacer, 0, &v, Mode::Rgb, preview, &never);
+                t0.elapsed().as_secs_f64()
+            })
+            .collect(),
+    );
+    let t0 = Instant::now();
+    for size in level_sizes(&v, preview_scale, false) {
+        render_level(model, &mut pacer, 0, &v, Mode::Rgb, size, &never);
+    }
+    ViewBench {
+        sizes,
+        full,
+        preview,
+        preview_seconds,
+        refine_seconds: t0.elapsed().as_secs_f64(),
+    }
+}
+
+impl ViewBench {
+    pub fn print(&self) {
+        println!("| frame | median time | frames/s |");
+        println!("|---|---|---|");
+        for s in &self.sizes {
+            println!(
+                "| {}x{} | {:.3} s | {:.1} |",
+                s.width, s.height, s.median_seconds, s.frames_per_second
+            );
+        }
+        println!(
+            "moving camera at {}x{}: preview {}x{} in {:.3} s ({:.1} frames/s; the \
+             input-to-frame latency, less the page's own few milliseconds)",
+            self.full.0,
+            self.full.1,
+            self.preview.0,
+            self.preview.1,
+            self.preview_seconds,
+            1.0 / self.preview_seconds
+        );
+        println!(
+            "camera at rest: full {}x{} frame after {:.2} s (every refinement level)",
+            self.full.0, self.full.1, self.refine_seconds
+        );
+    }
+}
