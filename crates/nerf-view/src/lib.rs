@@ -147,7 +147,8 @@ pub fn run(opts: &ViewOptions) -> anyhow::Result<()> {
     );
     if opts.bench {
         let scene = run.config.open_scene(1)?;
-        let settings = nerf::views::RenderSettings::of_scene(&scene, run.config.background.eval_colour());
+        let settings =
+            nerf::views::RenderSettings::of_scene(&scene, run.config.background.eval_colour());
         let camera = scene
             .cameras(nerf::data::Split::Train)
             .first()
@@ -157,6 +158,7 @@ pub fn run(opts: &ViewOptions) -> anyhow::Result<()> {
         let model = render::Model {
             run: std::sync::RwLock::new(run),
             settings,
+            camera_distance: nerf::math::length(camera.origin()),
             pool: None,
         };
         let report = bench::run(&model, camera.c2w, fov_y, &[150, 300, 600], (800, 600));

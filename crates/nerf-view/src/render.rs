@@ -27,6 +27,9 @@ const MIN_SIDE: usize = 16;
 pub struct Model {
     pub run: RwLock<LoadedRun>,
     pub settings: RenderSettings,
+    /// The training cameras' mean distance from the scene's centre (the origin): where
+    /// the scene's near and far bounds were meant to be seen from.
+    pub camera_distance: f32,
     /// Threads of its own to render with (beside a training run, so that viewing takes
     /// at most these cores); `None`: all of them.
     pub pool: Option<rayon::ThreadPool>,
@@ -99,6 +102,28 @@ pub fn level_sizes(view: &ViewCamera, preview: f64, moving: bool) -> Vec<(usize,
     sizes
 }
 
+impl Model {
+    /// The render settings for a camera at `eye`: the scene's, with the near and far
+    /// bounds moved along with the camera when it is nearer or farther than the training
+    /// cameras were, so zooming out never clips the scene away (world-space scenes; NDC
+    /// bounds stay as they are).
+    pub fn settings_at(&self, eye: [f32; 3]) -> RenderSettings {
+        bounds_at(self.settings, self.camera_distance, eye)
+    }
+}
+
+/// [`Model::settings_at`] for `settings` meant for cameras `camera_distance` from the
+/// origin.
+pub fn bounds_at(mut s: RenderSettings, camera_distance: f32, eye: [f32; 3]) -> RenderSettings {
+    if matches!(s.space, nerf::camera::ray_space::RaySpace::World) {
+        let d = (eye[0] * eye[0] + eye[1] * eye[1] + eye[2] * eye[2]).sqrt();
+        let (front, back) = (camera_distance - s.near, s.far - camera_distance);
+        s.near = s.near.min(d - front).max(0.0);
+        s.far = s.far.max(d + back);
+    }
+    s
+}
+
 /// The size of `camera` at `scale` (each side at least [`MIN_SIDE`] or the full side).
 pub fn scaled_size(camera: &ViewCamera, scale: f64) -> (usize, usize) {
     let side = |full: usize| {
@@ -134,6 +159,7 @@ fn render_here(
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Option<Vec<RayOutput>> {
     let run = model.run.read().unwrap_or_else(|e| e.into_inner());
+    let settings = model.settings_at(camera.origin());
     let (w, h) = (camera.width, camera.height);
     let mut out = vec![RayOutput::default(); w * h];
     for (k, chunk) in out.chunks_mut(CHUNK_RAYS).enumerate() {
@@ -144,7 +170,7 @@ fn render_here(
         let world: Vec<Ray> = (first..first + chunk.len())
             .map(|p| camera.ray(p % w, p / w))
             .collect();
-        let rays = model.settings.ray_batch(&world, first);
+        let rays = settings.ray_batch(&world, first);
         run.engine.render_rays(&rays, chunk, &|_| {});
     }
     Some(out)
@@ -200,7 +226,7 @@ pub fn render_level(
     let out = render(model, &camera, cancelled)?;
     let seconds = t0.elapsed().as_secs_f64();
     pacer.record(w * h, seconds);
-    let rgb = to_rgb8(&out, mode, &model.settings);
+    let rgb = to_rgb8(&out, mode, &model.settings_at(view.c2w.map(|r| r[3])));
     let header = FrameHeader {
         seq,
         width: w as u16,
@@ -218,6 +244,37 @@ pub fn render_level(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Bounds meant for cameras 4 units out (near 2, far 6) follow a camera that zooms out
+    /// to 10 (far 12) or in to 1 (near 0), and stay for one at 4; NDC bounds never move.
+    #[test]
+    fn bounds_follow_the_camera_in_world_space() {
+        let s = RenderSettings {
+            near: 2.0,
+            far: 6.0,
+            background: [1.0; 3],
+            space: nerf::camera::ray_space::RaySpace::World,
+        };
+        let at = |d: f32| {
+            let b = bounds_at(s, 4.0, [0.0, d, 0.0]);
+            (b.near, b.far)
+        };
+        assert_eq!(at(4.0), (2.0, 6.0));
+        assert_eq!(at(10.0), (2.0, 12.0));
+        assert_eq!(at(1.0), (0.0, 6.0));
+        let ndc = RenderSettings {
+            near: 0.0,
+            far: 1.0,
+            space: nerf::camera::ray_space::RaySpace::Ndc(nerf::camera::ray_space::Ndc {
+                ax: 1.0,
+                ay: 1.0,
+                near: 1.0,
+            }),
+            ..s
+        };
+        let b = bounds_at(ndc, 4.0, [0.0, 10.0, 0.0]);
+        assert_eq!((b.near, b.far), (0.0, 1.0));
+    }
 
     #[test]
     fn levels_double_up_to_the_full_size_unless_moving() {

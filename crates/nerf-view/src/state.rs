@@ -88,15 +88,18 @@ impl Viewer {
             model: Arc::new(Model {
                 run: RwLock::new(run),
                 settings,
+                camera_distance: info.radius,
                 // Beside a training run the viewer renders on half the cores.
-                pool: live.then(|| {
-                    let threads = (rayon::current_num_threads() / 2).max(1);
-                    rayon::ThreadPoolBuilder::new()
-                        .num_threads(threads)
-                        .thread_name(|i| format!("nerf-view-{i}"))
-                        .build()
-                        .ok()
-                }).flatten(),
+                pool: live
+                    .then(|| {
+                        let threads = (rayon::current_num_threads() / 2).max(1);
+                        rayon::ThreadPoolBuilder::new()
+                            .num_threads(threads)
+                            .thread_name(|i| format!("nerf-view-{i}"))
+                            .build()
+                            .ok()
+                    })
+                    .flatten(),
             }),
             run_dir,
             scene,
