@@ -381,25 +381,33 @@ function play() {
 function training(msg) {
   $("training").hidden = false;
   $("train-stats").textContent = `step ${msg.step} of ${msg.steps} · loss ${msg.loss.toFixed(5)} · PSNR ${msg.psnr.toFixed(2)} dB · ${(msg.rays_per_second / 1000).toFixed(1)} k rays/s`;
-  chart.push([msg.step, msg.psnr]);
+  chart.push([msg.step, msg.psnr, Math.log10(Math.max(msg.loss, 1e-12))]);
   if (chart.length > 500) chart.shift();
   const c = $("chart");
   const ctx = c.getContext("2d");
   ctx.clearRect(0, 0, c.width, c.height);
-  const lo = Math.min(...chart.map((p) => p[1]));
-  const hi = Math.max(...chart.map((p) => p[1]), lo + 1);
   const s0 = chart[0][0];
   const s1 = Math.max(chart[chart.length - 1][0], s0 + 1);
-  ctx.strokeStyle = "#4fa3ff";
-  ctx.beginPath();
-  chart.forEach(([s, p], i) => {
-    const x = ((s - s0) / (s1 - s0)) * (c.width - 10) + 5;
-    const y = c.height - 5 - ((p - lo) / (hi - lo)) * (c.height - 20);
-    if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y);
-  });
-  ctx.stroke();
-  ctx.fillStyle = "#999";
-  ctx.fillText(`PSNR ${lo.toFixed(1)}–${hi.toFixed(1)} dB`, 5, 12);
+  // PSNR (blue) and log10 loss (orange), each scaled to the chart's height.
+  const line = (k, colour) => {
+    const lo = Math.min(...chart.map((p) => p[k]));
+    const hi = Math.max(...chart.map((p) => p[k]), lo + 1e-6);
+    ctx.strokeStyle = colour;
+    ctx.beginPath();
+    chart.forEach((p, i) => {
+      const x = ((p[0] - s0) / (s1 - s0)) * (c.width - 10) + 5;
+      const y = c.height - 5 - ((p[k] - lo) / (hi - lo)) * (c.height - 30);
+      if (i) ctx.lineTo(x, y); else ctx.moveTo(x, y);
+    });
+    ctx.stroke();
+    return [lo, hi];
+  };
+  const [plo, phi] = line(1, "#4fa3ff");
+  const [llo, lhi] = line(2, "#ffa64f");
+  ctx.fillStyle = "#4fa3ff";
+  ctx.fillText(`PSNR ${plo.toFixed(1)}–${phi.toFixed(1)} dB`, 5, 12);
+  ctx.fillStyle = "#ffa64f";
+  ctx.fillText(`loss ${(10 ** llo).toExponential(1)}–${(10 ** lhi).toExponential(1)}`, 5, 24);
   // Show the newest model as a preview (the full frame would take the cores from
   // training), at most every two seconds; the full frame once training stops.
   if (!training.last || performance.now() - training.last > 2000) {

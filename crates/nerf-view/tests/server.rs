@@ -246,6 +246,27 @@ fn the_viewer_serves_its_run_and_only_its_run() {
             ServerMessage::Saved { file } => assert_eq!(file, "camera_paths/take_1.json"),
             other => panic!("{other:?}"),
         }
+        // "Render video": the same code as `nerf render --path file`, with progress.
+        ws.send(Message::text(
+            serde_json::json!({"type": "render_path", "name": "take_1", "path": path}).to_string(),
+        ))
+        .await
+        .expect("send");
+        let mut progress = Vec::new();
+        loop {
+            match next_text(&mut ws).await {
+                ServerMessage::RenderProgress { done, total } => progress.push((done, total)),
+                ServerMessage::Rendered { folder, video } => {
+                    assert_eq!(folder, "renders/take_1");
+                    let video = video.expect("a video");
+                    assert!(run_dir.join(&video).exists(), "{video}");
+                    break;
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert!(!progress.is_empty() && progress.iter().all(|&(_, t)| t == 3), "{progress:?}");
+        assert!(run_dir.join("renders/take_1/frame_0002.png").exists());
         let _ = ws.close(None).await;
     });
     let saved = run_dir.join("camera_paths/take_1.json");
