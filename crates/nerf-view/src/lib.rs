@@ -154,7 +154,7 @@ pub fn run(opts: &ViewOptions) -> anyhow::Result<()> {
             .first()
             .cloned()
             .context("the run's scene has no training cameras to look from")?;
-        let fov_y = (2.0 * (0.5 * camera.height as f32 / camera.fy).atan()).to_degrees();
+        let fov_y = camera.fov_y_degrees();
         let model = render::Model {
             run: std::sync::RwLock::new(run),
             settings,

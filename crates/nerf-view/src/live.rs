@@ -58,6 +58,13 @@ impl LiveView {
         })
     }
 
+    /// Shows the run's final checkpoint (after training stopped).
+    pub fn show_checkpoint(&self, out: &Path) -> anyhow::Result<()> {
+        let run = LoadedRun::open(out)?;
+        self.running.viewer.update(run.step, run.engine.state())?;
+        Ok(())
+    }
+
     /// Takes what the page needs from one training event.
     pub fn on_event(&mut self, event: &Event) {
         let viewer = &self.running.viewer;
@@ -95,15 +102,6 @@ impl LiveView {
             }
             _ => {}
         }
-    }
-}
-
-impl LiveView {
-    /// Shows the run's final checkpoint (after training stopped).
-    pub fn show_checkpoint(&self, out: &Path) -> anyhow::Result<()> {
-        let run = LoadedRun::open(out)?;
-        self.running.viewer.update(run.step, run.engine.state())?;
-        Ok(())
     }
 }
 

@@ -148,7 +148,7 @@ mod tests {
                     assert!((cam.c2w[r][c] - k.c2w[r][c]).abs() < 1e-4);
                 }
             }
-            let fov_y = (2.0 * (0.5 * 30.0 / cam.fy).atan()).to_degrees();
+            let fov_y = cam.fov_y_degrees();
             assert!((fov_y - k.fov_y).abs() < 1e-2, "{fov_y} vs {}", k.fov_y);
         }
         assert!(save(dir.path(), "../out", &p).is_err());

@@ -6,7 +6,8 @@
 use std::sync::RwLock;
 use std::time::Instant;
 
-use nerf::camera::{Camera, Ray};
+use nerf::camera::Camera;
+use nerf::data::image::to_u8;
 use nerf::stage::RayOutput;
 use nerf::train::folder::LoadedRun;
 use nerf::views::RenderSettings;
@@ -160,20 +161,14 @@ fn render_here(
 ) -> Option<Vec<RayOutput>> {
     let run = model.run.read().unwrap_or_else(|e| e.into_inner());
     let settings = model.settings_at(camera.origin());
-    let (w, h) = (camera.width, camera.height);
-    let mut out = vec![RayOutput::default(); w * h];
-    for (k, chunk) in out.chunks_mut(CHUNK_RAYS).enumerate() {
-        if cancelled() {
-            return None;
-        }
-        let first = k * CHUNK_RAYS;
-        let world: Vec<Ray> = (first..first + chunk.len())
-            .map(|p| camera.ray(p % w, p / w))
-            .collect();
-        let rays = settings.ray_batch(&world, first);
-        run.engine.render_rays(&rays, chunk, &|_| {});
-    }
-    Some(out)
+    nerf::views::render_pixels(
+        run.engine.as_ref(),
+        camera,
+        &settings,
+        CHUNK_RAYS,
+        &|_| {},
+        cancelled,
+    )
 }
 
 /// The image a mode shows, as 8-bit RGB.
@@ -189,10 +184,7 @@ pub fn to_rgb8(out: &[RayOutput], mode: Mode, settings: &RenderSettings) -> Vec<
             nerf::video::depth_turbo(&depth, &opacity, near, far)
         }
     };
-    float
-        .iter()
-        .map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
-        .collect()
+    float.iter().map(|&v| to_u8(v)).collect()
 }
 
 /// Encodes 8-bit RGB as a JPEG.

@@ -6,6 +6,7 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, OnceLock, RwLock};
 
 use nerf::camera::Camera;
+use nerf::data::image::to_u8;
 use nerf::data::scene::Scene;
 use nerf::data::{Dataset, Split};
 use nerf::engine::EngineState;
@@ -137,10 +138,7 @@ impl Viewer {
             .get(index)
             .ok_or_else(|| format!("no training photo {index} (there are {})", data.views.len()))?;
         let rgb = view.image.composite(self.model.settings.background);
-        let bytes: Vec<u8> = rgb
-            .iter()
-            .map(|&v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8)
-            .collect();
+        let bytes: Vec<u8> = rgb.iter().map(|&v| to_u8(v)).collect();
         Ok(crate::render::jpeg(
             &bytes,
             view.image.width,
@@ -153,7 +151,7 @@ fn camera_info((index, c): (usize, &Camera)) -> CameraInfo {
     CameraInfo {
         index,
         c2w: c.c2w,
-        fov_y: (2.0 * (0.5 * c.height as f32 / c.fy).atan()).to_degrees(),
+        fov_y: c.fov_y_degrees(),
         width: c.width,
         height: c.height,
     }

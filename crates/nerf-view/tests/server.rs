@@ -171,7 +171,7 @@ fn the_viewer_serves_its_run_and_only_its_run() {
             let run = LoadedRun::open(&run_dir).expect("run");
             run.config.open_scene(1).expect("scene").cameras(nerf::data::Split::Test)[0].clone()
         };
-        let fov_y = (2.0 * (0.5 * test_cam.height as f32 / test_cam.fy).atan()).to_degrees();
+        let fov_y = test_cam.fov_y_degrees();
         let size = (test_cam.width, test_cam.height);
         ws.send(Message::text(view_request(7, test_cam.c2w, fov_y, size, "rgb")))
             .await

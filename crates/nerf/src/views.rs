@@ -87,24 +87,45 @@ pub fn render_view(
     settings: &RenderSettings,
     on_progress: &(dyn Fn(usize) + Sync),
 ) -> RenderedView {
-    let (w, h) = (camera.width, camera.height);
-    let mut out = vec![RayOutput::default(); w * h];
-    for (k, slab) in out.chunks_mut(SLAB_RAYS).enumerate() {
-        let first = k * SLAB_RAYS;
-        let world: Vec<Ray> = (first..first + slab.len())
-            .into_par_iter()
-            .map(|p| camera.ray(p % w, p / w))
-            .collect();
-        let rays = settings.ray_batch(&world, first);
-        engine.render_rays(&rays, slab, &|n| on_progress(first + n));
-    }
+    let never = || false;
+    let out =
+        render_pixels(engine, camera, settings, SLAB_RAYS, on_progress, &never).unwrap_or_default();
     RenderedView {
-        width: w,
-        height: h,
+        width: camera.width,
+        height: camera.height,
         rgb: out.iter().flat_map(|o| o.rgb).collect(),
         depth: out.iter().map(|o| o.depth).collect(),
         opacity: out.iter().map(|o| o.opacity).collect(),
     }
+}
+
+/// Every pixel of `camera`'s view (row by row), `slab` rays per engine call; `None` as
+/// soon as `cancelled` says so between calls (the viewer stops a frame its camera has
+/// left). `on_progress` hears the rays finished so far.
+pub fn render_pixels(
+    engine: &dyn Engine,
+    camera: &Camera,
+    settings: &RenderSettings,
+    slab: usize,
+    on_progress: &(dyn Fn(usize) + Sync),
+    cancelled: &dyn Fn() -> bool,
+) -> Option<Vec<RayOutput>> {
+    let (w, h) = (camera.width, camera.height);
+    let slab = slab.max(1);
+    let mut out = vec![RayOutput::default(); w * h];
+    for (k, part) in out.chunks_mut(slab).enumerate() {
+        if cancelled() {
+            return None;
+        }
+        let first = k * slab;
+        let world: Vec<Ray> = (first..first + part.len())
+            .into_par_iter()
+            .map(|p| camera.ray(p % w, p / w))
+            .collect();
+        let rays = settings.ray_batch(&world, first);
+        engine.render_rays(&rays, part, &|n| on_progress(first + n));
+    }
+    Some(out)
 }
 
 /// Renders arbitrary world rays (packed `n x 3` origins and directions) with `settings`.

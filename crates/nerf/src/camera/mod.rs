@@ -152,6 +152,11 @@ impl Camera {
         [self.c2w[0][3], self.c2w[1][3], self.c2w[2][3]]
     }
 
+    /// The vertical field of view, in degrees.
+    pub fn fov_y_degrees(&self) -> f32 {
+        (2.0 * (0.5 * self.height as f32 / self.fy).atan()).to_degrees()
+    }
+
     /// The ray through the centre of pixel (column `i`, row `j`).
     #[inline]
     pub fn ray(&self, i: usize, j: usize) -> Ray {

@@ -144,8 +144,9 @@ where
     crate::io::write_atomic(path, &bytes.into_inner())
 }
 
+/// A colour value in [0, 1] as an 8-bit one (clamped, rounded), as every PNG we write.
 #[inline]
-fn to_u8(v: f32) -> u8 {
+pub fn to_u8(v: f32) -> u8 {
     (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8
 }
 

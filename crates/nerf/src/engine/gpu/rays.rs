@@ -32,8 +32,9 @@ const META_WORDS: usize = 3;
 /// "No lens table": a pinhole view.
 const NO_TABLE: u32 = u32::MAX;
 /// Most floats the images and lens tables may take on the device (4 GiB); a larger
-/// dataset's rays are drawn on the host.
+/// dataset's rays are drawn on the host. Offsets below it fit a `u32`.
 const MAX_FLOATS: usize = 1 << 30;
+const _: () = assert!(MAX_FLOATS < u32::MAX as usize);
 
 /// The ray space, the marcher's span and the lattice, as the kernel reads them.
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
@@ -199,8 +200,6 @@ pub struct GpuViews {
     tables: Handle,
     images: Handle,
     lens: [usize; 4],
-    /// Which dataset (its views' address and count): a step with another re-uploads.
-    key: (usize, usize),
 }
 
 impl GpuViews {
@@ -239,12 +238,8 @@ impl GpuViews {
                     }
                 }
             };
+            // Below MAX_FLOATS (checked above), every offset fits the kernel's u32.
             let image_at = images.len();
-            if image_at > u32::MAX as usize
-                || (table != NO_TABLE as usize && table > u32::MAX as usize)
-            {
-                return None;
-            }
             meta.extend([cam.width as u32, image_at as u32, table as u32]);
             cams.extend([cam.fx, cam.fy, cam.cx, cam.cy]);
             cams.extend(cam.c2w.iter().flatten());
@@ -258,18 +253,13 @@ impl GpuViews {
             cams: gpu.upload(&cams),
             tables: gpu.upload(&tables),
             images: gpu.upload(&images),
-            key: GpuViews::key_of(data),
         })
     }
 
-    /// Which dataset `data` is, as far as the views on the device go.
+    /// Which dataset `data` is (its views' address and count), as far as the views on the
+    /// device go: a step with another dataset uploads again.
     pub fn key_of(data: &Dataset) -> (usize, usize) {
         (data.views.as_ptr() as usize, data.views.len())
-    }
-
-    /// Whether these are `data`'s views.
-    pub fn is_for(&self, data: &Dataset) -> bool {
-        self.key == GpuViews::key_of(data)
     }
 
     /// The rays of `choices` (with their lattice jitters) through `marcher` and a grid of
