@@ -23,6 +23,16 @@ pub fn bar(total: u64, what: &str) -> ProgressBar {
     pb
 }
 
+/// A bar over the `seconds` of a timed schedule, with the time left.
+fn seconds_bar(seconds: u64) -> ProgressBar {
+    let pb = ProgressBar::new(seconds);
+    let template = "{spinner} train [{bar:30}] {pos}/{len} s, {eta} left {msg}";
+    if let Ok(style) = ProgressStyle::with_template(template) {
+        pb.set_style(style.progress_chars("=> "));
+    }
+    pb
+}
+
 /// A rate in the one format every command prints: three significant figures at most
 /// below 1000, whole numbers above, no thousands separators (`26.8/s`, `46341 rays/s`).
 pub fn rate(per_second: f64, unit: &str) -> String {
@@ -77,6 +87,9 @@ impl SmoothedRate {
 pub struct TrainProgress {
     pb: Option<ProgressBar>,
     steps: u64,
+    /// A timed run's clock: when this session started, and the seconds before it. The bar
+    /// then counts seconds of the budget, not steps.
+    clock: Option<(Instant, f64)>,
     last: Instant,
     rays: SmoothedRate,
     last_line: Instant,
@@ -87,6 +100,7 @@ impl Default for TrainProgress {
         TrainProgress {
             pb: None,
             steps: 0,
+            clock: None,
             last: Instant::now(),
             rays: SmoothedRate::default(),
             last_line: Instant::now(),
@@ -109,6 +123,7 @@ impl TrainProgress {
                 height,
                 params,
                 resumed_from,
+                elapsed_s,
             } => {
                 println!(
                     "training {} on {} ({views} views, {width}x{height}): {}{}, {params} parameters",
@@ -124,8 +139,24 @@ impl TrainProgress {
                 if let Some(step) = resumed_from {
                     println!("resuming from the checkpoint at step {step}");
                 }
-                let p = bar(config.steps, "train");
-                p.set_position(resumed_from.unwrap_or(0));
+                let p = match config.time_budget_s {
+                    Some(budget) => {
+                        self.clock = Some((Instant::now(), elapsed_s));
+                        println!(
+                            "schedule: {:.1} minutes of training (the learning rate decays by \
+                             the clock)",
+                            budget / 60.0
+                        );
+                        let p = seconds_bar(budget.ceil() as u64);
+                        p.set_position(elapsed_s as u64);
+                        p
+                    }
+                    None => {
+                        let p = bar(config.steps, "train");
+                        p.set_position(resumed_from.unwrap_or(0));
+                        p
+                    }
+                };
                 p.reset_eta();
                 self.steps = config.steps;
                 self.last = Instant::now();
@@ -135,9 +166,18 @@ impl TrainProgress {
                 let Some(p) = &self.pb else { return };
                 self.rays.add(s.rays, self.last.elapsed().as_secs_f64());
                 self.last = Instant::now();
-                p.set_position(s.step);
+                let at_step = match self.clock {
+                    Some((start, before)) => {
+                        p.set_position((before + start.elapsed().as_secs_f64()) as u64);
+                        format!("step {} ", s.step)
+                    }
+                    None => {
+                        p.set_position(s.step);
+                        String::new()
+                    }
+                };
                 p.set_message(format!(
-                    "loss {:.4} psnr {:.2} {}",
+                    "{at_step}loss {:.4} psnr {:.2} {}",
                     s.loss,
                     s.psnr,
                     rate(self.rays.per_second, "rays")

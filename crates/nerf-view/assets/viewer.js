@@ -381,7 +381,7 @@ function play() {
 function training(msg) {
   $("training").hidden = false;
   $("run").textContent = `${scene.run} · step ${msg.step} · ${scene.engine} · ${scene.cameras.length} training cameras`;
-  $("train-stats").textContent = `step ${msg.step} of ${msg.steps} · loss ${msg.loss.toFixed(5)} · PSNR ${msg.psnr.toFixed(2)} dB · ${(msg.rays_per_second / 1000).toFixed(1)} k rays/s`;
+  $("train-stats").textContent = `step ${msg.step}${msg.steps ? ` of ${msg.steps}` : ""} · loss ${msg.loss.toFixed(5)} · PSNR ${msg.psnr.toFixed(2)} dB · ${(msg.rays_per_second / 1000).toFixed(1)} k rays/s`;
   chart.push([msg.step, msg.psnr, Math.log10(Math.max(msg.loss, 1e-12))]);
   if (chart.length > 500) chart.shift();
   const c = $("chart");

@@ -50,7 +50,12 @@ impl LiveView {
         let running = start(viewer, IpAddr::V4(Ipv4Addr::LOCALHOST), port)?;
         Ok(LiveView {
             running,
-            steps: config.steps,
+            // 0: a timed run has no step target.
+            steps: if config.time_budget_s.is_some() {
+                0
+            } else {
+                config.steps
+            },
             last_snapshot: None,
             last_progress: None,
             last_step: None,

@@ -165,6 +165,71 @@ fn time_budget_stops_with_a_checkpoint() {
     );
 }
 
+/// Issue 14 #4: `--minutes` alone schedules by the clock. The learning rate falls with
+/// elapsed time and reaches (nearly) its final value as the budget ends, where a step
+/// schedule cut short by the clock never gets there; a resume with a larger budget goes on
+/// from the saved clock.
+#[test]
+fn a_timed_schedule_decays_with_the_clock_and_resumes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 16);
+    let out = dir.path().join("run");
+    let mut config = demo_config(&data, u64::MAX);
+    config.time_budget_s = Some(1.5);
+    let mut opts = RunOptions {
+        out: out.clone(),
+        config: config.clone(),
+        minutes: None,
+        resume: false,
+        pause_at: None,
+        stop: None,
+        device: nerf::engine::Device::Cpu,
+    };
+    let first = run::train(&opts, &mut |_| {}).expect("train");
+    assert_eq!(first.reason, StopReason::TimeBudget);
+    assert!(first.seconds >= 1.5 && first.steps > 3, "{first:?}");
+    let lrs = learning_rates(&out);
+    assert_eq!(lrs.len() as u64, first.steps);
+    assert!(lrs.windows(2).all(|w| w[1] <= w[0]), "{lrs:?}");
+    assert!(
+        (lrs[0] - config.lr_init).abs() < 0.1 * config.lr_init,
+        "{lrs:?}"
+    );
+    // The last step began within a step's time of the end: past 3/4 of the decay.
+    let late = config.learning_rate_at(0.75);
+    assert!(*lrs.last().expect("steps") < late, "{lrs:?} vs {late}");
+
+    // Resuming a spent schedule does nothing; a larger budget goes on from its clock.
+    opts.resume = true;
+    let again = run::train(&opts, &mut |_| {}).expect("resume");
+    assert_eq!(
+        (again.steps, again.reason),
+        (first.steps, StopReason::TimeBudget)
+    );
+    opts.config.time_budget_s = Some(2.5);
+    let more = run::train(&opts, &mut |_| {}).expect("resume longer");
+    assert!(more.steps > first.steps && more.seconds >= 2.5, "{more:?}");
+    let saved = LoadedRun::open(&out).expect("run");
+    assert_eq!(saved.config.time_budget_s, Some(2.5));
+    let lrs = learning_rates(&out);
+    let resumed_first = lrs[first.steps as usize];
+    // The rate picks up where the clock left off (1.5 of 2.5 s), not from the start.
+    assert!(
+        resumed_first < config.learning_rate_at(0.5),
+        "{resumed_first}"
+    );
+}
+
+fn learning_rates(run: &Path) -> Vec<f32> {
+    let text = std::fs::read_to_string(run.join("metrics.jsonl")).expect("metrics");
+    text.lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| v.get("lr").and_then(|x| x.as_f64()))
+        .map(|x| x as f32)
+        .collect()
+}
+
 #[test]
 fn every_preset_trains_a_step() {
     let opts = SynthOptions {

@@ -38,7 +38,10 @@ pub fn run(a: TrainOptions) -> Result<()> {
     let resume = format!("nerf train --out {out} --resume");
     let why = match summary.reason {
         StopReason::Steps => "all steps done".to_string(),
-        StopReason::TimeBudget => format!("the {} minute budget ran out", a.minutes.unwrap_or(0.0)),
+        StopReason::TimeBudget => match opts.config.time_budget_s {
+            Some(s) => format!("the {:.1} minute schedule is done", s / 60.0),
+            None => format!("the {} minute budget ran out", a.minutes.unwrap_or(0.0)),
+        },
         StopReason::Paused => format!(
             "paused at step {}; continue with `{resume}`",
             a.pause_at.unwrap_or(0)

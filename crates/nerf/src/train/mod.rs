@@ -47,7 +47,13 @@ pub struct TrainConfig {
     /// our default). The fast model sets samples per step instead.
     pub batch_rays: usize,
     /// Steps to train; the learning rate decays from `lr_init` to `lr_final` over them.
+    /// With a time schedule ([`time_budget_s`](Self::time_budget_s)) only a cap.
     pub steps: u64,
+    /// A schedule by the clock: when set, the schedule (the learning-rate decay) runs over
+    /// this many seconds of training time, summed over sessions, and the run ends when they
+    /// are spent (`--minutes` alone). `None`: the schedule runs over `steps`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time_budget_s: Option<f64>,
     pub lr_init: f32,
     pub lr_final: f32,
     pub adam: AdamConfig,
@@ -81,6 +87,7 @@ impl TrainConfig {
             model: ModelConfig::Vanilla(model),
             batch_rays: 1024,
             steps: 200_000,
+            time_budget_s: None,
             lr_init: 5e-4,
             lr_final: 5e-5,
             adam: AdamConfig::default(),
@@ -107,6 +114,7 @@ impl TrainConfig {
             model: ModelConfig::Fast(FastModelConfig::default()),
             batch_rays: 0,
             steps: 5000,
+            time_budget_s: None,
             lr_init: 1e-2,
             lr_final: 1e-3,
             adam: AdamConfig {
@@ -146,6 +154,11 @@ impl TrainConfig {
         }
         if self.steps == 0 {
             return bad("steps must be at least 1");
+        }
+        if let Some(b) = self.time_budget_s {
+            if !(b.is_finite() && b > 0.0) {
+                return bad("time_budget_s must be a positive number of seconds");
+            }
         }
         match &self.model {
             ModelConfig::Vanilla(m) => {
@@ -206,9 +219,30 @@ impl TrainConfig {
         Ok(())
     }
 
-    /// `lr_init * (lr_final / lr_init)^(step / steps)`: exponential decay over the run.
+    /// How far through its schedule the run is, in [0, 1], after `step` steps and
+    /// `elapsed_s` seconds of training: by the clock with a time budget, else by steps.
+    pub fn progress(&self, step: u64, elapsed_s: f64) -> f64 {
+        let p = match self.time_budget_s {
+            Some(budget) => elapsed_s / budget,
+            None => step as f64 / self.steps.max(1) as f64,
+        };
+        p.clamp(0.0, 1.0)
+    }
+
+    /// Whether the schedule is over: all steps done, or the time budget spent.
+    pub fn finished(&self, step: u64, elapsed_s: f64) -> bool {
+        step >= self.steps || self.time_budget_s.is_some_and(|b| elapsed_s >= b)
+    }
+
+    /// `lr_init * (lr_final / lr_init)^(step / steps)`: exponential decay over the run
+    /// (of a step schedule).
     pub fn learning_rate(&self, step: u64) -> f32 {
-        let progress = (step as f64 / self.steps.max(1) as f64).min(1.0);
+        self.learning_rate_at(step as f64 / self.steps.max(1) as f64)
+    }
+
+    /// `lr_init * (lr_final / lr_init)^progress`.
+    pub fn learning_rate_at(&self, progress: f64) -> f32 {
+        let progress = progress.clamp(0.0, 1.0);
         (self.lr_init as f64 * (self.lr_final as f64 / self.lr_init as f64).powf(progress)) as f32
     }
 }
@@ -220,6 +254,8 @@ pub struct Trainer {
     pub engine: Box<dyn Engine>,
     /// Steps completed.
     pub step: u64,
+    /// Seconds of training so far (all sessions): the clock of a time schedule.
+    pub elapsed_s: f64,
     pub data: Dataset,
 }
 
@@ -233,8 +269,14 @@ impl TrainConfig {
         }
     }
 
-    /// What step `step` (0-based) does.
+    /// What step `step` (0-based) does in a step schedule.
     pub fn step_spec(&self, step: u64) -> StepSpec {
+        self.step_spec_at(step, step as f64 / self.steps.max(1) as f64)
+    }
+
+    /// What step `step` (0-based) does at `progress` (see [`progress`](Self::progress))
+    /// through the schedule.
+    pub fn step_spec_at(&self, step: u64, progress: f64) -> StepSpec {
         StepSpec {
             sampling: PixelSampling {
                 seed: self.seed,
@@ -246,7 +288,7 @@ impl TrainConfig {
                 },
                 background: self.background,
             },
-            lr: self.learning_rate(step),
+            lr: self.learning_rate_at(progress),
             batch_rays: self.batch_rays,
         }
     }
@@ -269,15 +311,42 @@ impl Trainer {
             config,
             engine,
             step: 0,
+            elapsed_s: 0.0,
             data,
         })
     }
 
     /// One optimisation step. Fails (leaving the parameters untouched) if the loss is not finite.
     pub fn step(&mut self) -> Result<StepStats> {
-        let spec = self.config.step_spec(self.step);
+        let progress = self.config.progress(self.step, self.elapsed_s);
+        let spec = self.config.step_spec_at(self.step, progress);
         let stats = self.engine.train_step(&self.data, &spec)?;
         self.step += 1;
         Ok(stats)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Issue 14 #4: a step schedule runs by steps; a timed one by the clock alone, and
+    /// ends when its budget does, whatever the step.
+    #[test]
+    fn the_schedule_runs_by_steps_or_by_the_clock() {
+        let mut c = TrainConfig::fast(PathBuf::from("scene"));
+        c.steps = 1000;
+        assert_eq!(c.progress(250, 9e9), 0.25);
+        assert!(!c.finished(999, 9e9) && c.finished(1000, 0.0));
+        assert_eq!(c.step_spec(500).lr, c.learning_rate_at(0.5));
+        c.time_budget_s = Some(600.0);
+        c.steps = u64::MAX;
+        assert_eq!(c.progress(1_000_000, 150.0), 0.25);
+        assert_eq!(c.progress(3, 700.0), 1.0);
+        assert!(!c.finished(1_000_000, 599.0) && c.finished(3, 600.0));
+        let (start, end) = (c.learning_rate_at(0.0), c.learning_rate_at(1.0));
+        assert!((start - 1e-2).abs() < 1e-7 && (end - 1e-3).abs() < 1e-8);
+        c.time_budget_s = Some(-1.0);
+        assert!(c.validate().is_err());
     }
 }

@@ -45,7 +45,7 @@ pub struct TrainOptions {
     #[arg(long, value_parser = crate::presets::possible_values())]
     pub preset: Option<String>,
     /// Steps to train (the learning rate decays 10x over them). Default: 5000 fast,
-    /// 200000 vanilla.
+    /// 200000 vanilla; none with --minutes alone (the clock sets the schedule).
     #[arg(long, value_parser = clap::value_parser!(u64).range(1..))]
     pub steps: Option<u64>,
     /// Watch the model train in the web browser (`nerf view` on the run as it trains;
@@ -55,7 +55,10 @@ pub struct TrainOptions {
     /// Port of the --view page.
     #[arg(long, default_value_t = 7007)]
     pub view_port: u16,
-    /// Wall-clock budget in minutes: stop (with a checkpoint) when it runs out.
+    /// Train for this many minutes: alone, the whole schedule (the learning-rate decay)
+    /// runs by the clock and ends with the budget, so the run is the best that fits it;
+    /// with --steps, the schedule spans the steps and the minutes only cap this session.
+    /// On --resume of a timed run, sets its new total.
     #[arg(long, value_parser = crate::args::positive_f64, allow_negative_numbers = true)]
     pub minutes: Option<f64>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
@@ -189,6 +192,10 @@ impl TrainOptions {
             }
         }
         c.steps = self.steps.unwrap_or(c.steps);
+        if let (Some(minutes), None) = (self.minutes, self.steps) {
+            c.time_budget_s = Some(minutes * 60.0);
+            c.steps = u64::MAX;
+        }
         c.batch_rays = self.batch.unwrap_or(c.batch_rays);
         if let Some(lr) = self.lr {
             c.lr_final *= lr / c.lr_init;
@@ -251,15 +258,27 @@ impl TrainOptions {
                     conflicts.join(", ")
                 ));
             }
-            saved.steps = self.steps.unwrap_or(saved.steps);
+            match (saved.time_budget_s, self.steps, self.minutes) {
+                (Some(_), Some(_), _) => {
+                    return refuse(format!(
+                        "the run in {} is scheduled by the clock (--minutes), not by steps; \
+                         give --minutes with --resume to change its total",
+                        out.display()
+                    ))
+                }
+                (Some(_), None, Some(minutes)) => saved.time_budget_s = Some(minutes * 60.0),
+                _ => saved.steps = self.steps.unwrap_or(saved.steps),
+            }
             saved
         } else {
             self.config(on_notice)?
         };
+        // A timed schedule carries its budget in the config; minutes cap only a step schedule.
+        let minutes = self.minutes.filter(|_| config.time_budget_s.is_none());
         Ok(RunOptions {
             out,
             config,
-            minutes: self.minutes,
+            minutes,
             resume: self.resume,
             pause_at: self.pause_at,
             stop: None,

@@ -21,7 +21,8 @@ use crate::views::RenderSettings;
 pub struct RunOptions {
     pub out: PathBuf,
     pub config: TrainConfig,
-    /// Stop after this much wall-clock time in this session.
+    /// Stop after this much wall-clock time in this session (a cap on a step schedule;
+    /// a time schedule is the config's `time_budget_s`).
     pub minutes: Option<f64>,
     /// Continue the run in `out` from its checkpoint (its saved config wins).
     pub resume: bool,
@@ -40,7 +41,7 @@ pub struct RunOptions {
 pub enum StopReason {
     /// All configured steps are done.
     Steps,
-    /// The `--minutes` budget ran out.
+    /// The `--minutes` budget ran out (a session cap, or the end of a time schedule).
     TimeBudget,
     /// `pause_at` was reached.
     Paused,
@@ -58,6 +59,8 @@ pub enum Event<'a> {
         height: usize,
         params: usize,
         resumed_from: Option<u64>,
+        /// Training seconds of earlier sessions (0 for a new run).
+        elapsed_s: f64,
     },
     Step(&'a StepStats),
     Validation {
@@ -139,8 +142,9 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
                 )));
             }
         }
-        if config.steps != opts.config.steps {
+        if (config.steps, config.time_budget_s) != (opts.config.steps, opts.config.time_budget_s) {
             config.steps = opts.config.steps;
+            config.time_budget_s = opts.config.time_budget_s;
             crate::io::write_json(&config_path, &config)?;
         }
         config
@@ -192,6 +196,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         height,
         params: trainer.engine.param_layout().total,
         resumed_from,
+        elapsed_s: elapsed_before,
     });
 
     let mut val_psnr = last_validation(&metrics_path);
@@ -213,8 +218,12 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         )
     };
     let reason = loop {
+        trainer.elapsed_s = elapsed_before + start.elapsed().as_secs_f64();
         if trainer.step >= config.steps {
             break StopReason::Steps;
+        }
+        if config.finished(trainer.step, trainer.elapsed_s) {
+            break StopReason::TimeBudget;
         }
         if budget.is_some_and(|b| start.elapsed().as_secs_f64() >= b) {
             break StopReason::TimeBudget;
