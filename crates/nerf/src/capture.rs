@@ -7,8 +7,11 @@
 //! 3. `colmap exhaustive_matcher` for small sets, `sequential_matcher` for video frames;
 //! 4. `colmap mapper`: the sparse reconstruction, in `<out>/colmap/sparse/N/`;
 //! 5. the largest model becomes `<out>/transforms.json` (instant-ngp format, poses already
-//!    placed by [`crate::data::colmap::scene`]: `scale` 1, `offset` 0.5, `aabb_scale` the
-//!    box from the points), and is kept as text in `<out>/sparse/0/`.
+//!    placed by [`crate::data::colmap::scene`]: `scale` 1, `offset` 0.5), and is kept as
+//!    text in `<out>/sparse/0/`. The file records where to march (`"nerf_box"`: the
+//!    cameras' box, contracted beyond its inner half, and near / far from the points), so
+//!    the folder trains the same read as `transforms.json` or as COLMAP; `aabb_scale` is
+//!    the power of two that holds that box, for instant-ngp.
 //!
 //! Images COLMAP could not register are reported with the fixes that usually work.
 
@@ -337,12 +340,40 @@ fn largest_model(sparse: &Path) -> Result<Option<colmap::Model>> {
     Ok(best)
 }
 
+/// Writes the COLMAP model of scene folder `dir` (`sparse/0` and `images/`) as the
+/// `transforms.json` that `nerf capture` would write, to `path` (`nerf scene
+/// --write-transforms`). Image paths are relative when `path` is in `dir`, else absolute.
+pub fn transforms_from_colmap(dir: &Path, path: &Path) -> Result<()> {
+    let model_dir = colmap::find_model(dir).ok_or_else(|| {
+        NerfError::format(
+            dir,
+            "has no COLMAP model (sparse/0/cameras.bin or cameras.txt)",
+        )
+    })?;
+    let model = colmap::read_model(&model_dir)?;
+    write_transforms(&model, dir, path)
+}
+
 /// Writes the model as an instant-ngp `transforms.json` whose poses are already placed
-/// (so `scale` 1 and `offset` 0.5 leave them unchanged) with per-frame intrinsics.
+/// (so `scale` 1 and `offset` 0.5 leave them unchanged) with per-frame intrinsics; the
+/// images are in `out/images`.
 fn write_transforms(model: &colmap::Model, out: &Path, path: &Path) -> Result<()> {
-    let (frames, placement) =
-        colmap_scene::frames_of(model, &out.join("sparse/0"), &out.join("images"))?;
-    let bound = colmap_scene::box_from_points(model, &placement);
+    let images = out.join("images");
+    let (frames, placement) = colmap_scene::frames_of(model, &out.join("sparse/0"), &images)?;
+    let beside = path.parent().map(|p| p.to_path_buf()).unwrap_or_default();
+    let same_folder = std::fs::canonicalize(&beside).ok() == std::fs::canonicalize(out).ok();
+    let image_path = |name: &str| {
+        if same_folder {
+            format!("images/{name}")
+        } else {
+            let image = images.join(name);
+            std::fs::canonicalize(&image)
+                .unwrap_or(image)
+                .display()
+                .to_string()
+        }
+    };
+    let placed = colmap_scene::placed_box(model, &placement, &frames);
     let frames: Vec<serde_json::Value> = frames
         .iter()
         .map(|f| {
@@ -350,7 +381,7 @@ fn write_transforms(model: &colmap::Model, out: &Path, path: &Path) -> Result<()
             let d = &c.distortion;
             let matrix = crate::data::blender::pose_to_matrix(&c.c2w);
             json!({
-                "file_path": format!("images/{}", f.name),
+                "file_path": image_path(&f.name),
                 "transform_matrix": matrix,
                 "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
                 "w": c.width, "h": c.height,
@@ -360,7 +391,8 @@ fn write_transforms(model: &colmap::Model, out: &Path, path: &Path) -> Result<()
         })
         .collect();
     let doc = json!({
-        "aabb_scale": 2.0 * bound,
+        "aabb_scale": (2.0 * placed.bound).max(1.0).log2().ceil().exp2(),
+        "nerf_box": placed,
         "scale": 1.0,
         "offset": [0.5, 0.5, 0.5],
         "frames": frames,

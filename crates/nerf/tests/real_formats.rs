@@ -346,6 +346,39 @@ fn colmap_text_model_round_trips_with_bounds_from_its_points() {
     assert!(scene.frames[0].camera.distortion.is_pinhole());
     assert_eq!(scene.frames[1].camera.distortion.k[0], 0.02);
     assert_eq!(scene.load(Split::Train, 1).expect("load").views.len(), 10);
+
+    // Issue 14 #6: the transforms.json `nerf capture` writes from this model reads exactly
+    // as the model does: the same cameras, box, contraction and bounds, as any reader of
+    // the folder must agree; the box is the cameras' (as LLFF --spherify's), not the
+    // points'.
+    let file = dir.path().join("transforms.json");
+    nerf::capture::transforms_from_colmap(dir.path(), &file).expect("write transforms.json");
+    let text = std::fs::read_to_string(&file).expect("read");
+    assert!(
+        text.contains("\"images/"),
+        "relative image paths beside the images"
+    );
+    let written = Scene::open(dir.path(), &SceneOptions::default(), 1).expect("open transforms");
+    assert_eq!(written.format, Format::Transforms);
+    assert_eq!(
+        (written.bound, written.contract, written.near, written.far),
+        (scene.bound, scene.contract, scene.near, scene.far)
+    );
+    assert_eq!(scene.bound, nerf::data::poses::INWARD_BOX);
+    for (a, b) in written.frames.iter().zip(&scene.frames) {
+        assert!(length(sub(a.camera.origin(), b.camera.origin())) < 1e-5);
+        assert!(rotation_error_degrees(&a.camera.c2w, &b.camera.c2w) < 0.01);
+        assert_eq!(a.camera.distortion, b.camera.distortion);
+    }
+    // A broken record is refused, naming the file and the field.
+    let broken = text.replacen("\"bound\": 3.0", "\"bound\": -1.0", 1);
+    assert_ne!(broken, text);
+    std::fs::write(&file, broken).expect("write");
+    let err = Scene::open(dir.path(), &SceneOptions::default(), 1).expect_err("refused");
+    assert!(
+        err.to_string().contains("transforms.json") && err.to_string().contains("nerf_box"),
+        "{err}"
+    );
 }
 
 #[test]

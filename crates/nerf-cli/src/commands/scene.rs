@@ -16,10 +16,25 @@ pub struct SceneArgs {
     scene: SceneOptions,
     #[arg(long, default_value_t = 1)]
     downscale: usize,
+    /// Write the folder's COLMAP model (sparse/0 + images/) as the placed transforms.json
+    /// that `nerf capture` writes, to this file (refuses to overwrite one).
+    #[arg(long)]
+    write_transforms: Option<PathBuf>,
 }
 
 /// Prints what training would read: format, splits, image size, bounds, box.
 pub fn run(a: SceneArgs) -> Result<()> {
+    if let Some(path) = &a.write_transforms {
+        if path.exists() {
+            anyhow::bail!(
+                "{} exists; choose another --write-transforms file",
+                path.display()
+            );
+        }
+        nerf::capture::transforms_from_colmap(&a.data, path)?;
+        println!("wrote {}", path.display());
+        return Ok(());
+    }
     let s = Scene::open(&a.data, &a.scene, a.downscale)?;
     let train = s.cameras(Split::Train);
     let first = train.first();

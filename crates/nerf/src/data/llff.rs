@@ -27,10 +27,6 @@ use crate::error::{NerfError, Result};
 
 /// LLFF scales scenes so the nearest bound is `1 / BD_FACTOR`.
 const BD_FACTOR: f32 = 0.75;
-/// Half-extent of the fast model's box for spherified scenes, in units of the cameras'
-/// radius. Space is contracted: the cube of half this size (the cameras and the object)
-/// is kept as it is, the background beyond is squeezed into the rest of the box.
-const SPHERIFY_BOUND: f32 = 3.0;
 
 pub const POSES_FILE: &str = "poses_bounds.npy";
 
@@ -179,7 +175,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
     // Bounds in placed units (the recentring frame keeps the scale).
     let (near, far) = (0.9 * near * sc * frame.scale, far * sc * frame.scale);
     let (space, bound) = if opts.spherify {
-        (RaySpace::World, SPHERIFY_BOUND)
+        (RaySpace::World, super::poses::INWARD_BOX)
     } else if opts.ndc {
         let c = &cameras[0];
         let space = RaySpace::Ndc(Ndc {

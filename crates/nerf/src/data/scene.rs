@@ -156,6 +156,18 @@ pub(crate) struct Parsed {
     pub one_size: bool,
 }
 
+/// Where a scene's rays are marched, as a writer of a scene records it so that every
+/// reader agrees (`nerf capture` puts it in `transforms.json` as `"nerf_box"`): the fast
+/// model's box (half-extent `bound`, in the placed frame), whether space beyond its inner
+/// half is contracted, and the rays' near and far.
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PlacedBox {
+    pub bound: f32,
+    pub contract: bool,
+    pub near: f32,
+    pub far: f32,
+}
+
 /// The format of the scene in `dir`, from the files it holds.
 pub fn detect(dir: &Path) -> Result<Format> {
     if !dir.is_dir() {

@@ -24,6 +24,11 @@
 //!   camera up vector to +Z, centres the mean camera position and scales so the cameras fit
 //!   in `[-1, 1]^3`. We do the same; the box is `[-1, 1]^3`.
 //!
+//! * **`nerf capture`** writes placed poses (instant-ngp's `scale` 1, `offset` 0.5) and
+//!   records where to march as `"nerf_box": {"bound", "contract", "near", "far"}`
+//!   ([`PlacedBox`]), which wins over `aabb_scale`: the scene then trains as its COLMAP
+//!   model does.
+//!
 //! `Convention::Auto` weighs the evidence (see `TransformsJson::convention`): instant-ngp's
 //! `scale`/`offset`, then nerfstudio's `applied_transform`/`ply_file_path`/`camera_model`,
 //! then `aabb_scale`; the choice and its reason are printed with the flag that overrides it.
@@ -34,7 +39,8 @@ use serde::Deserialize;
 
 use super::poses::{centred_frame, Similarity};
 use super::scene::{
-    bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, SceneOptions,
+    bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, PlacedBox,
+    SceneOptions,
 };
 use crate::camera::distortion::{Distortion, LensModel};
 use crate::camera::ray_space::RaySpace;
@@ -155,6 +161,8 @@ struct FrameJson {
 struct TransformsJson {
     frames: Vec<FrameJson>,
     aabb_scale: Option<f32>,
+    /// Where to march, as `nerf capture` recorded it.
+    nerf_box: Option<PlacedBox>,
     scale: Option<f32>,
     offset: Option<[f32; 3]>,
     /// Keys only nerfstudio writes (evidence for its convention).
@@ -278,15 +286,52 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
             cameras.len()
         ));
     }
-    let (near, far) = bounds_around_box(&cameras, bound);
+    let mut notes = notes;
+    let placed = match doc.nerf_box {
+        Some(b) => {
+            let valid = b.bound.is_finite()
+                && b.bound > 0.0
+                && b.near.is_finite()
+                && b.far.is_finite()
+                && 0.0 <= b.near
+                && b.near < b.far;
+            if !valid {
+                return Err(NerfError::format(
+                    &json_path,
+                    format!(
+                        "nerf_box {b:?} needs a positive bound and 0 <= near < far, all finite"
+                    ),
+                ));
+            }
+            notes.push(format!(
+                "box from the file's nerf_box (as `nerf capture` placed it): half-extent {}{}",
+                b.bound,
+                if b.contract {
+                    ", contracted beyond its inner half"
+                } else {
+                    ""
+                }
+            ));
+            b
+        }
+        None => {
+            let (near, far) = bounds_around_box(&cameras, bound);
+            PlacedBox {
+                bound,
+                contract: false,
+                near,
+                far,
+            }
+        }
+    };
     Ok(Parsed {
         frames,
         splits: None,
-        near,
-        far,
+        near: placed.near,
+        far: placed.far,
         space: RaySpace::World,
-        bound,
-        contract: false,
+        bound: placed.bound,
+        contract: placed.contract,
         prescaled: 1,
         notes,
         warnings,

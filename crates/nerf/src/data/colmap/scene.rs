@@ -4,8 +4,8 @@
 //! Placement: the point nearest to every optical axis (what the capture looks at) moves to
 //! the origin, the cameras' mean up vector becomes +Z, and the cameras sit at RMS distance
 //! [`CAMERA_RADIUS`] from the origin. Near and far come from the depths of the 3-D points
-//! each image sees (1st and 99th percentiles, with a margin); the fast model's box is the
-//! cube that holds 95% of the points, but at least the cameras' sphere.
+//! each image sees (1st and 99th percentiles, with a margin); the fast model's box is
+//! [`INWARD_BOX`], the same as LLFF `--spherify`'s, contracted beyond its inner half.
 
 use std::path::Path;
 
@@ -13,15 +13,12 @@ use super::model::{self as colmap, CameraModel, Model};
 use crate::camera::distortion::{Distortion, LensModel};
 use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
-use crate::data::poses::{inward_frame, Similarity};
-use crate::data::scene::{bounds_around_box, Frame, Parsed, SceneOptions};
+use crate::data::poses::{inward_frame, Similarity, INWARD_BOX};
+use crate::data::scene::{bounds_around_box, Frame, Parsed, PlacedBox, SceneOptions};
 use crate::error::{NerfError, Result};
 
 /// RMS distance of the cameras from the scene centre after placement.
 pub const CAMERA_RADIUS: f32 = 1.0;
-/// Limits of the fast model's box, in camera radii.
-const MIN_BOUND: f32 = 1.0;
-const MAX_BOUND: f32 = 4.0;
 
 pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
     let model_dir = colmap::find_model(dir).ok_or_else(|| {
@@ -33,19 +30,15 @@ pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
     let model = colmap::read_model(&model_dir)?;
     let images_dir = dir.join("images");
     let (frames, placement) = frames_of(&model, &model_dir, &images_dir)?;
-    let cameras: Vec<Camera> = frames.iter().map(|f| f.camera.clone()).collect();
-    let bound = box_from_points(&model, &placement);
-    let (near, far) =
-        depth_bounds(&model, &placement).unwrap_or_else(|| bounds_around_box(&cameras, bound));
+    let box_ = placed_box(&model, &placement, &frames);
     Ok(Parsed {
         frames,
         splits: None,
-        near,
-        far,
+        near: box_.near,
+        far: box_.far,
         space: RaySpace::World,
-        // The points' cube is kept as it is; everything beyond is contracted around it.
-        bound: 2.0 * bound,
-        contract: true,
+        bound: box_.bound,
+        contract: box_.contract,
         prescaled: 1,
         notes: Vec::new(),
         warnings: Vec::new(),
@@ -159,18 +152,19 @@ fn depth_bounds(model: &Model, placement: &Similarity) -> Option<(f32, f32)> {
     Some((0.5 * near, 1.5 * far))
 }
 
-/// Half-extent of the cube holding 95% of the placed points, within
-/// `[MIN_BOUND, MAX_BOUND]` camera radii.
-pub fn box_from_points(model: &Model, placement: &Similarity) -> f32 {
-    let mut extents: Vec<f32> = model
-        .points
-        .iter()
-        .map(|p| {
-            let q = placement.apply_point(p.xyz.map(|v| v as f32));
-            q.iter().fold(0.0f32, |m, v| m.max(v.abs()))
-        })
-        .collect();
-    extents.sort_by(f32::total_cmp);
-    let b = quantile(&extents, 0.95).unwrap_or(MIN_BOUND * CAMERA_RADIUS);
-    b.clamp(MIN_BOUND * CAMERA_RADIUS, MAX_BOUND * CAMERA_RADIUS)
+/// Where the fast model marches a placed capture: the cameras' box ([`INWARD_BOX`] camera
+/// radii, contracted beyond its inner half) and near and far from the points' depths
+/// (around the box when the model has no points).
+pub fn placed_box(model: &Model, placement: &Similarity, frames: &[Frame]) -> PlacedBox {
+    let bound = INWARD_BOX * CAMERA_RADIUS;
+    let (near, far) = depth_bounds(model, placement).unwrap_or_else(|| {
+        let cameras: Vec<Camera> = frames.iter().map(|f| f.camera.clone()).collect();
+        bounds_around_box(&cameras, bound)
+    });
+    PlacedBox {
+        bound,
+        contract: true,
+        near,
+        far,
+    }
 }
