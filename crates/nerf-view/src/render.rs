@@ -246,6 +246,7 @@ mod tests {
             far: 6.0,
             background: [1.0; 3],
             space: nerf::camera::ray_space::RaySpace::World,
+            appearance: Default::default(),
         };
         let at = |d: f32| {
             let b = bounds_at(s, 4.0, [0.0, d, 0.0]);

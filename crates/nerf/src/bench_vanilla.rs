@@ -179,6 +179,7 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
         far: 6.0,
         background: [1.0; 3],
         space: Default::default(),
+        appearance: Default::default(),
     };
     let t = Instant::now();
     crate::views::render_view(trainer.engine.as_ref(), &band, &settings, &|_| {});

@@ -68,6 +68,10 @@ pub struct FramesOptions {
     /// ffmpeg, which must be on PATH).
     #[arg(long)]
     pub video: Option<PathBuf>,
+    /// Models trained with --appearance: render with this training photo's look (its
+    /// index in the training split or its file name) instead of the mean.
+    #[arg(long)]
+    pub appearance_of: Option<String>,
     /// Frames per second of the video.
     #[arg(long, default_value_t = 24.0, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub fps: f32,
@@ -88,6 +92,7 @@ impl FramesOptions {
             radius: Some(radius),
             size: None,
             video: Some(video),
+            appearance_of: None,
             fps: 24.0,
             depth_range: None,
         }
@@ -260,7 +265,10 @@ pub fn render_frames(
     let cameras = cameras(&scene, opts)?;
     let video = opts.video.as_deref().map(video_target).transpose()?;
     crate::io::create_dir(out)?;
-    let settings = RenderSettings::of_scene(&scene, cfg.background.eval_colour());
+    let mut settings = RenderSettings::of_scene(&scene, cfg.background.eval_colour());
+    if let Some(which) = &opts.appearance_of {
+        settings.appearance = crate::views::appearance_of(&scene, which)?;
+    }
     let rays_total: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let t0 = Instant::now();
     let mut done = 0;

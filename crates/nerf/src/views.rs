@@ -9,7 +9,7 @@ use crate::camera::{Camera, Ray};
 use crate::data::scene::Scene;
 use crate::data::Dataset;
 use crate::engine::Engine;
-use crate::stage::{RayBatch, RayOutput};
+use crate::stage::{Appearance, RayBatch, RayOutput};
 
 /// How to render: marching bounds, background colour, and the space rays are marched in
 /// (world rays are warped into it, e.g. NDC for LLFF scenes).
@@ -20,6 +20,8 @@ pub struct RenderSettings {
     pub far: f32,
     pub background: [f32; 3],
     pub space: RaySpace,
+    /// Which photo's look a model with appearance codes renders (default: the mean).
+    pub appearance: Appearance,
 }
 
 impl RenderSettings {
@@ -30,6 +32,7 @@ impl RenderSettings {
             far: data.far,
             background,
             space: data.space,
+            appearance: Appearance::Mean,
         }
     }
 
@@ -41,6 +44,7 @@ impl RenderSettings {
             far,
             background,
             space: scene.space,
+            appearance: Appearance::Mean,
         }
     }
 
@@ -48,6 +52,7 @@ impl RenderSettings {
     /// ids count from `first`.
     pub fn ray_batch(&self, world: &[Ray], first: usize) -> RayBatch {
         let mut batch = RayBatch::new(self.near, self.far);
+        batch.appearance = self.appearance;
         let warped: Vec<([f32; 3], [f32; 3])> = world
             .par_iter()
             .map(|r| self.space.warp(r.origin, r.dir))
@@ -61,6 +66,29 @@ impl RenderSettings {
             );
         }
         batch
+    }
+}
+
+/// The appearance of training photo `which` of `scene` (`--appearance-of`): its index in
+/// the training split, or its file name.
+pub fn appearance_of(scene: &Scene, which: &str) -> crate::error::Result<Appearance> {
+    let train = &scene.train;
+    let index = which
+        .parse::<usize>()
+        .ok()
+        .filter(|&i| i < train.len())
+        .or_else(|| {
+            train.iter().position(|&f| {
+                let name = &scene.frames[f].name;
+                name == which || std::path::Path::new(name).file_name() == Some(which.as_ref())
+            })
+        });
+    match index {
+        Some(i) => Ok(Appearance::Of(i as u32)),
+        None => Err(crate::error::NerfError::Config(format!(
+            "--appearance-of {which}: no training photo has that index (0..{}) or name",
+            train.len()
+        ))),
     }
 }
 

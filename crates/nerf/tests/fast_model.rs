@@ -98,3 +98,53 @@ fn fast_run_resumes_exactly_across_an_occupancy_refresh() {
     // The refresh at step 16 ran (the grid is no longer all-occupied and fresh).
     assert!(sa.buffers.iter().any(|&v| v > 0.0));
 }
+
+/// Issue 14 #3: photos whose exposure and white balance change from shot to shot. Every
+/// training image of the chair is scaled by its own gain per channel (0.6x to 1.6x); the
+/// test images are not. With a code per photo the field learns the chair once and the
+/// mean code renders it at the usual look: a higher held-out PSNR than a field that must
+/// explain the gains by view direction and fog.
+#[test]
+fn appearance_codes_absorb_exposure_changes() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 32);
+    let mut rng = nerf::rng::Rng::new(5);
+    let mut gains = Vec::new();
+    for k in 0..40 {
+        let path = data.join(format!("train/r_{k}.png"));
+        let mut img = image::open(&path).expect("read").to_rgba8();
+        let exposure = rng.range(-0.5, 0.5).exp();
+        let gain: [f32; 3] = std::array::from_fn(|_| exposure * rng.range(-0.15, 0.15).exp());
+        for p in img.pixels_mut() {
+            for c in 0..3 {
+                p[c] = (p[c] as f32 * gain[c]).round().min(255.0) as u8;
+            }
+        }
+        img.save(&path).expect("write");
+        gains.push(gain);
+    }
+    let psnr = |name: &str, appearance: usize| {
+        let mut config = fast_config(&data, 400);
+        if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
+            m.field.appearance_dims = appearance;
+            m.field.appearance_images = 40;
+        }
+        let out = dir.path().join(name);
+        run::train(&options(&out, config, false, None), &mut |_| {}).expect("train");
+        let loaded = LoadedRun::open(&out).expect("open");
+        let report = nerf::eval::evaluate(&loaded, Split::Test, 1, &out.join("eval"), &|_, _| {})
+            .expect("eval");
+        report.mean_psnr
+    };
+    let plain = psnr("plain", 0);
+    let coded = psnr("coded", 8);
+    eprintln!(
+        "held-out PSNR under changing exposure: {plain:.2} dB plain, {coded:.2} dB with codes"
+    );
+    // Measured: 22.5 dB plain, 23.8 dB with codes.
+    assert!(
+        coded > plain + 0.5,
+        "{coded:.2} dB with codes vs {plain:.2} dB without"
+    );
+}

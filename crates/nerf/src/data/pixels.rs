@@ -43,6 +43,8 @@ impl TrainingRays {
         self.rays.clear();
         self.rays.near = data.near;
         self.rays.far = data.far;
+        // Each training ray is coloured with its own photo's appearance.
+        self.rays.appearance = crate::stage::Appearance::PerView;
         self.targets.clear();
         self.rngs.clear();
         for k in range {

@@ -39,6 +39,14 @@ pub struct FastFieldConfig {
     pub geo_features: usize,
     /// Half-extent of the scene box `[-bound, bound]^3` the grid covers (Blender: 1.5).
     pub bound: f32,
+    /// Per-photo appearance (after NeRF in the Wild): a learned code of this many values
+    /// per training photo, fed to the colour network only, so exposure and white balance
+    /// that change from shot to shot do not bend the geometry. 0: none.
+    #[serde(default)]
+    pub appearance_dims: usize,
+    /// Training photos with a code (the training split's size).
+    #[serde(default)]
+    pub appearance_images: usize,
 }
 
 impl Default for FastFieldConfig {
@@ -48,6 +56,8 @@ impl Default for FastFieldConfig {
             hidden: 64,
             geo_features: 16,
             bound: 1.5,
+            appearance_dims: 0,
+            appearance_images: 0,
         }
     }
 }
@@ -59,6 +69,8 @@ pub struct FastField {
     pub layout: ParamLayout,
     /// Offsets of the weight matrices, in order: density 0, 1, colour 0, 1, 2.
     weights: [usize; 5],
+    /// Offset of the appearance codes (`images x dims`, row-major), when there are any.
+    codes: Option<usize>,
 }
 
 /// Reused buffers of one thread (activations and their gradients).
@@ -75,6 +87,9 @@ pub struct FastWorkspace {
     pub sigma: Vec<f32>,
     /// Colours of the last forward (three per sample).
     pub rgb: Vec<f32>,
+    /// The mean appearance code, and each sample's code index, of the last forward.
+    mean_code: Vec<f32>,
+    code_index: Vec<u32>,
     d_logit: Vec<f32>,
     d_c2: Vec<f32>,
     d_c1: Vec<f32>,
@@ -102,7 +117,9 @@ impl FastField {
         let mut layout = ParamLayout::default();
         let grid = HashGrid::new(config.grid, "hash.", &mut layout);
         let (w, g) = (config.hidden, config.geo_features);
-        let colour_in = SH_DIMS + g - 1;
+        let (images, dims) = (config.appearance_images, config.appearance_dims);
+        let dims = if images > 0 { dims } else { 0 };
+        let colour_in = SH_DIMS + g - 1 + dims;
         let weights = [
             layout.push("density.0.weight", &[grid.dims(), w]),
             layout.push("density.1.weight", &[w, g]),
@@ -110,11 +127,33 @@ impl FastField {
             layout.push("colour.1.weight", &[w, w]),
             layout.push("colour.2.weight", &[w, 3]),
         ];
+        // Last, so a model without codes has the same layout as before they existed.
+        let codes = (dims > 0).then(|| layout.push("appearance.codes", &[images, dims]));
         FastField {
             config,
             grid,
             layout,
             weights,
+            codes,
+        }
+    }
+
+    /// Values per appearance code (0 without codes).
+    pub fn appearance_dims(&self) -> usize {
+        if self.codes.is_some() {
+            self.config.appearance_dims
+        } else {
+            0
+        }
+    }
+
+    /// The appearance codes, `images x dims` (empty without codes).
+    pub fn codes<'a>(&self, params: &'a [f32]) -> &'a [f32] {
+        match self.codes {
+            Some(at) => {
+                &params[at..][..self.config.appearance_images * self.config.appearance_dims]
+            }
+            None => &[],
         }
     }
 
@@ -134,15 +173,44 @@ impl FastField {
     }
 
     pub fn colour_in_dims(&self) -> usize {
-        SH_DIMS + self.config.geo_features - 1
+        SH_DIMS + self.config.geo_features - 1 + self.appearance_dims()
     }
 
-    /// Glorot-uniform MLP weights, hash tables `U(-1e-4, 1e-4)`.
+    /// Glorot-uniform MLP weights, hash tables `U(-1e-4, 1e-4)`, appearance codes 0 (every
+    /// photo starts with the mean look).
     pub fn init_params(&self, seed: u64) -> Vec<f32> {
         let mut rng = Rng::new(seed ^ 0xfa57);
         let mut p = self.layout.init_glorot(&mut rng);
         self.grid.init(&mut p, &mut rng);
+        if let Some(at) = self.codes {
+            let n = self.config.appearance_images * self.config.appearance_dims;
+            p[at..at + n].iter_mut().for_each(|v| *v = 0.0);
+        }
         p
+    }
+
+    /// Keeps in `ws` each sample's code index and the mean code, for the forward and its
+    /// backward.
+    fn gather_codes(&self, params: &[f32], appearance: &[u32], n: usize, ws: &mut FastWorkspace) {
+        let dims = self.appearance_dims();
+        if dims == 0 {
+            return;
+        }
+        let codes = self.codes(params);
+        let images = self.config.appearance_images;
+        ws.mean_code.clear();
+        ws.mean_code.resize(dims, 0.0);
+        for row in codes.chunks_exact(dims) {
+            for (m, v) in ws.mean_code.iter_mut().zip(row) {
+                *m += v / images as f32;
+            }
+        }
+        ws.code_index.clear();
+        ws.code_index
+            .extend((0..n).map(|s| match appearance.get(s) {
+                Some(&i) if (i as usize) < images => i,
+                _ => crate::stage::MEAN_APPEARANCE,
+            }));
     }
 
     fn weight<'a>(&self, params: &'a [f32], k: usize, rows: usize, cols: usize) -> MatRef<'a> {
@@ -219,6 +287,7 @@ impl FastField {
         positions: &[f32],
         dirs: &[f32],
         spd: usize,
+        appearance: &[u32],
         ws: &mut FastWorkspace,
     ) {
         let n = positions.len() / 3;
@@ -227,7 +296,10 @@ impl FastField {
             self.config.geo_features,
             self.colour_in_dims(),
         );
+        let dims = self.appearance_dims();
         self.eval_density(params, positions, ws);
+        self.gather_codes(params, appearance, n, ws);
+        let codes = self.codes(params);
         grow(&mut ws.colour_in, n * ci);
         grow(&mut ws.c1, n * w);
         grow(&mut ws.c2, n * w);
@@ -236,7 +308,14 @@ impl FastField {
             let row = &mut ws.colour_in[s * ci..][..ci];
             let d = &dirs[3 * (s / spd)..][..3];
             row[..SH_DIMS].copy_from_slice(&sh4([d[0], d[1], d[2]]));
-            row[SH_DIMS..].copy_from_slice(&ws.geo[s * g + 1..][..g - 1]);
+            row[SH_DIMS..][..g - 1].copy_from_slice(&ws.geo[s * g + 1..][..g - 1]);
+            if dims > 0 {
+                let code = match ws.code_index[s] as usize {
+                    i if i < self.config.appearance_images => &codes[i * dims..][..dims],
+                    _ => &ws.mean_code[..],
+                };
+                row[SH_DIMS + g - 1..].copy_from_slice(code);
+            }
         }
         let c1 = &mut ws.c1[..n * w];
         matmul(
@@ -338,6 +417,29 @@ impl FastField {
             };
             row[1..].copy_from_slice(&ws.d_colour_in[s * ci + SH_DIMS..][..g - 1]);
         }
+        // Appearance codes: each sample's gradient goes to its photo's code, or, for the
+        // mean code, to every code in equal parts.
+        if let Some(at) = self.codes {
+            let (dims, images) = (self.appearance_dims(), self.config.appearance_images);
+            let first = SH_DIMS + g - 1;
+            for s in 0..n {
+                let d = &ws.d_colour_in[s * ci + first..][..dims];
+                match ws.code_index[s] as usize {
+                    i if i < images => {
+                        for (gv, dv) in values[at + i * dims..][..dims].iter_mut().zip(d) {
+                            *gv += dv;
+                        }
+                    }
+                    _ => {
+                        for row in values[at..][..images * dims].chunks_exact_mut(dims) {
+                            for (gv, dv) in row.iter_mut().zip(d) {
+                                *gv += dv / images as f32;
+                            }
+                        }
+                    }
+                }
+            }
+        }
         let d_geo = MatRef::new(&ws.d_geo, n, g);
         matmul(
             &mut values[gw(1)..][..w * g],
@@ -381,6 +483,7 @@ impl Field for FastField {
             input.positions,
             input.dirs,
             input.samples_per_dir,
+            input.appearance,
             ctx,
         );
         FieldOutput {
@@ -418,10 +521,15 @@ mod tests {
             positions,
             dirs,
             samples_per_dir: 1,
+            appearance: &[],
         }
     }
 
     fn tiny() -> FastField {
+        tiny_with_codes(0, 0)
+    }
+
+    fn tiny_with_codes(appearance_dims: usize, appearance_images: usize) -> FastField {
         FastField::new(FastFieldConfig {
             grid: HashGridConfig {
                 levels: 3,
@@ -432,12 +540,54 @@ mod tests {
             hidden: 8,
             geo_features: 4,
             bound: 1.5,
+            appearance_dims,
+            appearance_images,
         })
     }
 
     #[test]
     fn backward_matches_finite_differences() {
-        let field = tiny();
+        backward_matches_finite_differences_of(&tiny(), &[]);
+    }
+
+    /// Issue 14 #3: the appearance codes' gradient, per photo and through the mean code.
+    #[test]
+    fn appearance_code_gradients_match_finite_differences() {
+        let field = tiny_with_codes(4, 3);
+        let mean = crate::stage::MEAN_APPEARANCE;
+        backward_matches_finite_differences_of(&field, &[0, 2, mean, 1, mean, 0]);
+    }
+
+    /// Codes colour only: density is the same whatever the photo, and a photo's code
+    /// changes its colours and no other photo's.
+    #[test]
+    fn appearance_codes_change_colour_not_density() {
+        let field = tiny_with_codes(4, 3);
+        let mut params = field.init_params(3);
+        let pos = [0.1, 0.2, -0.3, 1.0, -1.2, 0.4];
+        let dirs = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0];
+        let run = |p: &[f32], looks: &[u32]| {
+            let mut ws = FastWorkspace::default();
+            let mut inp = input(&pos, &dirs);
+            inp.appearance = looks;
+            let out = field.forward(p, inp, &mut ws);
+            (out.sigma.to_vec(), out.rgb.to_vec())
+        };
+        let before = run(&params, &[0, 1]);
+        let codes = field.codes.expect("codes");
+        params[codes..codes + 4].iter_mut().for_each(|v| *v = 3.0);
+        let after = run(&params, &[0, 1]);
+        assert_eq!(before.0, after.0, "density ignores the codes");
+        assert_ne!(
+            before.1[..3],
+            after.1[..3],
+            "photo 0's colour follows its code"
+        );
+        assert_eq!(before.1[3..], after.1[3..], "photo 1's does not");
+        assert_eq!(field.codes(&params).len(), 12);
+    }
+
+    fn backward_matches_finite_differences_of(field: &FastField, looks: &[u32]) {
         let mut rng = Rng::new(11);
         // Larger table values than the init so every path carries signal.
         let params: Vec<f32> = (0..field.num_params())
@@ -459,13 +609,17 @@ mod tests {
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let loss = |p: &[f32]| -> f64 {
             let mut ws = FastWorkspace::default();
-            let out = field.forward(p, input(&pos, &dirs), &mut ws);
+            let mut inp = input(&pos, &dirs);
+            inp.appearance = looks;
+            let out = field.forward(p, inp, &mut ws);
             let ls: f64 = out.sigma.iter().zip(&a).map(|(s, a)| (s * a) as f64).sum();
             let lc: f64 = out.rgb.iter().zip(&b).map(|(c, b)| (c * b) as f64).sum();
             ls + lc
         };
         let mut ws = FastWorkspace::default();
-        field.forward(&params, input(&pos, &dirs), &mut ws);
+        let mut inp = input(&pos, &dirs);
+        inp.appearance = looks;
+        field.forward(&params, inp, &mut ws);
         let mut grads = GradBuffer::new(field.num_params());
         let d = FieldGrad {
             d_sigma: &a,
@@ -474,7 +628,9 @@ mod tests {
         field.backward(&params, &mut ws, d, &mut grads.all());
         let (mut err, mut norm, mut checked) = (0.0f64, 0.0f64, 0);
         for t in &field.layout.tensors {
-            for i in t.range().step_by(3) {
+            // Every code entry; every third of the rest.
+            let stride = if t.name == "appearance.codes" { 1 } else { 3 };
+            for i in t.range().step_by(stride) {
                 let g = grads.values[i] as f64;
                 if g == 0.0 {
                     continue;
@@ -516,6 +672,7 @@ mod tests {
             positions: &pos,
             dirs: &dirs[..3],
             samples_per_dir: 2,
+            appearance: &[],
         };
         let rgb = field.forward(&params, shared, &mut ws).rgb.to_vec();
         let per_sample = [0.0, 0.0, 1.0, 0.0, 0.0, 1.0];

@@ -251,7 +251,10 @@ impl FastModel {
             ws.samples
                 .positions
                 .extend_from_slice(&s.positions[range.clone()]);
-            ws.samples.dirs.extend_from_slice(&s.dirs[range]);
+            ws.samples.dirs.extend_from_slice(&s.dirs[range.clone()]);
+            ws.samples
+                .appearance
+                .extend_from_slice(&s.appearance[range]);
             ws.samples.end_ray();
             ws.backgrounds.push(block.rays.rays.backgrounds[r]);
             ws.targets.push(block.rays.targets[r]);

@@ -147,6 +147,9 @@ impl Marcher {
         }
         let view = rays.view_dirs[r];
         let view = scale(view, 1.0 / length(view));
+        let added = out.t.len() - before;
+        out.appearance
+            .extend(std::iter::repeat_n(rays.appearance_of(r), added));
         for &tt in &out.t[before..] {
             let p = [
                 origin[0] + tt * d[0],
@@ -257,6 +260,10 @@ pub fn render_marched<F: Field>(
             );
             ws.taken[k] += ws.round.t.len() - start;
             if ws.round.t.len() > start {
+                let added = ws.round.t.len() - start;
+                ws.round
+                    .appearance
+                    .extend(std::iter::repeat_n(rays.appearance_of(k), added));
                 for &tt in &ws.round.t[start..] {
                     let p = [o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]];
                     ws.round.positions.push(marcher.field_point(p));

@@ -37,7 +37,10 @@
 pub mod finite;
 pub mod values;
 
-pub use values::{FieldGrad, FieldInput, FieldOutput, PackedSamples, RayBatch, RayOutput};
+pub use values::{
+    Appearance, FieldGrad, FieldInput, FieldOutput, PackedSamples, RayBatch, RayOutput,
+    MEAN_APPEARANCE,
+};
 
 pub use crate::nn::Grads;
 

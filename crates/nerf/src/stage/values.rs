@@ -28,6 +28,36 @@ pub struct RayBatch {
     /// Bounds of `t` along `dirs`, shared by the batch (see `Dataset::near`).
     pub near: f32,
     pub far: f32,
+    /// Which learned per-photo appearance colours the batch (fields with appearance
+    /// codes, `--appearance`; others ignore it).
+    pub appearance: Appearance,
+}
+
+/// Which per-photo appearance code (exposure, white balance: `--appearance`) a batch of
+/// rays is coloured with.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Appearance {
+    /// The mean of the training photos' codes: what eval and render use by default.
+    #[default]
+    Mean,
+    /// Each ray its own photo's, from `pixels` (`view << 32 | pixel`): training rays.
+    PerView,
+    /// Training photo `i`'s (`--appearance-of`).
+    Of(u32),
+}
+
+/// A sample's appearance index meaning "the mean code".
+pub const MEAN_APPEARANCE: u32 = u32::MAX;
+
+impl RayBatch {
+    /// The appearance index of ray `r`'s samples (a training photo, or [`MEAN_APPEARANCE`]).
+    pub fn appearance_of(&self, r: usize) -> u32 {
+        match self.appearance {
+            Appearance::Mean => MEAN_APPEARANCE,
+            Appearance::PerView => (self.pixels[r] >> 32) as u32,
+            Appearance::Of(i) => i,
+        }
+    }
 }
 
 impl RayBatch {
@@ -75,6 +105,7 @@ impl RayBatch {
             pixels: self.pixels[range].to_vec(),
             near: self.near,
             far: self.far,
+            appearance: self.appearance,
         }
     }
 }
@@ -97,6 +128,9 @@ pub struct PackedSamples {
     /// ray one direction).
     pub dirs: Vec<[f32; 3]>,
     pub samples_per_dir: usize,
+    /// `n` appearance indices (see [`RayBatch::appearance_of`]), or empty: the mean code
+    /// for every sample. Only fields with appearance codes read them.
+    pub appearance: Vec<u32>,
 }
 
 impl PackedSamples {
@@ -123,6 +157,7 @@ impl PackedSamples {
         self.positions.clear();
         self.dirs.clear();
         self.samples_per_dir = 1;
+        self.appearance.clear();
     }
 
     /// Closes the current ray (its samples are those pushed since the last close).
@@ -136,6 +171,7 @@ impl PackedSamples {
             positions: self.positions.as_flattened(),
             dirs: self.dirs.as_flattened(),
             samples_per_dir: self.samples_per_dir.max(1),
+            appearance: &self.appearance,
         }
     }
 }
@@ -149,6 +185,8 @@ pub struct FieldInput<'a> {
     pub dirs: &'a [f32],
     /// Consecutive samples that share one direction (`n` must be a multiple of it).
     pub samples_per_dir: usize,
+    /// `n` appearance indices, or empty (the mean code); see [`PackedSamples::appearance`].
+    pub appearance: &'a [u32],
 }
 
 impl FieldInput<'_> {

@@ -306,6 +306,16 @@ impl Trainer {
         if data.views.is_empty() {
             return Err(NerfError::Config("no training views".into()));
         }
+        if let ModelConfig::Fast(m) = &config.model {
+            let codes = m.field.appearance_images;
+            if m.field.appearance_dims > 0 && codes != data.views.len() {
+                return Err(NerfError::Config(format!(
+                    "the model has appearance codes for {codes} training photos, and the \
+                     training split holds {}: the scene changed since the run began",
+                    data.views.len()
+                )));
+            }
+        }
         let engine = engine::open_on(device, &config.model, config.engine_options(), config.seed)?;
         Ok(Trainer {
             config,

@@ -61,6 +61,13 @@ pub struct TrainOptions {
     /// On --resume of a timed run, sets its new total.
     #[arg(long, value_parser = crate::args::positive_f64, allow_negative_numbers = true)]
     pub minutes: Option<f64>,
+    /// Fast: learn a code of N values (16 when N is left out) per training photo for
+    /// its exposure and white balance, fed to the colour network only (after NeRF in the
+    /// Wild); eval and render use the mean code, or one photo's with --appearance-of.
+    /// For captures whose photos change look from shot to shot.
+    #[arg(long, num_args = 0..=1, default_missing_value = "16",
+          value_parser = clap::value_parser!(u32).range(1..=256))]
+    pub appearance: Option<u32>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
     #[arg(long)]
     pub batch: Option<usize>,
@@ -215,9 +222,16 @@ impl TrainOptions {
             ModelConfig::Fast(m) => {
                 m.field.bound = self.bound.unwrap_or(scene.bound);
                 m.contract = scene.contract && !self.no_contract;
+                if let Some(dims) = self.appearance {
+                    m.field.appearance_dims = dims as usize;
+                    m.field.appearance_images = scene.train.len();
+                }
             }
             ModelConfig::Vanilla(_) if self.bound.is_some() || self.no_contract => {
                 return refuse("--bound and --no-contract apply to --model fast only".into());
+            }
+            ModelConfig::Vanilla(_) if self.appearance.is_some() => {
+                return refuse("--appearance applies to --model fast only".into());
             }
             ModelConfig::Vanilla(_) => {}
         }
@@ -377,8 +391,10 @@ impl TrainOptions {
             self.chunk.map(|v| v.to_string()),
             saved.chunk_rays.to_string(),
         );
-        if self.paper_pe || self.no_contract {
-            out.push("--paper-pe / --no-contract (set when the run was made)".into());
+        if self.paper_pe || self.no_contract || self.appearance.is_some() {
+            out.push(
+                "--paper-pe / --no-contract / --appearance (set when the run was made)".into(),
+            );
         }
         out
     }

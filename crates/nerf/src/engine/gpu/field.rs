@@ -420,6 +420,7 @@ pub(super) mod tests {
             hidden: 16,
             geo_features: 5,
             bound: 1.5,
+            ..FastFieldConfig::default()
         })
     }
 
@@ -456,6 +457,7 @@ pub(super) mod tests {
             positions: &pos,
             dirs: &dirs,
             samples_per_dir: 1,
+            appearance: &[],
         };
         let out = field.forward(&params, input, &mut ws);
         let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());

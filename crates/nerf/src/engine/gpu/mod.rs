@@ -48,7 +48,7 @@ pub mod vanilla_net;
 pub mod volume;
 
 use crate::engine::{Device, Engine, EngineOptions};
-use crate::error::Result;
+use crate::error::{NerfError, Result};
 use crate::model::ModelConfig;
 
 /// The GPU engine for `model` on `device` (`Auto`: CUDA, then a hardware wgpu adapter,
@@ -59,6 +59,11 @@ pub fn open(
     options: EngineOptions,
     seed: u64,
 ) -> Result<Box<dyn Engine>> {
+    // Appearance codes have no GPU kernels yet: `auto` picks the CPU for them.
+    let appearance = matches!(model, ModelConfig::Fast(c) if c.field.appearance_dims > 0);
+    if appearance && device == Device::Auto {
+        return Ok(super::open(model, options, seed));
+    }
     let gpu = match device {
         Device::Cpu => return Ok(super::open(model, options, seed)),
         Device::Wgpu => device::Gpu::wgpu()?,
@@ -69,6 +74,11 @@ pub fn open(
         },
     };
     match model {
+        ModelConfig::Fast(config) if config.field.appearance_dims > 0 => Err(NerfError::Device(
+            "per-photo appearance codes (--appearance) run on the CPU engine only so far; \
+                 use --device cpu"
+                .into(),
+        )),
         ModelConfig::Fast(config) => Ok(Box::new(engine::GpuEngine::new(
             gpu,
             config.clone(),

@@ -583,6 +583,7 @@ mod tests {
                 positions: &pos,
                 dirs: &ray_dirs,
                 samples_per_dir: spr,
+                appearance: &[],
             };
             let out = net.forward(&params, input, &mut ws);
             let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());
