@@ -41,6 +41,8 @@ enum Command {
     Mesh(commands::mesh::MeshArgs),
     /// A coloured point cloud (.ply) from rendered depth of the training views.
     Points(commands::points::PointsArgs),
+    /// A run's training cameras (refined, with --refine-cameras) as a transforms.json.
+    ExportCameras(commands::export_cameras::ExportCamerasArgs),
     /// Built-in scene -> train -> evaluate -> orbit, no data needed.
     Demo(nerf::demo::DemoOptions),
     /// Throughput of the training step and of rendering on this machine.
@@ -96,6 +98,7 @@ fn main() {
         Command::Render(a) => commands::render::run(a),
         Command::Mesh(a) => commands::mesh::run(a),
         Command::Points(a) => commands::points::run(a),
+        Command::ExportCameras(a) => commands::export_cameras::run(a),
         Command::Demo(a) => commands::demo::run(a),
         Command::Bench(a) => commands::bench::run(a),
         Command::View(a) => nerf_view::run(&a),

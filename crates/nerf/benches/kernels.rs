@@ -114,6 +114,7 @@ fn sparse_update(touched: f64) {
             scale: 1.0,
             lazy_end: n,
             weight_decay: 0.0,
+            group: None,
         };
         adam.step_dirty(&mut params, &mut bufs[0], 1e-3, how);
     });

@@ -18,8 +18,6 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use serde_json::json;
-
 use crate::data::colmap::{self, scene as colmap_scene};
 use crate::data::llff::list_images;
 use crate::error::{NerfError, Result};
@@ -376,26 +374,8 @@ fn write_transforms(model: &colmap::Model, out: &Path, path: &Path) -> Result<()
     let placed = colmap_scene::placed_box(model, &placement, &frames);
     let frames: Vec<serde_json::Value> = frames
         .iter()
-        .map(|f| {
-            let c = &f.camera;
-            let d = &c.distortion;
-            let matrix = crate::data::blender::pose_to_matrix(&c.c2w);
-            json!({
-                "file_path": image_path(&f.name),
-                "transform_matrix": matrix,
-                "fl_x": c.fx, "fl_y": c.fy, "cx": c.cx, "cy": c.cy,
-                "w": c.width, "h": c.height,
-                "k1": d.k[0], "k2": d.k[1], "k3": d.k[2], "k4": d.k[3], "p1": d.p[0], "p2": d.p[1],
-                "camera_model": if d.model == crate::camera::distortion::LensModel::Fisheye { "OPENCV_FISHEYE" } else { "OPENCV" },
-            })
-        })
+        .map(|f| crate::data::transforms::frame_entry(&f.camera, &image_path(&f.name)))
         .collect();
-    let doc = json!({
-        "aabb_scale": (2.0 * placed.bound).max(1.0).log2().ceil().exp2(),
-        "nerf_box": placed,
-        "scale": 1.0,
-        "offset": [0.5, 0.5, 0.5],
-        "frames": frames,
-    });
+    let doc = crate::data::transforms::placed_document(frames, &placed);
     crate::io::write_json(path, &doc)
 }

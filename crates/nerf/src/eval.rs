@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 use crate::data::{image::save_rgb_png, Split};
 use crate::error::Result;
 use crate::metrics::{psnr, ssim};
+use crate::refined_cameras::{PoseError, RunCameras};
 use crate::train::folder::LoadedRun;
 use crate::views::RenderSettings;
 
@@ -32,6 +33,14 @@ pub struct EvalReport {
     pub height: usize,
     pub mean_psnr: f32,
     pub mean_ssim: f32,
+    /// Runs that refined (or perturbed) their training cameras: how far those ended from
+    /// the given ones, after a similarity alignment (see `refined_cameras`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pose_error: Option<PoseError>,
+    /// `"aligned"`: the split's cameras were mapped into the model's frame by that
+    /// alignment; absent: used as given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub cameras: Option<String>,
     pub views: Vec<ViewMetrics>,
 }
 
@@ -47,7 +56,13 @@ pub fn evaluate(
 ) -> Result<EvalReport> {
     let cfg = &run.config;
     let every = every.max(1);
-    let data = cfg.open_scene(1)?.load(split, every)?;
+    let mut data = cfg.open_scene(1)?.load(split, every)?;
+    let run_cameras = RunCameras::of(run)?;
+    if let Some(c) = &run_cameras {
+        for v in &mut data.views {
+            v.camera.c2w = c.to_model_frame(&v.camera.c2w);
+        }
+    }
     crate::io::create_dir(out_dir)?;
     let bg = cfg.background.eval_colour();
     let settings = RenderSettings::of_dataset(&data, bg);
@@ -88,6 +103,8 @@ pub fn evaluate(
         height,
         mean_psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
         mean_ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
+        pose_error: run_cameras.as_ref().map(RunCameras::error),
+        cameras: run_cameras.as_ref().map(|_| "aligned".to_string()),
         views,
     };
     crate::io::write_json(&out_dir.join("metrics.json"), &report)?;

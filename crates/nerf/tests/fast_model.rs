@@ -148,3 +148,71 @@ fn appearance_codes_absorb_exposure_changes() {
         "{coded:.2} dB with codes vs {plain:.2} dB without"
     );
 }
+
+/// Issue 14 #1: the chair's training poses moved by se(3) noise (sigma 0.03: about 2.8
+/// degrees and 0.05 units on average) are pulled back toward the given ones by refinement
+/// in a CI-sized run: the mean rotation error at least halves (measured here: 2.61 to
+/// 1.14 degrees; the run is the same for any thread count). Centre errors of 1.7% of the
+/// radius are under a pixel at 48 pixels and barely move. The run's evaluation reports
+/// the errors, and a config written before these fields existed still loads.
+#[test]
+fn refinement_recovers_perturbed_cameras() {
+    use nerf::model::camera_refine::{CameraRefinement, PosePerturbation};
+    use nerf::refined_cameras::RunCameras;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 48);
+    let mut config = fast_config(&data, 1000);
+    config.perturb_poses = Some(PosePerturbation {
+        sigma: 0.03,
+        seed: 1,
+    });
+    if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
+        m.refine_cameras = Some(CameraRefinement::new(40));
+    }
+    let out = dir.path().join("run");
+    run::train(&options(&out, config, false, None), &mut |_| {}).expect("train");
+    let loaded = LoadedRun::open(&out).expect("open");
+    let cameras = RunCameras::of(&loaded).expect("cameras").expect("refined");
+    assert!(cameras.refined_by_model);
+    let before = RunCameras {
+        refined: {
+            let mut poses = cameras.given.clone();
+            let p = loaded.config.perturb_poses.expect("perturbed");
+            p.apply(&mut poses.iter_mut().collect::<Vec<_>>());
+            poses
+        },
+        ..cameras.clone()
+    }
+    .error();
+    let after = cameras.error();
+    eprintln!(
+        "mean rotation error {:.2} -> {:.2} degrees, centres {:.2}% -> {:.2}% of the radius",
+        before.rotation_deg,
+        after.rotation_deg,
+        before.translation_percent_of_radius,
+        after.translation_percent_of_radius
+    );
+    assert!(before.rotation_deg > 2.0, "{before:?}");
+    assert!(
+        after.rotation_deg < 0.5 * before.rotation_deg,
+        "{before:?} -> {after:?}"
+    );
+    let report =
+        nerf::eval::evaluate(&loaded, Split::Test, 2, &out.join("eval"), &|_, _| {}).expect("eval");
+    assert_eq!(report.pose_error, Some(after));
+    assert_eq!(report.cameras.as_deref(), Some("aligned"));
+
+    // A config of a run made before time budgets, appearance and refinement existed.
+    let text = std::fs::read_to_string(out.join("config.json")).expect("config");
+    let mut old: serde_json::Value = serde_json::from_str(&text).expect("json");
+    old.as_object_mut().expect("object").remove("perturb_poses");
+    let fast = old["model"].as_object_mut().expect("fast model");
+    fast.remove("refine_cameras");
+    let field = fast["field"].as_object_mut().expect("field");
+    field.remove("appearance_dims");
+    field.remove("appearance_images");
+    let config: TrainConfig = serde_json::from_value(old).expect("an old config still reads");
+    assert_eq!(config.time_budget_s, None);
+    assert!(config.perturb_poses.is_none());
+}

@@ -61,4 +61,15 @@ pub fn print_report(report: &EvalReport, out: &std::path::Path) {
         report.mean_ssim,
         out.display()
     );
+    if let Some(e) = &report.pose_error {
+        println!(
+            "training cameras against the given poses, after a similarity alignment: {:.3} \
+             degrees, {:.4} units ({:.2}% of the camera radius); the {} cameras were mapped \
+             through it",
+            e.rotation_deg,
+            e.translation,
+            e.translation_percent_of_radius,
+            report.split.name()
+        );
+    }
 }

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod capture;
 pub mod demo;
 pub mod eval;
+pub mod export_cameras;
 pub mod mesh;
 pub mod points;
 pub mod render;

@@ -42,6 +42,18 @@ impl Similarity {
         out
     }
 
+    /// The similarity that undoes this one.
+    pub fn inverse(&self) -> Similarity {
+        let rt: [[f32; 3]; 3] =
+            std::array::from_fn(|i| std::array::from_fn(|j| self.rotation[j][i]));
+        let s = 1.0 / self.scale;
+        Similarity {
+            rotation: rt,
+            translation: scale(mat_vec(&rt, self.translation), -s),
+            scale: s,
+        }
+    }
+
     /// `self` after `first`.
     pub fn after(&self, first: &Similarity) -> Similarity {
         Similarity {

@@ -403,3 +403,31 @@ pub(crate) fn camera_from(
         },
     })
 }
+
+/// One frame of a `transforms.json` as `nerf capture` and `nerf export-cameras` write it:
+/// the image's path, the camera-to-world matrix (OpenGL axes) and the camera's own
+/// intrinsics and distortion.
+pub fn frame_entry(camera: &Camera, file_path: &str) -> serde_json::Value {
+    let d = &camera.distortion;
+    serde_json::json!({
+        "file_path": file_path,
+        "transform_matrix": super::blender::pose_to_matrix(&camera.c2w),
+        "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy,
+        "w": camera.width, "h": camera.height,
+        "k1": d.k[0], "k2": d.k[1], "k3": d.k[2], "k4": d.k[3], "p1": d.p[0], "p2": d.p[1],
+        "camera_model": if d.model == LensModel::Fisheye { "OPENCV_FISHEYE" } else { "OPENCV" },
+    })
+}
+
+/// A whole `transforms.json` of cameras already placed in our frame (instant-ngp's
+/// `scale` 1 and `offset` 0.5 keep them), with where to march (`nerf_box`); `aabb_scale`
+/// is the power of two that holds the box, for instant-ngp.
+pub fn placed_document(frames: Vec<serde_json::Value>, placed: &PlacedBox) -> serde_json::Value {
+    serde_json::json!({
+        "aabb_scale": (2.0 * placed.bound).max(1.0).log2().ceil().exp2(),
+        "nerf_box": placed,
+        "scale": 1.0,
+        "offset": [0.5, 0.5, 0.5],
+        "frames": frames,
+    })
+}

@@ -228,6 +228,58 @@ impl HashGrid {
     }
 }
 
+impl HashGrid {
+    /// Backward of [`encode`](Self::encode) with respect to the input points: adds
+    /// `dL/d point` (`n x 3`, unit-cube coordinates) to `d_points`, given `d_out`. Camera
+    /// refinement needs it: a pose moves the samples, and the trilinear weights carry the
+    /// gradient (`dw/du = +-res * product of the other two axes' weights`); points clamped
+    /// at the cube's faces get none along the clamped axis.
+    pub fn encode_input_bwd(
+        &self,
+        params: &[f32],
+        points: &[f32],
+        d_out: &[f32],
+        d_points: &mut [f32],
+    ) {
+        let d = self.dims();
+        for (l, level) in self.levels.iter().enumerate() {
+            let table = &params[level.offset..][..level.entries * FEATURES];
+            let res = level.resolution as f32;
+            for (s, u) in points.chunks_exact(3).enumerate() {
+                let g = &d_out[s * d + l * FEATURES..][..FEATURES];
+                if g[0] == 0.0 && g[1] == 0.0 {
+                    continue;
+                }
+                let (idx, _) = level.corners([u[0], u[1], u[2]]);
+                let mut frac = [0f32; 3];
+                let mut inside = [0f32; 3];
+                for a in 0..3 {
+                    let p = u[a].clamp(0.0, 1.0) * res;
+                    let c = (p as u32).min(level.resolution - 1);
+                    frac[a] = p - c as f32;
+                    inside[a] = if (0.0..=1.0).contains(&u[a]) {
+                        res
+                    } else {
+                        0.0
+                    };
+                }
+                for k in 0..8 {
+                    let e = &table[idx[k] * FEATURES..][..FEATURES];
+                    let ge = g[0] * e[0] + g[1] * e[1];
+                    let b = [k & 1, (k >> 1) & 1, (k >> 2) & 1];
+                    let w: [f32; 3] =
+                        std::array::from_fn(|a| if b[a] == 1 { frac[a] } else { 1.0 - frac[a] });
+                    for a in 0..3 {
+                        let sign = if b[a] == 1 { 1.0 } else { -1.0 };
+                        let others = w[(a + 1) % 3] * w[(a + 2) % 3];
+                        d_points[s * 3 + a] += ge * sign * others * inside[a];
+                    }
+                }
+            }
+        }
+    }
+}
+
 /// Samples whose corners are computed (and their table lines prefetched) before any is
 /// read: the tables of fine levels are far larger than the caches, so the gathers are
 /// memory-bound, and issuing a group's loads early lets them overlap.
@@ -278,6 +330,51 @@ fn prefetch(data: &[f32], at: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Issue 14 #1: the gradient with respect to the input point against central
+    /// differences, on dense and hashed levels, away from cell faces.
+    #[test]
+    fn input_gradient_matches_finite_differences() {
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(
+            HashGridConfig {
+                levels: 4,
+                log2_table_size: 8,
+                base_resolution: 3,
+                max_resolution: 40,
+            },
+            "h.",
+            &mut layout,
+        );
+        let mut rng = Rng::new(4);
+        let params: Vec<f32> = (0..layout.total).map(|_| rng.range(-1.0, 1.0)).collect();
+        let n = 20;
+        let points: Vec<f32> = (0..n * 3).map(|_| rng.range(0.05, 0.95)).collect();
+        let d_out: Vec<f32> = (0..n * grid.dims()).map(|_| rng.range(-1.0, 1.0)).collect();
+        let mut d_points = vec![0.0; n * 3];
+        grid.encode_input_bwd(&params, &points, &d_out, &mut d_points);
+        let loss = |pts: &[f32]| {
+            let mut out = vec![0.0; n * grid.dims()];
+            grid.encode(&params, pts, &mut out);
+            out.iter()
+                .zip(&d_out)
+                .map(|(a, b)| (a * b) as f64)
+                .sum::<f64>()
+        };
+        let (mut err, mut norm) = (0.0f64, 0.0f64);
+        for i in 0..n * 3 {
+            // Steps far smaller than the finest cell (1/40), so no face is crossed.
+            let h = 1e-4;
+            let (mut lo, mut hi) = (points.clone(), points.clone());
+            lo[i] -= h;
+            hi[i] += h;
+            let fd = (loss(&hi) - loss(&lo)) / (2.0 * h as f64);
+            err += (fd - d_points[i] as f64).powi(2);
+            norm += fd * fd;
+        }
+        let rel = (err / norm).sqrt();
+        assert!(rel < 2e-2, "relative error {rel}");
+    }
 
     fn small() -> (HashGrid, ParamLayout) {
         let mut layout = ParamLayout::default();

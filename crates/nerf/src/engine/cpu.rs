@@ -119,6 +119,7 @@ impl<M: Model> Engine for CpuEngine<M> {
         for w in &mut self.workers {
             w.grads.clear();
         }
+        self.model.set_progress(spec.progress);
         let check = FiniteCheck::new(self.check_finite);
         let input = StepInput {
             data,
@@ -171,6 +172,7 @@ impl<M: Model> Engine for CpuEngine<M> {
                 scale: scale as f32,
                 lazy_end: rule.lazy_end,
                 weight_decay: rule.weight_decay,
+                group: rule.group_start.map(|at| (at, spec.camera_lr / spec.lr)),
             },
         );
         check.check("adam", "parameters", &self.params);
@@ -328,6 +330,8 @@ mod tests {
             },
             lr: 1e-3,
             batch_rays: 64,
+            progress: 0.0,
+            camera_lr: 0.0,
         };
         for check_finite in [false, true] {
             for mut engine in engines() {

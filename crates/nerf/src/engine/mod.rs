@@ -42,6 +42,10 @@ pub struct StepSpec {
     pub lr: f32,
     /// Vanilla model: rays per step (the fast model fixes samples per step in its config).
     pub batch_rays: usize,
+    /// How far through its schedule the run is, in [0, 1].
+    pub progress: f32,
+    /// Learning rate of the camera corrections (models that refine cameras).
+    pub camera_lr: f32,
 }
 
 /// What one step did.

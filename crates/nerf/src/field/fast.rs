@@ -18,7 +18,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
-use crate::encoding::spherical_harmonics::{sh4, SH_DIMS};
+use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
 use crate::nn::linalg::{matmul, MatRef};
 use crate::nn::Grads;
@@ -71,6 +71,9 @@ pub struct FastField {
     weights: [usize; 5],
     /// Offset of the appearance codes (`images x dims`, row-major), when there are any.
     codes: Option<usize>,
+    /// Weight of each hash-grid level's features (empty: all 1): camera refinement's
+    /// coarse-to-fine schedule sets it during training.
+    pub level_weights: Vec<f32>,
 }
 
 /// Reused buffers of one thread (activations and their gradients).
@@ -135,6 +138,20 @@ impl FastField {
             layout,
             weights,
             codes,
+            level_weights: Vec::new(),
+        }
+    }
+
+    /// Scales each level's features (`n x dims()`, in place) by its weight.
+    fn weigh_levels(&self, values: &mut [f32]) {
+        if self.level_weights.is_empty() {
+            return;
+        }
+        let f = crate::encoding::hash_grid::FEATURES;
+        for row in values.chunks_exact_mut(self.grid.dims()) {
+            for (level, w) in row.chunks_exact_mut(f).zip(&self.level_weights) {
+                level.iter_mut().for_each(|v| *v *= w);
+            }
         }
     }
 
@@ -247,6 +264,7 @@ impl FastField {
         grow(&mut ws.sigma, n);
         self.to_unit(positions, &mut ws.unit[..n * 3]);
         self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
+        self.weigh_levels(&mut ws.enc[..n * e]);
         let h = &mut ws.h[..n * w];
         matmul(
             h,
@@ -458,9 +476,46 @@ impl FastField {
             true,
         );
         matmul(&mut ws.d_enc, d_h, self.weight(params, 0, e, w).t(), false);
+        self.weigh_levels(&mut ws.d_enc[..n * e]);
         grads.mark(self.mlp_range());
         self.grid
             .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
+    }
+
+    /// [`Field::backward`], and also `dL/d position` (`n x 3`, field space) into
+    /// `d_positions` and `dL/d direction` (one per sample, `n x 3`, of the unit view
+    /// direction `dirs`) into `d_dirs`: camera refinement moves and turns rays.
+    #[allow(clippy::too_many_arguments)]
+    pub fn backward_with_positions(
+        &self,
+        params: &[f32],
+        ws: &mut FastWorkspace,
+        d_output: FieldGrad,
+        grads: &mut Grads,
+        dirs: &[f32],
+        d_positions: &mut Vec<f32>,
+        d_dirs: &mut Vec<f32>,
+    ) {
+        let n = d_output.d_sigma.len();
+        d_positions.clear();
+        d_positions.resize(n * 3, 0.0);
+        d_dirs.clear();
+        d_dirs.resize(n * 3, 0.0);
+        if n == 0 {
+            return;
+        }
+        self.eval_samples_bwd(params, ws, d_output.d_sigma, d_output.d_rgb, grads);
+        let ci = self.colour_in_dims();
+        for s in 0..n {
+            let d = &dirs[s * 3..][..3];
+            let g = &ws.d_colour_in[s * ci..][..SH_DIMS];
+            d_dirs[s * 3..][..3].copy_from_slice(&sh4_bwd([d[0], d[1], d[2]], g));
+        }
+        let e = self.grid.dims();
+        self.grid
+            .encode_input_bwd(params, &ws.unit[..n * 3], &ws.d_enc[..n * e], d_positions);
+        let to_world = 0.5 / self.config.bound;
+        d_positions.iter_mut().for_each(|v| *v *= to_world);
     }
 }
 

@@ -16,6 +16,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::camera_refine::{self, CameraRefinement, CameraStep};
 use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
 use crate::data::pixels::{PixelSampling, TrainingRays};
 use crate::data::Dataset;
@@ -52,6 +53,9 @@ pub struct FastModelConfig {
     /// `B / 2` as it is and all space beyond, contracted (see `render::contraction`).
     #[serde(default)]
     pub contract: bool,
+    /// Learn a correction of every training camera's pose (see `camera_refine`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub refine_cameras: Option<CameraRefinement>,
 }
 
 impl Default for FastModelConfig {
@@ -65,6 +69,7 @@ impl Default for FastModelConfig {
             max_samples_per_ray: 1024,
             weight_decay: 1e-6,
             contract: false,
+            refine_cameras: None,
         }
     }
 }
@@ -83,6 +88,9 @@ pub struct FastModel {
     /// Which cells of the scene box hold anything; refreshed during training and saved
     /// with the checkpoint (rendering needs it).
     pub grid: OccupancyGrid,
+    /// The field's parameters, then the camera corrections when cameras are refined.
+    layout: ParamLayout,
+    cameras_at: Option<usize>,
 }
 
 /// What every training chunk of a step reads.
@@ -92,17 +100,41 @@ struct ChunkInput<'a> {
     /// The step's marched blocks; a chunk takes a range of their rays.
     blocks: &'a [MarchedBlock],
     check: &'a FiniteCheck,
+    /// The training cameras' corrections this step (empty: cameras are not refined).
+    cameras: &'a [CameraStep],
 }
 
 impl FastModel {
     pub fn new(config: FastModelConfig) -> Self {
         let field = FastField::new(config.field.clone());
         let grid = OccupancyGrid::new(config.occupancy.resolution, config.field.bound);
+        let mut layout = field.layout.clone();
+        let cameras_at = config.refine_cameras.map(|r| {
+            layout.push(
+                camera_refine::TENSOR,
+                &[r.cameras, camera_refine::PER_CAMERA],
+            )
+        });
         FastModel {
             config,
             field,
             grid,
+            layout,
+            cameras_at,
         }
+    }
+
+    /// This step's correction of every training camera of `data` (none without refinement).
+    fn camera_steps(&self, params: &[f32], data: &Dataset) -> Vec<CameraStep> {
+        let Some(at) = self.cameras_at else {
+            return Vec::new();
+        };
+        let corrections = &params[at..];
+        data.views
+            .iter()
+            .zip(corrections.chunks_exact(camera_refine::PER_CAMERA))
+            .map(|(v, c)| CameraStep::new(&v.camera.c2w, c))
+            .collect()
     }
 
     /// How rays between `near` and `far` are marched.
@@ -125,6 +157,8 @@ impl FastModel {
 struct MarchInput<'a> {
     data: &'a Dataset,
     sampling: PixelSampling,
+    /// The training cameras' corrections this step (empty: none).
+    cameras: &'a [CameraStep],
 }
 
 /// One block of a step's rays: drawn, marched and packed.
@@ -145,6 +179,9 @@ pub struct FastWorkspace {
     outputs: Vec<RayOutput>,
     loss: LossBackward,
     march: MarchWorkspace<FieldContext>,
+    /// `dL/d sample position` and `dL/d view direction` (camera refinement).
+    d_positions: Vec<f32>,
+    d_dirs: Vec<f32>,
 }
 
 /// Buffers a whole step shares: the marched blocks.
@@ -171,6 +208,14 @@ impl FastModel {
             &input.sampling,
             first..first + BLOCK_RAYS as u64,
         );
+        let rays = &mut block.rays.rays;
+        for r in 0..rays.len() {
+            if let Some(camera) = input.cameras.get((rays.pixels[r] >> 32) as usize) {
+                let (o, d) = camera.correct(rays.origins[r], rays.dirs[r]);
+                (rays.origins[r], rays.dirs[r]) = (o, d);
+                rays.view_dirs[r] = camera.correct(o, rays.view_dirs[r]).1;
+            }
+        }
         block.samples.clear();
         for r in 0..block.rays.len() {
             let jitter = block.rays.rngs[r].uniform();
@@ -238,7 +283,9 @@ impl FastModel {
             params,
             blocks,
             check,
+            cameras,
         } = *input;
+        let first_ray = rays.start;
         ws.samples.clear();
         ws.backgrounds.clear();
         ws.targets.clear();
@@ -290,7 +337,18 @@ impl FastModel {
         );
         check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
         check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
-        if n > 0 {
+        if n > 0 && !cameras.is_empty() {
+            self.field.backward_with_positions(
+                params,
+                &mut ws.field,
+                ws.loss.field_grad(),
+                &mut grads.all(),
+                ws.samples.dirs.as_flattened(),
+                &mut ws.d_positions,
+                &mut ws.d_dirs,
+            );
+            self.camera_gradients(blocks, first_ray, cameras, ws, grads);
+        } else if n > 0 {
             self.field.backward(
                 params,
                 &mut ws.field,
@@ -309,16 +367,73 @@ impl FastModel {
     }
 }
 
+impl FastModel {
+    /// Carries the chunk's position gradients (in `ws.d_positions`, for the rays from
+    /// `first_ray` on, packed in `ws.samples`) back through contraction to each ray's
+    /// origin and direction, and from there into its camera's correction in `grads`.
+    fn camera_gradients(
+        &self,
+        blocks: &[MarchedBlock],
+        first_ray: usize,
+        cameras: &[CameraStep],
+        ws: &FastWorkspace,
+        grads: &mut GradBuffer,
+    ) {
+        let Some(at) = self.cameras_at else { return };
+        let contract = self
+            .config
+            .contract
+            .then_some(0.5 * self.config.field.bound);
+        let per = camera_refine::PER_CAMERA;
+        let mut touched = (usize::MAX, 0);
+        let values = &mut grads.values;
+        for i in 0..ws.samples.rays() {
+            let g = first_ray + i;
+            let block = &blocks[g / BLOCK_RAYS];
+            let r = g % BLOCK_RAYS;
+            let rays = &block.rays.rays;
+            let view = (rays.pixels[r] >> 32) as usize;
+            let (o, dir) = (rays.origins[r], rays.dirs[r]);
+            let d = crate::math::scale(dir, 1.0 / crate::math::length(dir));
+            let (mut d_o, mut d_d) = ([0.0f32; 3], [0.0f32; 3]);
+            for s in ws.samples.ray(i) {
+                let t = ws.samples.t[s];
+                let q = &ws.d_positions[s * 3..][..3];
+                let mut d_p = [q[0], q[1], q[2]];
+                if let Some(radius) = contract {
+                    let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
+                    d_p = crate::render::contraction::contract_bwd(p, radius, d_p);
+                }
+                let d_view = &ws.d_dirs[s * 3..][..3];
+                for a in 0..3 {
+                    d_o[a] += d_p[a];
+                    // The ray's unit direction places the sample and is its view direction.
+                    d_d[a] += t * d_p[a] + d_view[a];
+                }
+            }
+            let slot = &mut values[at + view * per..][..per];
+            cameras[view].accumulate(d, d_o, d_d, slot);
+            touched = (touched.0.min(view), touched.1.max(view + 1));
+        }
+        if touched.0 < touched.1 {
+            grads.all().mark(at + touched.0 * per..at + touched.1 * per);
+        }
+    }
+}
+
 impl Model for FastModel {
     type Workspace = FastWorkspace;
     type StepBuffers = StepBlocks;
 
     fn layout(&self) -> &ParamLayout {
-        &self.field.layout
+        &self.layout
     }
 
+    /// The field's initial weights; camera corrections start at zero (the given poses).
     fn init_params(&self, seed: u64) -> Vec<f32> {
-        self.field.init_params(seed)
+        let mut p = self.field.init_params(seed);
+        p.resize(self.layout.total, 0.0);
+        p
     }
 
     fn buffer_layout(&self) -> ParamLayout {
@@ -344,9 +459,11 @@ impl Model for FastModel {
         shared: &mut StepBlocks,
         workers: &mut [Worker<FastWorkspace>],
     ) -> PassTotals {
+        let cameras = self.camera_steps(input.params, input.data);
         let march = MarchInput {
             data: input.data,
             sampling: input.sampling,
+            cameras: &cameras,
         };
         let (used, last_rays) = self.march_step(&march, shared);
         let blocks = &shared.blocks[..used];
@@ -389,6 +506,7 @@ impl Model for FastModel {
                             params: input.params,
                             blocks,
                             check: input.check,
+                            cameras: &cameras,
                         };
                         self.train_chunk(
                             &chunk,
@@ -416,6 +534,14 @@ impl Model for FastModel {
         UpdateRule {
             lazy_end: self.field.mlp_range().start,
             weight_decay: self.config.weight_decay,
+            group_start: self.cameras_at,
+        }
+    }
+
+    /// Camera refinement's coarse-to-fine weighting of the hash-grid levels.
+    fn set_progress(&mut self, progress: f32) {
+        if let Some(r) = &self.config.refine_cameras {
+            self.field.level_weights = r.level_weights(self.field.grid.levels.len(), progress);
         }
     }
 
@@ -430,6 +556,7 @@ impl Model for FastModel {
             config,
             field,
             grid,
+            ..
         } = self;
         let density = |points: &[f32], out: &mut [f32]| field.density_into(params, points, out);
         grid.update(&config.occupancy, steps_done, seed, dt, &density);
@@ -553,6 +680,7 @@ mod tests {
             params,
             blocks: std::slice::from_ref(&block),
             check: &FiniteCheck::default(),
+            cameras: &[],
         };
         model.train_chunk(&input, 0..n, &mut ws, &mut grads, &mut per_ray);
         let sse: f64 = per_ray.iter().sum();
@@ -661,6 +789,7 @@ mod step_tests {
                 crop: 1.0,
                 background: Background::Random,
             },
+            cameras: &[],
         };
         let kept = |first: usize| {
             let mut blocks = Vec::new();
@@ -678,6 +807,91 @@ mod step_tests {
         assert!(reference.2.len() >= 5000, "{} samples", reference.2.len());
         for first in [4, 13, 64] {
             assert_eq!(kept(first), reference, "first wave of {first} blocks");
+        }
+    }
+
+    /// Issue 14 #1: `dL/d camera correction` through a whole training step (rays, field,
+    /// compositing, loss) against central differences of the step's loss: through the
+    /// sample positions and the view directions. The box is large enough that every
+    /// sample stays in the uncontracted cube, so their depths are fixed.
+    #[test]
+    fn camera_gradient_matches_finite_differences() {
+        use crate::model::{StepInput, Worker};
+        use crate::nn::GradBuffer;
+        let opts = SynthOptions {
+            size: 10,
+            supersample: 1,
+            ..Default::default()
+        };
+        let data = synth::dataset(&opts, Split::Train, 2);
+        let config = FastModelConfig {
+            field: FastFieldConfig {
+                grid: crate::encoding::HashGridConfig {
+                    levels: 4,
+                    log2_table_size: 12,
+                    base_resolution: 4,
+                    max_resolution: 24,
+                },
+                bound: 16.0,
+                ..FastFieldConfig::default()
+            },
+            samples_per_step: 3000,
+            steps_per_diagonal: 600.0,
+            contract: true,
+            refine_cameras: Some(CameraRefinement::new(2)),
+            ..FastModelConfig::default()
+        };
+        let model = FastModel::new(config);
+        let mut rng = crate::rng::Rng::new(2);
+        let mut params = model.init_params(3);
+        for v in &mut params[model.field.grid.param_range()] {
+            *v = rng.range(-1.0, 1.0);
+        }
+        let at = model.cameras_at.expect("cameras");
+        for v in &mut params[at..] {
+            *v = rng.range(-0.05, 0.05);
+        }
+        let check = FiniteCheck::new(false);
+        let step = |p: &[f32]| {
+            let input = StepInput {
+                data: &data,
+                params: p,
+                sampling: PixelSampling {
+                    seed: 1,
+                    step: 0,
+                    crop: 1.0,
+                    background: Background::White,
+                },
+                batch_rays: 0,
+                chunk_rays: 64,
+                check: &check,
+            };
+            let mut workers = vec![Worker {
+                ws: FastWorkspace::default(),
+                grads: GradBuffer::new(p.len()),
+            }];
+            let totals = model.train_pass(&input, &mut StepBlocks::default(), &mut workers);
+            let grads = workers.pop().expect("worker").grads.values;
+            (totals.sse, totals.rays, grads)
+        };
+        let (_, rays, grads) = step(&params);
+        assert!(rays > 20, "{rays} rays");
+        for k in 0..12 {
+            let h = 1e-3;
+            let (mut lo, mut hi) = (params.clone(), params.clone());
+            lo[at + k] -= h;
+            hi[at + k] += h;
+            let (a, ra, _) = step(&hi);
+            let (b, rb, _) = step(&lo);
+            assert_eq!((ra, rb), (rays, rays), "the step kept other rays");
+            let fd = (a - b) / (2.0 * h as f64);
+            let g = grads[at + k] as f64;
+            assert!(
+                (fd - g).abs() < 0.05 * fd.abs().max(g.abs()) + 1e-3,
+                "camera {} parameter {}: finite difference {fd}, gradient {g}",
+                k / 6,
+                k % 6
+            );
         }
     }
 }

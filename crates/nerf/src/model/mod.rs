@@ -6,6 +6,7 @@
 //! keep every trainable value in one flat vector described by a [`ParamLayout`], so the
 //! optimiser, checkpoints, evaluation and rendering treat them alike.
 
+pub mod camera_refine;
 pub mod fast;
 pub mod vanilla;
 
@@ -155,6 +156,10 @@ pub trait Model: Send + Sync + 'static {
     /// Called after each optimiser step, with the steps completed (occupancy refreshes).
     fn after_step(&mut self, _params: &[f32], _steps_done: u64, _seed: u64) {}
 
+    /// Called before each step with how far through its schedule the run is, in [0, 1]
+    /// (coarse-to-fine weighting of camera refinement).
+    fn set_progress(&mut self, _progress: f32) {}
+
     /// Renders a chunk of rays into `out` (one per ray).
     fn render_chunk(
         &self,
@@ -213,6 +218,9 @@ pub struct UpdateRule {
     pub lazy_end: usize,
     /// L2 penalty on the densely updated parameters.
     pub weight_decay: f32,
+    /// Parameters from this index on form their own group (camera corrections): dense,
+    /// no weight decay, at the step's `camera_lr`.
+    pub group_start: Option<usize>,
 }
 
 #[cfg(test)]

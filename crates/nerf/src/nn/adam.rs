@@ -124,6 +124,9 @@ pub struct DirtyStep {
     /// `weight_decay` (MLP weights).
     pub lazy_end: usize,
     pub weight_decay: f32,
+    /// A group of its own at the end of the vector, `(start, lr factor)`: updated densely,
+    /// without weight decay, at the learning rate times the factor (camera corrections).
+    pub group: Option<(usize, f32)>,
 }
 
 impl Adam {
@@ -142,7 +145,13 @@ impl Adam {
             scale,
             lazy_end,
             weight_decay,
+            group,
         } = how;
+        let (group_start, group_factor) = group.unwrap_or((params.len(), 1.0));
+        let group_step = AdamStep {
+            lr_over_bc1: step.lr_over_bc1 * group_factor,
+            ..step
+        };
         params
             .par_chunks_mut(SEGMENT)
             .zip(self.m.par_chunks_mut(SEGMENT))
@@ -153,8 +162,9 @@ impl Adam {
                 let base = k * SEGMENT;
                 g.drain_dirty(|r, grads| {
                     grads.iter_mut().for_each(|g| *g *= scale);
-                    // Split the run where the lazy part ends.
+                    // Split the run where the lazy part ends and where the group begins.
                     let split = lazy_end.clamp(base + r.start, base + r.end) - base;
+                    let own = group_start.clamp(base + split, base + r.end) - base;
                     let lazy = Rule {
                         lazy: true,
                         weight_decay: 0.0,
@@ -163,7 +173,12 @@ impl Adam {
                         lazy: false,
                         weight_decay,
                     };
-                    for (part, rule) in [(r.start..split, lazy), (split..r.end, dense)] {
+                    let parts = [
+                        (r.start..split, lazy, step),
+                        (split..own, dense, step),
+                        (own..r.end, Rule::default(), group_step),
+                    ];
+                    for (part, rule, step) in parts {
                         let o = part.start - r.start;
                         let s = Slices {
                             params: &mut p[part.clone()],

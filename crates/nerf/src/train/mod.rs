@@ -74,6 +74,10 @@ pub struct TrainConfig {
     pub val_downscale: usize,
     /// Save a checkpoint every this many steps (and always at the end).
     pub checkpoint_every: u64,
+    /// Move every training pose by random noise before training (BARF's synthetic test
+    /// of camera refinement; `--perturb-poses`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
 }
 
 impl TrainConfig {
@@ -101,6 +105,7 @@ impl TrainConfig {
             val_every: 1000,
             val_downscale: 4,
             checkpoint_every: 1000,
+            perturb_poses: None,
         })
     }
 
@@ -132,6 +137,7 @@ impl TrainConfig {
             val_every: 500,
             val_downscale: 4,
             checkpoint_every: 500,
+            perturb_poses: None,
         }
     }
 
@@ -142,6 +148,21 @@ impl TrainConfig {
             &self.scene,
             self.downscale.max(1) * extra_downscale.max(1),
         )
+    }
+
+    /// The training split as the run trains on it: the views kept, and the poses moved by
+    /// `perturb_poses` when set.
+    pub fn training_data(&self) -> Result<Dataset> {
+        let mut data = self.open_scene(1)?.load(crate::data::Split::Train, 1)?;
+        if let Some(n) = self.train_views {
+            data.keep_evenly(n);
+        }
+        if let Some(p) = &self.perturb_poses {
+            let mut poses: Vec<&mut crate::camera::Pose> =
+                data.views.iter_mut().map(|v| &mut v.camera.c2w).collect();
+            p.apply(&mut poses);
+        }
+        Ok(data)
     }
 
     /// Rejects settings that cannot run, naming the field. Every command checks a
@@ -290,6 +311,13 @@ impl TrainConfig {
             },
             lr: self.learning_rate_at(progress),
             batch_rays: self.batch_rays,
+            progress: progress as f32,
+            camera_lr: match &self.model {
+                ModelConfig::Fast(m) => m
+                    .refine_cameras
+                    .map_or(0.0, |r| r.learning_rate(progress as f32)),
+                ModelConfig::Vanilla(_) => 0.0,
+            },
         }
     }
 }

@@ -68,6 +68,19 @@ pub struct TrainOptions {
     #[arg(long, num_args = 0..=1, default_missing_value = "16",
           value_parser = clap::value_parser!(u32).range(1..=256))]
     pub appearance: Option<u32>,
+    /// Fast: learn a correction of every training camera's pose with the field (after
+    /// BARF), for poses that are a little off. Default: on for real captures (LLFF
+    /// --spherify, COLMAP, transforms.json), off for Blender scenes and NDC.
+    #[arg(long, conflicts_with = "no_refine_cameras")]
+    pub refine_cameras: bool,
+    /// Fast: trust the given poses as they are.
+    #[arg(long)]
+    pub no_refine_cameras: bool,
+    /// Move every training pose by random rigid noise of this standard deviation
+    /// (rotation in radians, translation in scene units) before training: BARF's test of
+    /// camera refinement. `SIGMA[,SEED]`.
+    #[arg(long, value_parser = crate::model::camera_refine::parse_perturbation)]
+    pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
     #[arg(long)]
     pub batch: Option<usize>,
@@ -226,12 +239,38 @@ impl TrainOptions {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
                 }
+                let real = scene.format != crate::data::scene::Format::Blender;
+                let world = scene.space == crate::camera::ray_space::RaySpace::World;
+                let refine = match (self.refine_cameras, self.no_refine_cameras) {
+                    (_, true) => false,
+                    (true, _) if !world => {
+                        return refuse(
+                            "--refine-cameras needs a scene in world space; NDC scenes \
+                             (forward-facing LLFF) cannot refine their cameras yet: add \
+                             --no-ndc"
+                                .into(),
+                        )
+                    }
+                    (true, _) => true,
+                    (false, false) => real && world,
+                };
+                if refine {
+                    m.refine_cameras = Some(crate::model::camera_refine::CameraRefinement::new(
+                        scene.train.len(),
+                    ));
+                    on_notice(
+                        "note: refining the training cameras' poses with the field \
+                         (--no-refine-cameras to trust them as given)",
+                    );
+                }
             }
             ModelConfig::Vanilla(_) if self.bound.is_some() || self.no_contract => {
                 return refuse("--bound and --no-contract apply to --model fast only".into());
             }
-            ModelConfig::Vanilla(_) if self.appearance.is_some() => {
-                return refuse("--appearance applies to --model fast only".into());
+            ModelConfig::Vanilla(_) if self.appearance.is_some() || self.refine_cameras => {
+                return refuse(
+                    "--appearance and --refine-cameras apply to --model fast only".into(),
+                );
             }
             ModelConfig::Vanilla(_) => {}
         }
@@ -240,6 +279,7 @@ impl TrainOptions {
         c.val_every = self.val_every.unwrap_or(c.val_every);
         c.checkpoint_every = self.checkpoint_every.unwrap_or(c.checkpoint_every);
         c.chunk_rays = self.chunk.unwrap_or(c.chunk_rays);
+        c.perturb_poses = self.perturb_poses;
         Ok(c)
     }
 
@@ -391,9 +431,17 @@ impl TrainOptions {
             self.chunk.map(|v| v.to_string()),
             saved.chunk_rays.to_string(),
         );
-        if self.paper_pe || self.no_contract || self.appearance.is_some() {
+        if self.paper_pe
+            || self.no_contract
+            || self.appearance.is_some()
+            || self.refine_cameras
+            || self.no_refine_cameras
+            || self.perturb_poses.is_some()
+        {
             out.push(
-                "--paper-pe / --no-contract / --appearance (set when the run was made)".into(),
+                "--paper-pe / --no-contract / --appearance / --refine-cameras / \
+                 --no-refine-cameras / --perturb-poses (set when the run was made)"
+                    .into(),
             );
         }
         out

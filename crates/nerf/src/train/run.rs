@@ -168,10 +168,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         remove_if_present(&metrics_path)?;
     }
 
-    let mut data = config.open_scene(1)?.load(Split::Train, 1)?;
-    if let Some(n) = config.train_views {
-        data.keep_evenly(n);
-    }
+    let data = config.training_data()?;
     let val_view = validation_view(&config)?;
     let (width, height) = data.image_size();
     let views = data.views.len();

@@ -118,6 +118,7 @@ mod tests {
             scale: 1.0 / 4096.0,
             lazy_end,
             weight_decay: 1e-6,
+            group: None,
         };
         let mut rng = Rng::new(11);
         let mut params: Vec<f32> = (0..n).map(|_| rng.range(-0.5, 0.5)).collect();

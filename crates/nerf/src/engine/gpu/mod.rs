@@ -59,9 +59,10 @@ pub fn open(
     options: EngineOptions,
     seed: u64,
 ) -> Result<Box<dyn Engine>> {
-    // Appearance codes have no GPU kernels yet: `auto` picks the CPU for them.
-    let appearance = matches!(model, ModelConfig::Fast(c) if c.field.appearance_dims > 0);
-    if appearance && device == Device::Auto {
+    // Appearance codes and camera refinement have no GPU kernels yet: `auto` picks the CPU.
+    let cpu_only = matches!(model, ModelConfig::Fast(c)
+        if c.field.appearance_dims > 0 || c.refine_cameras.is_some());
+    if cpu_only && device == Device::Auto {
         return Ok(super::open(model, options, seed));
     }
     let gpu = match device {
@@ -74,9 +75,10 @@ pub fn open(
         },
     };
     match model {
-        ModelConfig::Fast(config) if config.field.appearance_dims > 0 => Err(NerfError::Device(
-            "per-photo appearance codes (--appearance) run on the CPU engine only so far; \
-                 use --device cpu"
+        ModelConfig::Fast(_) if cpu_only => Err(NerfError::Device(
+            "per-photo appearance codes (--appearance) and camera refinement \
+             (--refine-cameras, on by default for real captures) run on the CPU engine only \
+             so far; use --device cpu, or --no-refine-cameras"
                 .into(),
         )),
         ModelConfig::Fast(config) => Ok(Box::new(engine::GpuEngine::new(

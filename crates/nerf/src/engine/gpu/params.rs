@@ -72,6 +72,7 @@ impl DeviceParams {
                 scale,
                 lazy_end: rule.lazy_end,
                 weight_decay: rule.weight_decay,
+                group: None,
             },
             self.n,
             &self.values,

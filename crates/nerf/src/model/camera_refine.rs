@@ -1,0 +1,329 @@
+//! Camera refinement (after BARF, Lin et al. 2021): every training camera carries a learned
+//! rigid correction, optimised with the field, so poses from structure from motion that
+//! are a little off stop blurring the model.
+//!
+//! A correction is 6 numbers `(w, tau)` in the camera's own frame: the rotation
+//! `R = exp([w]x)` (Rodrigues) and the translation `tau`, applied as
+//! `camera_to_world' = camera_to_world * [R | tau]`. A camera ray `(o, d)` with
+//! `d = C v` (`C` the camera's rotation, `v` its direction in the camera frame) becomes
+//! `o' = o + C tau`, `d' = C R v`, for any lens (undistortion happens in `v`).
+//!
+//! Gradients: the field gives `dL/d sample position`; a sample sits at `o' + t d'/|d'|`
+//! (its depth `t` is held fixed, as sampling is not differentiated), so a ray collects
+//! `dL/do' = sum dL/dp` and `dL/dd^ = sum t dL/dp`. Then `dL/dtau = C^T dL/do'` and
+//! `dL/dw_k = sum_ij (dR/dw_k)_ij M_ij` with `M = (C^T dL/dd^) v^T`, summed over the
+//! camera's rays; the view direction (the same unit `d'`) adds its own `dL/dd^` from the
+//! colour network's spherical harmonics.
+//!
+//! Coarse to fine: early on, the fine hash-grid levels are switched off and weighted in
+//! smoothly as training goes (BARF's schedule, on levels instead of frequencies), so the
+//! first pose gradients come from a smooth field.
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Pose;
+use crate::math::V3;
+
+/// Parameters per camera.
+pub const PER_CAMERA: usize = 6;
+/// Name of the corrections in checkpoints (`cameras x 6`).
+pub const TENSOR: &str = "camera.corrections";
+
+/// How the training cameras are refined.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraRefinement {
+    /// Training cameras with a correction (the training split's size).
+    pub cameras: usize,
+    /// Learning rate of the corrections, decaying exponentially from `lr_init` to
+    /// `lr_final` over the schedule (their own Adam group).
+    pub lr_init: f32,
+    pub lr_final: f32,
+    /// Coarse to fine: the hash-grid levels beyond the first `start_levels` are weighted
+    /// in between these two fractions of the schedule.
+    pub anneal: [f32; 2],
+    pub start_levels: f32,
+}
+
+impl CameraRefinement {
+    pub fn new(cameras: usize) -> Self {
+        CameraRefinement {
+            cameras,
+            lr_init: 3e-3,
+            lr_final: 3e-5,
+            anneal: [0.05, 0.4],
+            start_levels: 4.0,
+        }
+    }
+
+    /// The corrections' learning rate at `progress` in [0, 1].
+    pub fn learning_rate(&self, progress: f32) -> f32 {
+        let p = progress.clamp(0.0, 1.0);
+        self.lr_init * (self.lr_final / self.lr_init).powf(p)
+    }
+
+    /// Weight of each of `levels` hash-grid levels at `progress`: 1 for the first
+    /// `start_levels`, then `(1 - cos(pi * clamp(a - l, 0, 1))) / 2` with `a` growing
+    /// linearly to `levels` over the anneal window (BARF's weights).
+    pub fn level_weights(&self, levels: usize, progress: f32) -> Vec<f32> {
+        let [p0, p1] = self.anneal;
+        let ramp = ((progress - p0) / (p1 - p0).max(1e-6)).clamp(0.0, 1.0);
+        let start = self.start_levels.min(levels as f32);
+        let a = start + ramp * (levels as f32 - start);
+        (0..levels)
+            .map(|l| {
+                let x = (a - l as f32).clamp(0.0, 1.0);
+                0.5 * (1.0 - (std::f32::consts::PI * x).cos())
+            })
+            .collect()
+    }
+}
+
+/// BARF's synthetic test of refinement: every training pose moved by a random rigid
+/// motion, `w` and `tau` normal with standard deviation `sigma` (`--perturb-poses`).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PosePerturbation {
+    pub sigma: f32,
+    pub seed: u64,
+}
+
+impl PosePerturbation {
+    /// The correction that moves training camera `k`.
+    pub fn noise(&self, k: usize) -> [f32; PER_CAMERA] {
+        let mut rng = crate::rng::Rng::for_stream(self.seed ^ 0x9e3779b9, 0, k as u64);
+        // Box-Muller.
+        std::array::from_fn(|_| {
+            let (u1, u2) = (rng.uniform().max(1e-7), rng.uniform());
+            self.sigma * (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+        })
+    }
+
+    /// Moves every pose of `poses` (in the split's order).
+    pub fn apply(&self, poses: &mut [&mut Pose]) {
+        for (k, p) in poses.iter_mut().enumerate() {
+            **p = corrected(p, &self.noise(k));
+        }
+    }
+}
+
+/// `SIGMA[,SEED]` of `--perturb-poses`.
+pub fn parse_perturbation(s: &str) -> Result<PosePerturbation, String> {
+    let (sigma, seed) = match s.split_once(',') {
+        Some((a, b)) => (a, Some(b)),
+        None => (s, None),
+    };
+    let sigma: f32 = sigma
+        .trim()
+        .parse()
+        .map_err(|_| format!("{sigma:?} is not a number (SIGMA[,SEED])"))?;
+    if !(sigma.is_finite() && sigma >= 0.0) {
+        return Err(format!("sigma {sigma} must be a finite number >= 0"));
+    }
+    let seed = match seed {
+        Some(t) => t
+            .trim()
+            .parse()
+            .map_err(|_| format!("{t:?} is not a whole number (SIGMA[,SEED])"))?,
+        None => 0,
+    };
+    Ok(PosePerturbation { sigma, seed })
+}
+
+/// `exp([w]x)`, Rodrigues' formula (a series near zero).
+pub fn rotation(w: V3) -> [[f32; 3]; 3] {
+    rotation_f64(w.map(f64::from)).map(|r| r.map(|v| v as f32))
+}
+
+fn rotation_f64(w: [f64; 3]) -> [[f64; 3]; 3] {
+    let theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2];
+    let theta = theta2.sqrt();
+    let (a, b) = if theta < 1e-6 {
+        (1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0)
+    } else {
+        (theta.sin() / theta, (1.0 - theta.cos()) / theta2)
+    };
+    let k = [[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]];
+    let mut r = [[0.0; 3]; 3];
+    for i in 0..3 {
+        for j in 0..3 {
+            let k2: f64 = (0..3).map(|m| k[i][m] * k[m][j]).sum();
+            r[i][j] = if i == j { 1.0 } else { 0.0 } + a * k[i][j] + b * k2;
+        }
+    }
+    r
+}
+
+/// `dR/dw_k` for k = 0, 1, 2, by central differences in f64 (errors near 1e-10: far below
+/// f32's resolution), so no closed form of the exponential map's Jacobian is needed.
+pub fn rotation_jacobian(w: V3) -> [[[f32; 3]; 3]; 3] {
+    let w = w.map(f64::from);
+    std::array::from_fn(|k| {
+        let h = 1e-6;
+        let (mut lo, mut hi) = (w, w);
+        lo[k] -= h;
+        hi[k] += h;
+        let (a, b) = (rotation_f64(hi), rotation_f64(lo));
+        std::array::from_fn(|i| std::array::from_fn(|j| ((a[i][j] - b[i][j]) / (2.0 * h)) as f32))
+    })
+}
+
+/// `pose * [R(w) | tau]`: a camera-to-world pose with its correction applied.
+pub fn corrected(pose: &Pose, correction: &[f32]) -> Pose {
+    let r = rotation([correction[0], correction[1], correction[2]]);
+    let tau = [correction[3], correction[4], correction[5]];
+    let mut out = *pose;
+    for i in 0..3 {
+        for j in 0..3 {
+            out[i][j] = (0..3).map(|m| pose[i][m] * r[m][j]).sum();
+        }
+        out[i][3] = pose[i][3] + (0..3).map(|m| pose[i][m] * tau[m]).sum::<f32>();
+    }
+    out
+}
+
+fn mat_vec(m: &[[f32; 3]; 3], v: V3) -> V3 {
+    std::array::from_fn(|i| m[i][0] * v[0] + m[i][1] * v[1] + m[i][2] * v[2])
+}
+
+fn mat_t_vec(m: &[[f32; 3]; 3], v: V3) -> V3 {
+    std::array::from_fn(|i| m[0][i] * v[0] + m[1][i] * v[1] + m[2][i] * v[2])
+}
+
+/// One camera's correction for a step: its given rotation `C`, the correction's rotation
+/// and translation, and `dR/dw`.
+#[derive(Clone, Copy, Debug)]
+pub struct CameraStep {
+    c: [[f32; 3]; 3],
+    r: [[f32; 3]; 3],
+    tau: V3,
+    jacobian: [[[f32; 3]; 3]; 3],
+}
+
+impl CameraStep {
+    /// Camera `pose` (given) with `correction` (6 values).
+    pub fn new(pose: &Pose, correction: &[f32]) -> Self {
+        let w = [correction[0], correction[1], correction[2]];
+        CameraStep {
+            c: std::array::from_fn(|i| [pose[i][0], pose[i][1], pose[i][2]]),
+            r: rotation(w),
+            tau: [correction[3], correction[4], correction[5]],
+            jacobian: rotation_jacobian(w),
+        }
+    }
+
+    /// The corrected ray of a given world ray `(o, d)` of this camera.
+    pub fn correct(&self, o: V3, d: V3) -> (V3, V3) {
+        let shift = mat_vec(&self.c, self.tau);
+        let v = mat_t_vec(&self.c, d);
+        let d2 = mat_vec(&self.c, mat_vec(&self.r, v));
+        ([o[0] + shift[0], o[1] + shift[1], o[2] + shift[2]], d2)
+    }
+
+    /// Adds to `grad` (6 values) the gradient of a corrected ray with unit direction
+    /// `dir` (as marched) given `dL/do` and `dL/d dir`.
+    pub fn accumulate(&self, dir: V3, d_o: V3, d_dir: V3, grad: &mut [f32]) {
+        let d_tau = mat_t_vec(&self.c, d_o);
+        // v: the unit direction in the camera frame before the correction's rotation.
+        let v = mat_t_vec(&self.r, mat_t_vec(&self.c, dir));
+        let g = mat_t_vec(&self.c, d_dir);
+        for (k, jk) in self.jacobian.iter().enumerate() {
+            let mut s = 0.0;
+            for i in 0..3 {
+                for j in 0..3 {
+                    s += jk[i][j] * g[i] * v[j];
+                }
+            }
+            grad[k] += s;
+        }
+        for a in 0..3 {
+            grad[3 + a] += d_tau[a];
+        }
+    }
+}
+
+/// The corrections of a parameter vector laid out by `layout`, one 6-vector per camera
+/// (none when the model refines no camera).
+pub fn corrections<'a>(layout: &crate::nn::ParamLayout, params: &'a [f32]) -> Option<&'a [f32]> {
+    let t = layout.tensors.iter().find(|t| t.name == TENSOR)?;
+    params.get(t.range())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::rng::Rng;
+
+    #[test]
+    fn rotation_is_orthonormal_and_the_jacobian_matches_differences() {
+        for w in [[0.0f32, 0.0, 0.0], [0.1, -0.2, 0.05], [1.0, 0.5, -0.7]] {
+            let r = rotation(w);
+            for i in 0..3 {
+                for j in 0..3 {
+                    let dot: f32 = (0..3).map(|m| r[m][i] * r[m][j]).sum();
+                    assert!((dot - if i == j { 1.0 } else { 0.0 }).abs() < 1e-6);
+                }
+            }
+            let jac = rotation_jacobian(w);
+            // At zero, dR/dw_k is the generator [e_k]x.
+            if w == [0.0; 3] {
+                assert!((jac[2][1][0] - 1.0).abs() < 1e-5 && (jac[2][0][1] + 1.0).abs() < 1e-5);
+            }
+        }
+    }
+
+    /// Correcting a ray equals casting it from the corrected pose, and the gradient of a
+    /// linear function of the corrected ray matches central differences.
+    #[test]
+    fn corrected_rays_and_their_gradient() {
+        let mut rng = Rng::new(3);
+        let pose = crate::camera::look_at([1.0, -3.0, 1.5], [0.0; 3], [0.0, 0.0, 1.0]);
+        let corr: Vec<f32> = (0..6).map(|_| rng.range(-0.2, 0.2)).collect();
+        let v = [0.1f32, -0.2, -1.0];
+        let d = mat_vec(
+            &std::array::from_fn(|i| [pose[i][0], pose[i][1], pose[i][2]]),
+            v,
+        );
+        let o = [pose[0][3], pose[1][3], pose[2][3]];
+        let step = CameraStep::new(&pose, &corr);
+        let (o2, d2) = step.correct(o, d);
+        let fixed = corrected(&pose, &corr);
+        let want_d: V3 = std::array::from_fn(|i| (0..3).map(|m| fixed[i][m] * v[m]).sum());
+        for a in 0..3 {
+            assert!((o2[a] - fixed[a][3]).abs() < 1e-5 && (d2[a] - want_d[a]).abs() < 1e-5);
+        }
+        // L = a . o' + b . unit(d').
+        let (a, b) = ([0.3f32, -0.7, 0.2], [0.5f32, 0.4, -0.9]);
+        let loss = |c: &[f32]| {
+            let (o2, d2) = CameraStep::new(&pose, c).correct(o, d);
+            let n = crate::math::length(d2);
+            (0..3)
+                .map(|i| (a[i] * o2[i] + b[i] * d2[i] / n) as f64)
+                .sum::<f64>()
+        };
+        let unit = crate::math::scale(d2, 1.0 / crate::math::length(d2));
+        // dL/d unit(d') = b projected off the direction (a unit vector moves tangentially);
+        // the rotation keeps the length, so the plain b works as well.
+        let mut grad = [0.0f32; 6];
+        step.accumulate(unit, a, b, &mut grad);
+        for k in 0..6 {
+            let h = 1e-3;
+            let (mut lo, mut hi) = (corr.clone(), corr.clone());
+            lo[k] -= h;
+            hi[k] += h;
+            let fd = (loss(&hi) - loss(&lo)) / (2.0 * h as f64);
+            assert!(
+                (fd - grad[k] as f64).abs() < 2e-3,
+                "param {k}: {fd} vs {}",
+                grad[k]
+            );
+        }
+    }
+
+    #[test]
+    fn levels_are_weighted_in_over_the_window() {
+        let c = CameraRefinement::new(10);
+        assert_eq!(c.level_weights(16, 0.0)[..5], [1.0, 1.0, 1.0, 1.0, 0.0]);
+        assert!(c.level_weights(16, 0.4).iter().all(|&w| w == 1.0));
+        let mid = c.level_weights(16, 0.2);
+        assert!(mid[8] > 0.0 && mid[15] == 0.0, "{mid:?}");
+    }
+}

@@ -1,0 +1,109 @@
+//! The training cameras of a run that refined them (`--refine-cameras`): the poses it
+//! ended with, how far they are from the given ones (BARF's evaluation), and where the
+//! test cameras sit in the frame the model learned.
+//!
+//! A refined model is free to drift as a whole (any similarity of all cameras and the
+//! scene explains the photos equally well), so the refined cameras are first aligned to
+//! the given ones by the similarity that best maps their centres (Horn's method), and the
+//! errors are measured after it: mean rotation error in degrees, mean centre distance in
+//! scene units and in percent of the cameras' radius (their RMS distance from their
+//! centroid). Test cameras, given in the scene's frame, are mapped into the model's by
+//! the inverse of that similarity.
+
+use serde::{Deserialize, Serialize};
+
+use crate::camera::Pose;
+use crate::data::poses::{fit_similarity, origin, rotation_error_degrees, Similarity};
+use crate::data::Split;
+use crate::error::Result;
+use crate::math::{length, sub};
+use crate::model::camera_refine::{corrected, corrections, PER_CAMERA};
+use crate::train::folder::LoadedRun;
+
+/// How far a run's training cameras are from the given ones, after alignment.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
+pub struct PoseError {
+    pub rotation_deg: f32,
+    pub translation: f32,
+    pub translation_percent_of_radius: f32,
+}
+
+/// The training cameras as the run trained them, and as the scene gives them.
+#[derive(Clone, Debug)]
+pub struct RunCameras {
+    /// As given by the scene (before any `--perturb-poses`).
+    pub given: Vec<Pose>,
+    /// As the model ended with them: given, perturbed, then corrected.
+    pub refined: Vec<Pose>,
+    /// Whether the run learned corrections.
+    pub refined_by_model: bool,
+}
+
+impl RunCameras {
+    /// The cameras of `run`; `None` when the run neither perturbed nor refined them.
+    pub fn of(run: &LoadedRun) -> Result<Option<RunCameras>> {
+        let config = &run.config;
+        let state = run.engine.state();
+        let learned = corrections(run.engine.param_layout(), &state.params);
+        if learned.is_none() && config.perturb_poses.is_none() {
+            return Ok(None);
+        }
+        let scene = config.open_scene(1)?;
+        let given: Vec<Pose> = scene.cameras(Split::Train).iter().map(|c| c.c2w).collect();
+        let mut refined = given.clone();
+        if let Some(p) = &config.perturb_poses {
+            let mut poses: Vec<&mut Pose> = refined.iter_mut().collect();
+            p.apply(&mut poses);
+        }
+        if let Some(c) = learned {
+            for (pose, corr) in refined.iter_mut().zip(c.chunks_exact(PER_CAMERA)) {
+                *pose = corrected(pose, corr);
+            }
+        }
+        Ok(Some(RunCameras {
+            given,
+            refined,
+            refined_by_model: learned.is_some(),
+        }))
+    }
+
+    /// The similarity that best maps the refined centres onto the given ones.
+    pub fn alignment(&self) -> Similarity {
+        let from: Vec<_> = self.refined.iter().map(origin).collect();
+        let to: Vec<_> = self.given.iter().map(origin).collect();
+        fit_similarity(&from, &to).0
+    }
+
+    /// The errors of the refined cameras against the given ones after [`alignment`](Self::alignment).
+    pub fn error(&self) -> PoseError {
+        let align = self.alignment();
+        let n = self.given.len().max(1) as f32;
+        let (mut rot, mut trans) = (0.0, 0.0);
+        for (g, r) in self.given.iter().zip(&self.refined) {
+            let a = align.apply_pose(r);
+            rot += rotation_error_degrees(&a, g);
+            trans += length(sub(origin(&a), origin(g)));
+        }
+        let centres: Vec<_> = self.given.iter().map(origin).collect();
+        let mean = centres.iter().fold([0.0f32; 3], |m, c| {
+            [m[0] + c[0] / n, m[1] + c[1] / n, m[2] + c[2] / n]
+        });
+        let radius = (centres
+            .iter()
+            .map(|c| length(sub(*c, mean)).powi(2))
+            .sum::<f32>()
+            / n)
+            .sqrt()
+            .max(1e-9);
+        PoseError {
+            rotation_deg: rot / n,
+            translation: trans / n,
+            translation_percent_of_radius: 100.0 * trans / n / radius,
+        }
+    }
+
+    /// A camera given in the scene's frame, moved into the frame the model learned.
+    pub fn to_model_frame(&self, pose: &Pose) -> Pose {
+        self.alignment().inverse().apply_pose(pose)
+    }
+}
