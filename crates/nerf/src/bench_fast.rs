@@ -23,7 +23,8 @@ use crate::views::{render_view, RenderSettings};
 
 #[derive(Clone, Debug)]
 pub struct FastBenchOptions {
-    /// A Blender-format scene to train on; the built-in chair when `None`.
+    /// A scene to train on (any format, read with its default options: LLFF in NDC); the
+    /// built-in chair when `None`.
     pub data: Option<PathBuf>,
     pub warmup_steps: u64,
     /// Timed steps (at least 16, so that refreshes are among them).
@@ -77,6 +78,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
             say(format!("loading {}...", dir.display()));
             let scene = Scene::open(dir, &SceneOptions::default(), 1)?;
             model.field.bound = scene.bound;
+            model.contract = scene.contract;
             let train = scene.load(Split::Train, 1)?;
             let camera = scene.cameras(Split::Test).into_iter().next();
             (train, dir.display().to_string(), camera)

@@ -342,13 +342,7 @@ fn largest_model(sparse: &Path) -> Result<Option<colmap::Model>> {
 /// `transforms.json` that `nerf capture` would write, to `path` (`nerf scene
 /// --write-transforms`). Image paths are relative when `path` is in `dir`, else absolute.
 pub fn transforms_from_colmap(dir: &Path, path: &Path) -> Result<()> {
-    let model_dir = colmap::find_model(dir).ok_or_else(|| {
-        NerfError::format(
-            dir,
-            "has no COLMAP model (sparse/0/cameras.bin or cameras.txt)",
-        )
-    })?;
-    let model = colmap::read_model(&model_dir)?;
+    let (_, model) = colmap::open_model(dir)?;
     write_transforms(&model, dir, path)
 }
 

@@ -148,13 +148,8 @@ fn time_budget_stops_with_a_checkpoint() {
     small_scene(&data, 16);
     let out = dir.path().join("run");
     let opts = RunOptions {
-        out: out.clone(),
-        config: demo_config(&data, 1_000_000),
         minutes: Some(0.02),
-        resume: false,
-        pause_at: None,
-        stop: None,
-        device: nerf::engine::Device::Cpu,
+        ..cpu_run(&out, demo_config(&data, 1_000_000))
     };
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!(summary.reason, StopReason::TimeBudget);
@@ -177,15 +172,7 @@ fn a_timed_schedule_decays_with_the_clock_and_resumes() {
     let out = dir.path().join("run");
     let mut config = demo_config(&data, u64::MAX);
     config.time_budget_s = Some(1.5);
-    let mut opts = RunOptions {
-        out: out.clone(),
-        config: config.clone(),
-        minutes: None,
-        resume: false,
-        pause_at: None,
-        stop: None,
-        device: nerf::engine::Device::Cpu,
-    };
+    let mut opts = cpu_run(&out, config.clone());
     let first = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!(first.reason, StopReason::TimeBudget);
     assert!(first.seconds >= 1.5 && first.steps > 3, "{first:?}");
@@ -219,6 +206,19 @@ fn a_timed_schedule_decays_with_the_clock_and_resumes() {
         resumed_first < config.learning_rate_at(0.5),
         "{resumed_first}"
     );
+}
+
+/// A new run of `config` into `out` on the CPU, with no budget.
+fn cpu_run(out: &Path, config: TrainConfig) -> RunOptions {
+    RunOptions {
+        out: out.to_path_buf(),
+        config,
+        minutes: None,
+        resume: false,
+        pause_at: None,
+        stop: None,
+        device: nerf::engine::Device::Cpu,
+    }
 }
 
 fn learning_rates(run: &Path) -> Vec<f32> {

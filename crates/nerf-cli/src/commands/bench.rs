@@ -20,7 +20,8 @@ pub struct BenchArgs {
     /// Print the figures as JSON.
     #[arg(long)]
     json: bool,
-    /// Fast: a Blender-format scene to train on (default: the built-in chair).
+    /// Fast: a scene to train on, any format read as `nerf train` would (default: the
+    /// built-in chair).
     #[arg(long)]
     data: Option<PathBuf>,
     /// Fast: untimed steps first, so the occupancy grid takes shape.

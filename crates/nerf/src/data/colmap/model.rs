@@ -258,6 +258,19 @@ pub fn find_model(dir: &Path) -> Option<PathBuf> {
         .find(|d| d.join("cameras.bin").exists() || d.join("cameras.txt").exists())
 }
 
+/// The sparse model of scene folder `dir` ([`find_model`]) and the folder it is in, or an
+/// error naming `dir`.
+pub fn open_model(dir: &Path) -> Result<(PathBuf, Model)> {
+    let model_dir = find_model(dir).ok_or_else(|| {
+        NerfError::format(
+            dir,
+            "has no COLMAP model (sparse/0/cameras.bin or cameras.txt)",
+        )
+    })?;
+    let model = read_model(&model_dir)?;
+    Ok((model_dir, model))
+}
+
 /// Reads the model in `dir` (binary files preferred when both forms are present).
 /// `points3D` is optional.
 pub fn read_model(dir: &Path) -> Result<Model> {

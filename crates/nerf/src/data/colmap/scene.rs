@@ -21,13 +21,7 @@ use crate::error::{NerfError, Result};
 pub const CAMERA_RADIUS: f32 = 1.0;
 
 pub(crate) fn parse(dir: &Path, _opts: &SceneOptions) -> Result<Parsed> {
-    let model_dir = colmap::find_model(dir).ok_or_else(|| {
-        NerfError::format(
-            dir,
-            "has no COLMAP model (sparse/0/cameras.bin or cameras.txt)",
-        )
-    })?;
-    let model = colmap::read_model(&model_dir)?;
+    let (model_dir, model) = colmap::open_model(dir)?;
     let images_dir = dir.join("images");
     let (frames, placement) = frames_of(&model, &model_dir, &images_dir)?;
     let box_ = placed_box(&model, &placement, &frames);
