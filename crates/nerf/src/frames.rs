@@ -262,7 +262,14 @@ pub fn render_frames(
 ) -> Result<FramesReport> {
     let cfg = &run.config;
     let scene = cfg.open_scene(1)?;
-    let cameras = cameras(&scene, opts)?;
+    let mut cameras = cameras(&scene, opts)?;
+    // A run that refined its cameras learned the scene in a frame of its own: the path,
+    // given in the scene's frame, moves into it (see `refined_cameras`).
+    if let Some(run_cameras) = crate::refined_cameras::RunCameras::of(run)? {
+        for c in &mut cameras {
+            c.c2w = run_cameras.to_model_frame(&c.c2w);
+        }
+    }
     let video = opts.video.as_deref().map(video_target).transpose()?;
     crate::io::create_dir(out)?;
     let mut settings = RenderSettings::of_scene(&scene, cfg.background.eval_colour());

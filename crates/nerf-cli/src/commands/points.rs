@@ -45,11 +45,14 @@ pub fn run(a: PointsArgs) -> Result<()> {
     let run = LoadedRun::open_on(&a.run, a.device.device)?;
     let config = &run.config;
     let scene = config.open_scene(a.downscale)?;
-    let cameras: Vec<_> = scene
-        .cameras(nerf::data::Split::Train)
-        .into_iter()
-        .step_by(a.every)
-        .collect();
+    let mut cameras = scene.cameras(nerf::data::Split::Train);
+    // A run that refined its cameras sees the training views from where it put them.
+    if let Some(refined) = nerf::refined_cameras::RunCameras::of(&run)? {
+        for (c, pose) in cameras.iter_mut().zip(&refined.refined) {
+            c.c2w = *pose;
+        }
+    }
+    let cameras: Vec<_> = cameras.into_iter().step_by(a.every).collect();
     let settings = nerf::views::RenderSettings::of_scene(&scene, config.background.eval_colour());
     let t0 = Instant::now();
     let pb = bar(cameras.len() as u64, "views");
