@@ -77,8 +77,7 @@ pub fn open(
     match model {
         ModelConfig::Fast(_) if cpu_only => Err(NerfError::Device(
             "per-photo appearance codes (--appearance) and camera refinement \
-             (--refine-cameras, on by default for real captures) run on the CPU engine only \
-             so far; use --device cpu, or --no-refine-cameras"
+             (--refine-cameras) run on the CPU engine only so far; use --device cpu"
                 .into(),
         )),
         ModelConfig::Fast(config) => Ok(Box::new(engine::GpuEngine::new(
