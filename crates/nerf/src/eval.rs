@@ -59,8 +59,9 @@ pub fn evaluate(
     let mut data = cfg.open_scene(1)?.load(split, every)?;
     let run_cameras = RunCameras::of(run)?;
     if let Some(c) = &run_cameras {
+        let to_model = c.to_model_frame();
         for v in &mut data.views {
-            v.camera.c2w = c.to_model_frame(&v.camera.c2w);
+            v.camera.c2w = to_model.apply_pose(&v.camera.c2w);
         }
     }
     crate::io::create_dir(out_dir)?;

@@ -102,8 +102,9 @@ impl RunCameras {
         }
     }
 
-    /// A camera given in the scene's frame, moved into the frame the model learned.
-    pub fn to_model_frame(&self, pose: &Pose) -> Pose {
-        self.alignment().inverse().apply_pose(pose)
+    /// The similarity that moves a camera given in the scene's frame into the frame the
+    /// model learned (the alignment's inverse): fit once, applied to every camera.
+    pub fn to_model_frame(&self) -> Similarity {
+        self.alignment().inverse()
     }
 }

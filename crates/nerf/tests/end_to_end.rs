@@ -4,7 +4,7 @@
 use std::path::Path;
 
 mod common;
-use common::small_scene;
+use common::{cpu_run, small_scene};
 
 use nerf::data::synth::{self, SynthOptions};
 use nerf::data::Split;
@@ -206,19 +206,6 @@ fn a_timed_schedule_decays_with_the_clock_and_resumes() {
         resumed_first < config.learning_rate_at(0.5),
         "{resumed_first}"
     );
-}
-
-/// A new run of `config` into `out` on the CPU, with no budget.
-fn cpu_run(out: &Path, config: TrainConfig) -> RunOptions {
-    RunOptions {
-        out: out.to_path_buf(),
-        config,
-        minutes: None,
-        resume: false,
-        pause_at: None,
-        stop: None,
-        device: nerf::engine::Device::Cpu,
-    }
 }
 
 fn learning_rates(run: &Path) -> Vec<f32> {

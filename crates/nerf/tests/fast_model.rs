@@ -5,7 +5,7 @@
 use std::path::Path;
 
 mod common;
-use common::{fast_config, small_scene};
+use common::{cpu_run, fast_config, small_scene};
 
 use nerf::data::Split;
 use nerf::train::run::{self, LoadedRun, RunOptions, StopReason};
@@ -13,13 +13,9 @@ use nerf::train::TrainConfig;
 
 fn options(out: &Path, config: TrainConfig, resume: bool, pause_at: Option<u64>) -> RunOptions {
     RunOptions {
-        out: out.to_path_buf(),
-        config,
-        minutes: None,
         resume,
         pause_at,
-        stop: None,
-        device: nerf::engine::Device::Cpu,
+        ..cpu_run(out, config)
     }
 }
 

@@ -45,3 +45,16 @@ pub fn fast_config(data: &Path, steps: u64) -> TrainConfig {
     c.chunk_rays = 256;
     c
 }
+
+/// A new run of `config` into `out` on the CPU: no budget, no pause, not resumed.
+pub fn cpu_run(out: &Path, config: TrainConfig) -> nerf::train::run::RunOptions {
+    nerf::train::run::RunOptions {
+        out: out.to_path_buf(),
+        config,
+        minutes: None,
+        resume: false,
+        pause_at: None,
+        stop: None,
+        device: nerf::engine::Device::Cpu,
+    }
+}
