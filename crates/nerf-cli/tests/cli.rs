@@ -117,6 +117,12 @@ fn synth_train_eval_render() {
         text.contains("2 views of test") && text.contains("mean PSNR"),
         "{text}"
     );
+    let out = nerf(&["eval", "--run", "run", "--refine-test-poses"], d);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("needs a fast-model run"),
+        "{err}"
+    );
     let metrics: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(d.join("run/eval_test/metrics.json")).expect("metrics"),
     )
@@ -273,6 +279,29 @@ fn fast_model_through_the_same_commands() {
     assert!(text.contains("stopped after step 24"), "{text}");
     let text = ok(&nerf(&["eval", "--run", "run"], d));
     assert!(text.contains("2 views of test"), "{text}");
+    // Issue 14 #2: the test cameras fitted to the frozen model first, and said so.
+    let text = ok(&nerf(
+        &[
+            "eval",
+            "--run",
+            "run",
+            "--refine-test-poses",
+            "4",
+            "--out",
+            "fitted",
+        ],
+        d,
+    ));
+    assert!(
+        text.contains("test cameras fitted to the frozen model in 4 steps"),
+        "{text}"
+    );
+    let metrics: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("fitted/metrics.json")).expect("metrics"),
+    )
+    .expect("json");
+    assert_eq!(metrics["cameras"], "refined");
+    assert_eq!(metrics["test_pose_refinement"]["steps"], 4);
     ok(&nerf(
         &[
             "render", "--run", "run", "--path", "orbit", "--frames", "2", "--size", "12",

@@ -117,8 +117,11 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
     let training = run::train(&run_options, &mut |e| hooks.train_event(e))?;
     let loaded = LoadedRun::open_on(&run_dir, opts.device.device)?;
     let eval_dir = run_dir.join("eval_test");
-    let eval = crate::eval::evaluate(&loaded, Split::Test, 1, &eval_dir, &|done, total| {
-        hooks.eval_progress(done, total)
+    let options = crate::eval::EvalOptions::new(Split::Test, 1);
+    let eval = crate::eval::evaluate(&loaded, &options, &eval_dir, &|p| {
+        if let crate::eval::EvalProgress::Rendering { rays, total } = p {
+            hooks.eval_progress(rays, total)
+        }
     })?;
     let orbit_dir = run_dir.join("render_orbit");
     let frames = FramesOptions::orbit(36, 4.0, run_dir.join("orbit.gif"));

@@ -9,6 +9,7 @@ use crate::data::{image::save_rgb_png, Split};
 use crate::error::Result;
 use crate::metrics::{psnr, ssim};
 use crate::refined_cameras::{PoseError, RunCameras};
+use crate::test_poses::{refine_test_poses, TestPoseFit, TestPoseReport};
 use crate::train::folder::LoadedRun;
 use crate::views::RenderSettings;
 
@@ -37,25 +38,57 @@ pub struct EvalReport {
     /// the given ones, after a similarity alignment (see `refined_cameras`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pose_error: Option<PoseError>,
-    /// `"aligned"`: the split's cameras were mapped into the model's frame by that
-    /// alignment; absent: used as given.
+    /// How the split's cameras were placed: `"aligned"` (mapped into the model's frame
+    /// by that alignment), `"refined"` (each fitted to the frozen model,
+    /// `--refine-test-poses`), `"aligned+refined"` (both); absent: used as given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub cameras: Option<String>,
+    /// What fitting the split's cameras did (`--refine-test-poses`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub test_pose_refinement: Option<TestPoseReport>,
     pub views: Vec<ViewMetrics>,
 }
 
-/// Renders every `every`-th view of `split`, writes `NNN.png` and `NNN_depth.png` into
+/// What to evaluate.
+#[derive(Clone, Copy, Debug)]
+pub struct EvalOptions {
+    pub split: Split,
+    /// Every `every`-th view of the split.
+    pub every: usize,
+    /// Fit each camera of the split to the frozen model first (BARF's protocol).
+    pub refine_poses: Option<TestPoseFit>,
+}
+
+impl EvalOptions {
+    /// Every `every`-th view of `split`, cameras as given (or aligned).
+    pub fn new(split: Split, every: usize) -> Self {
+        EvalOptions {
+            split,
+            every,
+            refine_poses: None,
+        }
+    }
+}
+
+/// How far an evaluation is.
+#[derive(Clone, Copy, Debug)]
+pub enum EvalProgress {
+    /// `--refine-test-poses`: optimisation steps done of `steps`.
+    FittingCameras { step: u64, steps: u64 },
+    /// Rays rendered of `total`.
+    Rendering { rays: usize, total: usize },
+}
+
+/// Renders every `every`-th view of the split, writes `NNN.png` and `NNN_depth.png` into
 /// `out_dir`, and `metrics.json` with per-view and mean PSNR / SSIM.
-/// `on_progress(rays_done, rays_total)` reports progress.
 pub fn evaluate(
     run: &LoadedRun,
-    split: Split,
-    every: usize,
+    options: &EvalOptions,
     out_dir: &Path,
-    on_progress: &(dyn Fn(usize, usize) + Sync),
+    on_progress: &(dyn Fn(EvalProgress) + Sync),
 ) -> Result<EvalReport> {
     let cfg = &run.config;
-    let every = every.max(1);
+    let (split, every) = (options.split, options.every.max(1));
     let mut data = cfg.open_scene(1)?.load(split, every)?;
     let run_cameras = RunCameras::of(run)?;
     if let Some(c) = &run_cameras {
@@ -64,6 +97,18 @@ pub fn evaluate(
             v.camera.c2w = to_model.apply_pose(&v.camera.c2w);
         }
     }
+    let test_pose_refinement = match options.refine_poses {
+        Some(fit) => Some(refine_test_poses(run, &mut data, fit, &|step, steps| {
+            on_progress(EvalProgress::FittingCameras { step, steps })
+        })?),
+        None => None,
+    };
+    let cameras = match (run_cameras.is_some(), test_pose_refinement.is_some()) {
+        (true, true) => Some("aligned+refined"),
+        (true, false) => Some("aligned"),
+        (false, true) => Some("refined"),
+        (false, false) => None,
+    };
     crate::io::create_dir(out_dir)?;
     let bg = cfg.background.eval_colour();
     let settings = RenderSettings::of_dataset(&data, bg);
@@ -74,7 +119,10 @@ pub fn evaluate(
         let i = k * every;
         let done_before = k * width * height;
         let r = crate::views::render_view(run.engine.as_ref(), &view.camera, &settings, &|n| {
-            on_progress(done_before + n, total_rays)
+            on_progress(EvalProgress::Rendering {
+                rays: done_before + n,
+                total: total_rays,
+            })
         });
         let truth = view.image.composite(bg);
         let image = out_dir.join(format!("{i:03}.png"));
@@ -105,7 +153,8 @@ pub fn evaluate(
         mean_psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
         mean_ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
         pose_error: run_cameras.as_ref().map(RunCameras::error),
-        cameras: run_cameras.as_ref().map(|_| "aligned".to_string()),
+        cameras: cameras.map(str::to_string),
+        test_pose_refinement,
         views,
     };
     crate::io::write_json(&out_dir.join("metrics.json"), &report)?;

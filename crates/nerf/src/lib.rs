@@ -35,6 +35,7 @@ pub mod refined_cameras;
 pub mod render;
 pub mod rng;
 pub mod stage;
+pub mod test_poses;
 pub mod train;
 pub mod video;
 pub mod views;

@@ -18,6 +18,9 @@ pub struct PixelSampling {
     /// Rays come from the central `crop` fraction of each image (1: everywhere).
     pub crop: f32,
     pub background: Background,
+    /// Which appearance code colours the rays (`PerView` when training: each its own
+    /// photo's; `Mean` when fitting cameras other than the training ones to a model).
+    pub appearance: crate::stage::Appearance,
 }
 
 /// Training rays with what they are compared to, and each ray's random stream (which also
@@ -43,8 +46,7 @@ impl TrainingRays {
         self.rays.clear();
         self.rays.near = data.near;
         self.rays.far = data.far;
-        // Each training ray is coloured with its own photo's appearance.
-        self.rays.appearance = crate::stage::Appearance::PerView;
+        self.rays.appearance = how.appearance;
         self.targets.clear();
         self.rngs.clear();
         for k in range {
@@ -178,6 +180,7 @@ mod tests {
             step: 9,
             crop: 0.5,
             background: Background::Random,
+            appearance: crate::stage::Appearance::PerView,
         };
         let (mut a, mut b) = (TrainingRays::default(), TrainingRays::default());
         a.draw(&data, &how, 3..1000);

@@ -164,23 +164,28 @@ impl<M: Model> Engine for CpuEngine<M> {
             });
         }
         let rule = self.model.update_rule();
+        // A frozen field is a learning rate of zero: Adam leaves every parameter before
+        // the camera group where it is.
+        let field_lr = if spec.frozen_field { 0.0 } else { spec.lr };
         self.adam.step_dirty(
             &mut self.params,
             &mut self.workers[0].grads,
-            spec.lr,
+            field_lr,
             DirtyStep {
                 scale: scale as f32,
                 lazy_end: rule.lazy_end,
                 weight_decay: rule.weight_decay,
-                group: rule.group_start.map(|at| (at, spec.camera_lr / spec.lr)),
+                group: rule.group_start.map(|at| (at, spec.camera_lr)),
             },
         );
         check.check("adam", "parameters", &self.params);
         if let Some(e) = check.take(step + 1) {
             return Err(e);
         }
-        self.model
-            .after_step(&self.params, step + 1, spec.sampling.seed);
+        if !spec.frozen_field {
+            self.model
+                .after_step(&self.params, step + 1, spec.sampling.seed);
+        }
         Ok(StepStats {
             step: step + 1,
             loss,
@@ -327,11 +332,13 @@ mod tests {
                 step: 0,
                 crop: 1.0,
                 background: Background::White,
+                appearance: crate::stage::Appearance::PerView,
             },
             lr: 1e-3,
             batch_rays: 64,
             progress: 0.0,
             camera_lr: 0.0,
+            frozen_field: false,
         };
         for check_finite in [false, true] {
             for mut engine in engines() {
@@ -360,5 +367,66 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// `--refine-test-poses`' step: with the field frozen, only the camera corrections
+    /// move; the field's parameters and the occupancy grid stay bit for bit.
+    #[test]
+    fn a_frozen_field_step_moves_only_the_cameras() {
+        use crate::data::pixels::PixelSampling;
+        use crate::data::synth::{self, SynthOptions};
+        use crate::data::{Background, Split};
+        use crate::model::camera_refine::CameraRefinement;
+        let opts = SynthOptions {
+            size: 16,
+            supersample: 1,
+            ..Default::default()
+        };
+        let data = synth::dataset(&opts, Split::Train, 3);
+        let config = ModelConfig::Fast(FastModelConfig {
+            refine_cameras: Some(CameraRefinement::new(3)),
+            samples_per_step: 4096,
+            ..FastModelConfig::default()
+        });
+        let options = EngineOptions {
+            adam: AdamConfig::default(),
+            chunk_rays: 64,
+            check_finite: false,
+        };
+        let mut engine = open(&config, options, 1);
+        let at = engine
+            .param_layout()
+            .tensors
+            .iter()
+            .find(|t| t.name == crate::model::camera_refine::TENSOR)
+            .expect("corrections")
+            .offset;
+        let before = engine.state();
+        for step in 0..3 {
+            let spec = StepSpec {
+                sampling: PixelSampling {
+                    seed: 1,
+                    step,
+                    crop: 1.0,
+                    background: Background::Random,
+                    appearance: crate::stage::Appearance::Mean,
+                },
+                lr: 1e-2,
+                batch_rays: 0,
+                progress: 1.0,
+                camera_lr: 1e-2,
+                frozen_field: true,
+            };
+            engine.train_step(&data, &spec).expect("step");
+        }
+        let after = engine.state();
+        assert!(after.params[..at] == before.params[..at], "the field moved");
+        assert!(after.buffers == before.buffers, "the occupancy grid moved");
+        let moved = after.params[at..]
+            .iter()
+            .zip(&before.params[at..])
+            .filter(|(a, b)| a != b)
+            .count();
+        assert_eq!(moved, 18, "every correction of the 3 cameras learns");
     }
 }

@@ -46,6 +46,10 @@ pub struct StepSpec {
     pub progress: f32,
     /// Learning rate of the camera corrections (models that refine cameras).
     pub camera_lr: f32,
+    /// Only the camera corrections learn; the field and its buffers (the occupancy grid)
+    /// stay as they are (fitting test cameras to a trained model, `nerf eval
+    /// --refine-test-poses`).
+    pub frozen_field: bool,
 }
 
 /// What one step did.

@@ -788,6 +788,7 @@ mod step_tests {
                 step: 2,
                 crop: 1.0,
                 background: Background::Random,
+                appearance: crate::stage::Appearance::PerView,
             },
             cameras: &[],
         };
@@ -861,6 +862,7 @@ mod step_tests {
                     step: 0,
                     crop: 1.0,
                     background: Background::White,
+                    appearance: crate::stage::Appearance::PerView,
                 },
                 batch_rays: 0,
                 chunk_rays: 64,

@@ -54,6 +54,11 @@ impl Adam {
     /// Starts an update that [`update`](Self::update) then applies range by range.
     pub fn begin_step(&mut self, lr: f32) -> AdamStep {
         self.t += 1;
+        self.step_at(lr)
+    }
+
+    /// The factors of the update under way (`t` already counted) at learning rate `lr`.
+    fn step_at(&self, lr: f32) -> AdamStep {
         let AdamConfig { beta1, beta2, .. } = self.config;
         AdamStep {
             lr_over_bc1: lr / (1.0 - beta1.powf(self.t as f32)),
@@ -124,8 +129,8 @@ pub struct DirtyStep {
     /// `weight_decay` (MLP weights).
     pub lazy_end: usize,
     pub weight_decay: f32,
-    /// A group of its own at the end of the vector, `(start, lr factor)`: updated densely,
-    /// without weight decay, at the learning rate times the factor (camera corrections).
+    /// A group of its own at the end of the vector, `(start, learning rate)`: updated
+    /// densely, without weight decay, at its own learning rate (camera corrections).
     pub group: Option<(usize, f32)>,
 }
 
@@ -147,11 +152,8 @@ impl Adam {
             weight_decay,
             group,
         } = how;
-        let (group_start, group_factor) = group.unwrap_or((params.len(), 1.0));
-        let group_step = AdamStep {
-            lr_over_bc1: step.lr_over_bc1 * group_factor,
-            ..step
-        };
+        let (group_start, group_lr) = group.unwrap_or((params.len(), lr));
+        let group_step = self.step_at(group_lr);
         params
             .par_chunks_mut(SEGMENT)
             .zip(self.m.par_chunks_mut(SEGMENT))

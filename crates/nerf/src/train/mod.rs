@@ -308,6 +308,7 @@ impl TrainConfig {
                     1.0
                 },
                 background: self.background,
+                appearance: crate::stage::Appearance::PerView,
             },
             lr: self.learning_rate_at(progress),
             batch_rays: self.batch_rays,
@@ -318,6 +319,7 @@ impl TrainConfig {
                     .map_or(0.0, |r| r.learning_rate(progress as f32)),
                 ModelConfig::Vanilla(_) => 0.0,
             },
+            frozen_field: false,
         }
     }
 }

@@ -408,6 +408,7 @@ mod tests {
             step: 7,
             crop: 1.0,
             background: Background::Random,
+            appearance: crate::stage::Appearance::PerView,
         };
         let n = 600;
         for (name, data, contract) in [
