@@ -28,6 +28,9 @@ let socket = null;
 let seq = 0;
 let shownSeq = -1;
 let mode = "rgb";
+// Runs trained with --appearance: the training photo whose learned look colours the
+// views and rendered paths (null: the mean of the photos').
+let appearance = null;
 let restTimer = null;
 let lastSent = 0;
 let sentAt = new Map();
@@ -84,7 +87,7 @@ function requestView(moving) {
   seq += 1;
   sentAt.set(seq, performance.now());
   if (sentAt.size > 200) sentAt.delete(sentAt.keys().next().value);
-  send({ type: "view", seq, mode, moving, camera: { c2w: pose(), fov_y: view.fov, width, height } });
+  send({ type: "view", seq, mode, moving, appearance, camera: { c2w: pose(), fov_y: view.fov, width, height } });
   lastSent = performance.now();
   drawOverlay();
 }
@@ -227,6 +230,7 @@ function jumpTo(cam) {
   setPose(cam.c2w, cam.fov_y);
   $("photo-box").hidden = false;
   $("photo-index").textContent = `#${cam.index}`;
+  $("photo-look").hidden = !(scene.appearance_photos > cam.index);
   $("photo").src = withToken(`/api/photo/${cam.index}`);
   requestView(false);
 }
@@ -419,6 +423,13 @@ function training(msg) {
   training.done = setTimeout(() => requestView(false), 3000);
 }
 
+// Colours views (and rendered paths) with training photo `index`'s look, or the mean's.
+function setAppearance(index) {
+  appearance = index;
+  $("appearance").value = index === null ? "" : String(index);
+  requestView(false);
+}
+
 // ---- start ----
 async function start() {
   const response = await fetch(withToken("/api/scene"));
@@ -438,19 +449,26 @@ async function start() {
   }
   home = { eye: view.eye, target: view.target, fov: view.fov };
   if (scene.live) $("training").hidden = false;
+  if (scene.appearance_photos > 0) {
+    const list = $("appearance");
+    for (let i = 0; i < scene.appearance_photos; i++) list.add(new Option(`photo #${i}`, String(i)));
+    $("appearance-box").hidden = false;
+  }
   installControls();
   $("mode").onchange = (e) => { mode = e.target.value; requestView(false); };
   $("fov").oninput = (e) => { view.fov = Number(e.target.value); $("fov-value").textContent = `${view.fov}°`; changed(); };
   $("resolution").onchange = () => requestView(false);
   $("frustums").onchange = drawOverlay;
   $("reset").onclick = () => { Object.assign(view, { eye: home.eye, target: home.target, fov: home.fov }); setPose(pose(), home.fov); requestView(false); };
+  $("appearance").onchange = (e) => { setAppearance(e.target.value === "" ? null : Number(e.target.value)); };
+  $("photo-look").onclick = () => setAppearance(selected);
   $("photo-close").onclick = () => { $("photo-box").hidden = true; selected = -1; drawOverlay(); };
   $("key-add").onclick = () => { keys.push({ c2w: pose(), fov_y: view.fov }); keysChanged(); };
   for (const id of ["seconds", "fps", "loop"]) $(id).onchange = keysChanged;
   $("scrub").oninput = (e) => showPathFrame(Number(e.target.value));
   $("play").onclick = play;
   $("save").onclick = () => send({ type: "save_path", name: $("path-name").value, path: pathSpec() });
-  $("render").onclick = () => send({ type: "render_path", name: $("path-name").value, path: pathSpec() });
+  $("render").onclick = () => send({ type: "render_path", name: $("path-name").value, path: pathSpec(), appearance });
   window.addEventListener("resize", () => { drawOverlay(); requestView(false); });
   connect();
 }

@@ -6,7 +6,7 @@
 use std::time::Instant;
 
 use crate::protocol::{Mode, ViewCamera};
-use crate::render::{level_sizes, render_level, Model, Pacer};
+use crate::render::{level_sizes, render_level, Model, Pacer, ViewRequest};
 
 /// Frames rendered per size (the median is reported).
 const REPEATS: usize = 5;
@@ -49,11 +49,17 @@ pub fn run(
 ) -> ViewBench {
     let never = || false;
     let mut pacer = Pacer::default();
-    let view = |width, height| ViewCamera {
-        c2w,
-        fov_y,
-        width,
-        height,
+    let view = |width, height| ViewRequest {
+        seq: 0,
+        camera: ViewCamera {
+            c2w,
+            fov_y,
+            width,
+            height,
+        },
+        mode: Mode::Rgb,
+        moving: false,
+        appearance: Default::default(),
     };
     let mut sizes = Vec::new();
     for &h in heights {
@@ -62,7 +68,7 @@ pub fn run(
         let times: Vec<f64> = (0..REPEATS)
             .map(|_| {
                 let t0 = Instant::now();
-                render_level(model, &mut pacer, 0, &v, Mode::Rgb, (w, h), &never);
+                render_level(model, &mut pacer, &v, (w, h), &never);
                 t0.elapsed().as_secs_f64()
             })
             .collect();
@@ -76,19 +82,19 @@ pub fn run(
     }
     let v = view(full.0, full.1);
     let preview_scale = pacer.preview_scale(full.0, full.1);
-    let preview = level_sizes(&v, preview_scale, true)[0];
+    let preview = level_sizes(&v.camera, preview_scale, true)[0];
     let preview_seconds = median(
         (0..REPEATS)
             .map(|_| {
                 let t0 = Instant::now();
-                render_level(model, &mut pacer, 0, &v, Mode::Rgb, preview, &never);
+                render_level(model, &mut pacer, &v, preview, &never);
                 t0.elapsed().as_secs_f64()
             })
             .collect(),
     );
     let t0 = Instant::now();
-    for size in level_sizes(&v, preview_scale, false) {
-        render_level(model, &mut pacer, 0, &v, Mode::Rgb, size, &never);
+    for size in level_sizes(&v.camera, preview_scale, false) {
+        render_level(model, &mut pacer, &v, size, &never);
     }
     ViewBench {
         sizes,

@@ -78,11 +78,13 @@ pub struct Rendered {
 
 /// Saves `path`, then renders it into `renders/<name>/` with a video beside it
 /// (`renders/<name>.mp4` through ffmpeg, or `.gif` without it), as `nerf render --path
-/// file` does; `on_frame` hears the frames done of all.
+/// file` does (with `appearance`'s photo look, as `--appearance-of` gives it);
+/// `on_frame` hears the frames done of all.
 pub fn render(
     viewer: &Viewer,
     name: &str,
     path: &CameraPath,
+    appearance: nerf::stage::Appearance,
     on_frame: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Rendered, String> {
     let file = save(&viewer.run_dir, name, path)?;
@@ -98,6 +100,9 @@ pub fn render(
     opts.camera_path = Some(file);
     opts.radius = None;
     opts.fps = path.fps;
+    if let nerf::stage::Appearance::Of(i) = appearance {
+        opts.appearance_of = Some(i.to_string());
+    }
     let run = viewer.model.run.read().unwrap_or_else(|e| e.into_inner());
     let progress = |p: FrameProgress| on_frame(p.frame, p.frames);
     render_frames(&run, &opts, &viewer.run_dir.join(&folder), &progress)

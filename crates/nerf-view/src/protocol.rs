@@ -83,14 +83,23 @@ pub enum ClientMessage {
         mode: Mode,
         #[serde(default)]
         moving: bool,
+        /// Models trained with `--appearance`: colour with training photo `i`'s learned
+        /// look; absent or null: the mean of the photos'.
+        #[serde(default)]
+        appearance: Option<u32>,
     },
     /// The smooth path through the keyframes, as poses (for the preview and scrubbing).
     PreviewPath { path: CameraPath },
     /// Save the path as `camera_paths/<name>.json` in the run folder (nerfstudio format).
     SavePath { name: String, path: CameraPath },
     /// Save the path, then render it to `renders/<name>/` and `renders/<name>.mp4` (or
-    /// `.gif` without ffmpeg), reporting progress.
-    RenderPath { name: String, path: CameraPath },
+    /// `.gif` without ffmpeg), reporting progress; `appearance` as for `View`.
+    RenderPath {
+        name: String,
+        path: CameraPath,
+        #[serde(default)]
+        appearance: Option<u32>,
+    },
 }
 
 /// Messages to the page.
@@ -237,7 +246,8 @@ impl ClientMessage {
                 check_size(camera.width, camera.height, "view")?;
             }
             ClientMessage::PreviewPath { path } => path.check()?,
-            ClientMessage::SavePath { name, path } | ClientMessage::RenderPath { name, path } => {
+            ClientMessage::SavePath { name, path }
+            | ClientMessage::RenderPath { name, path, .. } => {
                 check_name(name)?;
                 path.check()?;
             }

@@ -8,7 +8,7 @@ use std::time::Instant;
 
 use nerf::camera::Camera;
 use nerf::data::image::to_u8;
-use nerf::stage::RayOutput;
+use nerf::stage::{Appearance, RayOutput};
 use nerf::train::folder::LoadedRun;
 use nerf::views::RenderSettings;
 
@@ -34,6 +34,19 @@ pub struct Model {
     /// Threads of its own to render with (beside a training run, so that viewing takes
     /// at most these cores); `None`: all of them.
     pub pool: Option<rayon::ThreadPool>,
+}
+
+/// A view the page asked for.
+#[derive(Clone, Debug)]
+pub struct ViewRequest {
+    /// The page's number for the request (its frames carry it back).
+    pub seq: u32,
+    pub camera: ViewCamera,
+    pub mode: Mode,
+    /// The camera is being dragged: render the preview level only.
+    pub moving: bool,
+    /// Which learned photo appearance colours it (models trained with `--appearance`).
+    pub appearance: Appearance,
 }
 
 /// One encoded frame: header and JPEG.
@@ -146,21 +159,26 @@ pub fn camera_at(view: &ViewCamera, width: usize, height: usize) -> Camera {
 pub fn render(
     model: &Model,
     camera: &Camera,
+    appearance: Appearance,
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Option<Vec<RayOutput>> {
     match &model.pool {
-        Some(pool) => pool.install(|| render_here(model, camera, cancelled)),
-        None => render_here(model, camera, cancelled),
+        Some(pool) => pool.install(|| render_here(model, camera, appearance, cancelled)),
+        None => render_here(model, camera, appearance, cancelled),
     }
 }
 
 fn render_here(
     model: &Model,
     camera: &Camera,
+    appearance: Appearance,
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Option<Vec<RayOutput>> {
     let run = model.run.read().unwrap_or_else(|e| e.into_inner());
-    let settings = model.settings_at(camera.origin());
+    let settings = RenderSettings {
+        appearance,
+        ..model.settings_at(camera.origin())
+    };
     nerf::views::render_pixels(
         run.engine.as_ref(),
         camera,
@@ -207,15 +225,20 @@ pub fn jpeg(rgb: &[u8], width: usize, height: usize) -> Vec<u8> {
 pub fn render_level(
     model: &Model,
     pacer: &mut Pacer,
-    seq: u32,
-    view: &ViewCamera,
-    mode: Mode,
+    request: &ViewRequest,
     (w, h): (usize, usize),
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Option<Frame> {
+    let ViewRequest {
+        seq,
+        camera: ref view,
+        mode,
+        appearance,
+        ..
+    } = *request;
     let camera = camera_at(view, w, h);
     let t0 = Instant::now();
-    let out = render(model, &camera, cancelled)?;
+    let out = render(model, &camera, appearance, cancelled)?;
     let seconds = t0.elapsed().as_secs_f64();
     pacer.record(w * h, seconds);
     let rgb = to_rgb8(&out, mode, &model.settings_at(view.c2w.map(|r| r[3])));

@@ -10,17 +10,11 @@ use axum::extract::ws::{Message, WebSocket};
 use tokio::sync::{broadcast, mpsc};
 
 use crate::paths;
-use crate::protocol::{ClientMessage, Mode, ServerMessage, ViewCamera};
-use crate::render::{level_sizes, render_level, Model, Pacer};
+use crate::protocol::{ClientMessage, ServerMessage};
+use crate::render::{level_sizes, render_level, Model, Pacer, ViewRequest};
 use crate::state::Viewer;
 
-/// A view to render.
-struct Job {
-    seq: u32,
-    camera: ViewCamera,
-    mode: Mode,
-    moving: bool,
-}
+type Job = ViewRequest;
 
 /// The newest view request, handed from the socket to the render worker.
 #[derive(Default)]
@@ -69,15 +63,7 @@ fn render_worker(model: Arc<Model>, latest: Arc<Latest>, out: mpsc::UnboundedSen
         let cancelled = || latest.generation.load(Ordering::SeqCst) != generation;
         let preview = pacer.preview_scale(job.camera.width, job.camera.height);
         for size in level_sizes(&job.camera, preview, job.moving) {
-            let frame = render_level(
-                &model,
-                &mut pacer,
-                job.seq,
-                &job.camera,
-                job.mode,
-                size,
-                &cancelled,
-            );
+            let frame = render_level(&model, &mut pacer, &job, size, &cancelled);
             let Some(frame) = frame else { break };
             if out.send(Message::Binary(frame.bytes.into())).is_err() {
                 return;
@@ -161,12 +147,19 @@ fn handle(
             camera,
             mode,
             moving,
-        } => latest.post(Job {
-            seq,
-            camera,
-            mode,
-            moving,
-        }),
+            appearance,
+        } => match viewer.appearance(appearance) {
+            Ok(appearance) => latest.post(Job {
+                seq,
+                camera,
+                mode,
+                moving,
+                appearance,
+            }),
+            Err(e) => {
+                let _ = tx.send(error(e));
+            }
+        },
         ClientMessage::PreviewPath { path } => {
             let (poses, fov_y) = paths::frames(&path);
             let _ = tx.send(text(&ServerMessage::PathPoses { poses, fov_y }));
@@ -183,7 +176,18 @@ fn handle(
                 let _ = tx.send(reply);
             });
         }
-        ClientMessage::RenderPath { name, path } => {
+        ClientMessage::RenderPath {
+            name,
+            path,
+            appearance,
+        } => {
+            let appearance = match viewer.appearance(appearance) {
+                Ok(a) => a,
+                Err(e) => {
+                    let _ = tx.send(error(e));
+                    return;
+                }
+            };
             if viewer.rendering_path.swap(true, Ordering::SeqCst) {
                 let _ = tx.send(error("a camera path is already being rendered"));
                 return;
@@ -193,7 +197,7 @@ fn handle(
                 let progress = |done: usize, total: usize| {
                     let _ = tx.send(text(&ServerMessage::RenderProgress { done, total }));
                 };
-                let reply = match paths::render(&viewer, &name, &path, &progress) {
+                let reply = match paths::render(&viewer, &name, &path, appearance, &progress) {
                     Ok(r) => text(&ServerMessage::Rendered {
                         folder: r.folder,
                         video: r.video,

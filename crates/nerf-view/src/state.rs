@@ -43,6 +43,9 @@ pub struct SceneInfo {
     pub radius: f32,
     /// Whether a run is training under this viewer (progress messages will come).
     pub live: bool,
+    /// Training photos with a learned appearance code (`--appearance`; 0 without): the
+    /// page offers to render with any one's look.
+    pub appearance_photos: usize,
 }
 
 /// One viewer's shared state.
@@ -84,6 +87,7 @@ impl Viewer {
             center: [0.0; 3],
             radius: mean_distance(&cameras, [0.0; 3]),
             live,
+            appearance_photos: appearance_photos(&run.config.model),
         };
         Ok(Viewer {
             model: Arc::new(Model {
@@ -144,6 +148,41 @@ impl Viewer {
             view.image.width,
             view.image.height,
         ))
+    }
+}
+
+/// Training photos with an appearance code in `model`.
+fn appearance_photos(model: &nerf::model::ModelConfig) -> usize {
+    match model {
+        nerf::model::ModelConfig::Fast(m) if m.field.appearance_dims > 0 => {
+            m.field.appearance_images
+        }
+        _ => 0,
+    }
+}
+
+impl Viewer {
+    /// The render settings' appearance for a page's choice, or why it cannot be.
+    pub fn appearance(
+        &self,
+        photo: Option<u32>,
+    ) -> std::result::Result<nerf::stage::Appearance, String> {
+        let Some(i) = photo else {
+            return Ok(nerf::stage::Appearance::Mean);
+        };
+        let n = self.info.appearance_photos;
+        if n == 0 {
+            return Err(
+                "this run has no per-photo appearance (train with --appearance)".to_string(),
+            );
+        }
+        if i as usize >= n {
+            return Err(format!(
+                "appearance of photo {i}: the run has codes for photos 0 to {}",
+                n - 1
+            ));
+        }
+        Ok(nerf::stage::Appearance::Of(i))
     }
 }
 

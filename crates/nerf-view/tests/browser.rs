@@ -20,7 +20,7 @@ use nerf_view::render::camera_at;
 use serde_json::{json, Value};
 
 mod common;
-use common::trained_run;
+use common::{trained_run, LOUD_PHOTO};
 
 const CHROMIUM: &str = "/usr/bin/chromium";
 const CHROMEDRIVER: &str = "/usr/bin/chromedriver";
@@ -276,6 +276,47 @@ fn the_page_draws_the_model_follows_the_mouse_and_saves_paths() {
     eprintln!("page frame {w}x{h} against nerf render: {psnr:.1} dB");
     assert!(psnr > 30.0, "the page shows something else: {psnr:.1} dB");
     browser.screenshot("view.png");
+
+    // Issue 14 #3: the look of one training photo, picked on the page, is what `nerf
+    // render --appearance-of` renders.
+    let shown = browser.js("return !document.getElementById('appearance-box').hidden;");
+    assert_eq!(shown, json!(true), "the look picker is hidden");
+    browser.js(&format!(
+        "const a = document.getElementById('appearance'); a.value = '{LOUD_PHOTO}'; \
+         a.dispatchEvent(new Event('change')); return true;"
+    ));
+    let (_, _, _, looked) = final_frame(&browser, "the frame with a photo's look");
+    let look_settings = nerf::views::RenderSettings {
+        appearance: nerf::stage::Appearance::Of(LOUD_PHOTO as u32),
+        ..settings
+    };
+    let want_look = nerf::views::render_view(
+        run.engine.as_ref(),
+        &camera_at(&camera, w, h),
+        &look_settings,
+        &|_| {},
+    );
+    let psnr_to = |px: &[u8], want: &[f32]| {
+        let mse = px
+            .chunks_exact(4)
+            .flat_map(|p| [p[0], p[1], p[2]])
+            .zip(want)
+            .map(|(a, b)| (a as f64 / 255.0 - b.clamp(0.0, 1.0) as f64).powi(2))
+            .sum::<f64>()
+            / want.len() as f64;
+        -10.0 * mse.log10()
+    };
+    let (same, mean_look) = (
+        psnr_to(&looked, &want_look.rgb),
+        psnr_to(&looked, &want.rgb),
+    );
+    eprintln!("photo {LOUD_PHOTO}'s look on the page: {same:.1} dB against its render, {mean_look:.1} dB against the mean look");
+    assert!(
+        same > 30.0 && mean_look < same - 5.0,
+        "{same:.1} / {mean_look:.1} dB"
+    );
+    browser.screenshot("look.png");
+    browser.js("const a = document.getElementById('appearance'); a.value = ''; a.dispatchEvent(new Event('change')); return true;");
 
     // A drag orbits the camera: a new frame for a new view.
     browser.js("document.getElementById('key-add').click(); return true;");

@@ -16,7 +16,7 @@ use nerf_view::{start, Running, Viewer};
 use tokio_tungstenite::tungstenite::Message;
 
 mod common;
-use common::trained_run;
+use common::{trained_run, LOUD_PHOTO};
 
 const LOCAL: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
 
@@ -125,6 +125,7 @@ fn the_viewer_serves_its_run_and_only_its_run() {
     let scene: serde_json::Value = serde_json::from_slice(&scene).expect("json");
     assert_eq!(scene["cameras"].as_array().map(Vec::len), Some(12));
     assert_eq!(scene["step"], 60);
+    assert_eq!(scene["appearance_photos"], 12);
     // A training photo by index, and clear refusals for anything else.
     let (status, jpeg) = get(addr, "/api/photo/2");
     assert_eq!(status, 200);
@@ -152,6 +153,7 @@ fn the_viewer_serves_its_run_and_only_its_run() {
         for bad in [
             "{not json".to_string(),
             r#"{"type":"view","seq":1}"#.to_string(),
+            r#"{"type":"view","seq":1,"mode":"rgb","appearance":12,"camera":{"c2w":[[1,0,0,0],[0,1,0,0],[0,0,1,4]],"fov_y":40,"width":8,"height":8}}"#.to_string(),
             view_request(1, [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 4.0]], 40.0, (9000, 10), "rgb"),
             r#"{"type":"save_path","name":"../../escape","path":{"keyframes":[{"c2w":[[1,0,0,0],[0,1,0,0],[0,0,1,4]],"fov_y":40},{"c2w":[[1,0,0,0],[0,1,0,0],[0,0,1,3]],"fov_y":40}],"seconds":1,"fps":4,"width":16,"height":16}}"#.to_string(),
         ] {
@@ -206,6 +208,43 @@ fn the_viewer_serves_its_run_and_only_its_run() {
         let psnr = -10.0 * mse.log10();
         eprintln!("viewer frame against nerf render: {psnr:.1} dB (JPEG)");
         assert!(psnr > 35.0, "the frame is not the render: {psnr:.1} dB");
+
+        // Issue 14 #3: the same view with one training photo's learned look, as `nerf
+        // render --appearance-of` renders it, and unlike the mean look.
+        let mut request: serde_json::Value =
+            serde_json::from_str(&view_request(9, test_cam.c2w, fov_y, size, "rgb")).expect("json");
+        request["appearance"] = serde_json::json!(LOUD_PHOTO);
+        ws.send(Message::text(request.to_string())).await.expect("send");
+        let looked = loop {
+            if let Message::Binary(b) = next(&mut ws).await {
+                let h = FrameHeader::decode(&b).expect("header");
+                if h.last && h.seq == 9 {
+                    break b;
+                }
+            }
+        };
+        let looked = image::load_from_memory(&looked[HEADER_BYTES..]).expect("jpeg").to_rgb8();
+        let want_look = {
+            let run = LoadedRun::open(&run_dir).expect("run");
+            let scene = run.config.open_scene(1).expect("scene");
+            let settings = nerf::views::RenderSettings {
+                appearance: nerf::stage::Appearance::Of(LOUD_PHOTO as u32),
+                ..nerf::views::RenderSettings::of_scene(&scene, run.config.background.eval_colour())
+            };
+            nerf::views::render_view(run.engine.as_ref(), &test_cam, &settings, &|_| {})
+        };
+        let psnr_of = |a: &[u8], b: &[f32]| {
+            let mse = a
+                .iter()
+                .zip(b)
+                .map(|(&a, &b)| (a as f64 / 255.0 - b.clamp(0.0, 1.0) as f64).powi(2))
+                .sum::<f64>()
+                / b.len() as f64;
+            -10.0 * mse.log10()
+        };
+        let (same, mean) = (psnr_of(looked.as_raw(), &want_look.rgb), psnr_of(looked.as_raw(), &want.rgb));
+        eprintln!("photo {LOUD_PHOTO}'s look: {same:.1} dB against its render, {mean:.1} dB against the mean look");
+        assert!(same > 35.0 && mean < same - 5.0, "{same:.1} dB / {mean:.1} dB");
 
         // Depth and opacity frames come too.
         for mode in ["depth", "opacity"] {

@@ -8,7 +8,12 @@ use nerf::model::ModelConfig;
 use nerf::train::run::{self, RunOptions};
 use nerf::train::TrainConfig;
 
-/// A small chair trained for a few steps into `dir/run`.
+/// Training photo whose learned look [`trained_run`] makes loud.
+pub const LOUD_PHOTO: usize = 3;
+
+/// A small chair trained for a few steps into `dir/run`, with a code per photo
+/// (`--appearance`); photo [`LOUD_PHOTO`]'s code is then set far from the others, so
+/// rendering with its look visibly differs from the mean.
 pub fn trained_run(dir: &Path) -> PathBuf {
     let data = dir.join("chair");
     let opts = SynthOptions {
@@ -26,6 +31,8 @@ pub fn trained_run(dir: &Path) -> PathBuf {
         m.field.grid.log2_table_size = 12;
         m.samples_per_step = 1 << 12;
         m.occupancy.resolution = 32;
+        m.field.appearance_dims = 8;
+        m.field.appearance_images = 12;
     }
     c.steps = 60;
     c.val_every = 0;
@@ -41,5 +48,22 @@ pub fn trained_run(dir: &Path) -> PathBuf {
         device: Device::Cpu,
     };
     run::train(&options, &mut |_| {}).expect("train");
+    let mut run = nerf::train::folder::LoadedRun::open(&out).expect("open");
+    let mut state = run.engine.state();
+    let codes = run
+        .engine
+        .param_layout()
+        .tensors
+        .iter()
+        .find(|t| t.name == "appearance.codes")
+        .expect("appearance codes")
+        .clone();
+    let dims = codes.shape[1];
+    let row = codes.offset + LOUD_PHOTO * dims;
+    state.params[row..row + dims].fill(3.0);
+    run.engine.set_state(state).expect("state");
+    let ckpt = out.join(nerf::train::folder::CHECKPOINT_FILE);
+    nerf::train::folder::save_checkpoint(&ckpt, run.engine.as_ref(), run.step, 1, 0.0)
+        .expect("checkpoint");
     out
 }
