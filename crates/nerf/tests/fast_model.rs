@@ -226,7 +226,12 @@ fn refinement_recovers_perturbed_cameras() {
         seed: 1,
     });
     if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
-        m.refine_cameras = Some(CameraRefinement::new(40));
+        // Errors of degrees: the learning rate for large errors (`--camera-lr 3e-3`).
+        m.refine_cameras = Some(CameraRefinement {
+            lr_init: 3e-3,
+            lr_final: 3e-5,
+            ..CameraRefinement::new(40)
+        });
     }
     let out = dir.path().join("run");
     run::train(&options(&out, config, false, None), &mut |_| {}).expect("train");
