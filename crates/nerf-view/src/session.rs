@@ -14,12 +14,10 @@ use crate::protocol::{ClientMessage, ServerMessage};
 use crate::render::{level_sizes, render_level, Model, Pacer, ViewRequest};
 use crate::state::Viewer;
 
-type Job = ViewRequest;
-
 /// The newest view request, handed from the socket to the render worker.
 #[derive(Default)]
 struct Latest {
-    job: Mutex<Option<Job>>,
+    job: Mutex<Option<ViewRequest>>,
     wake: Condvar,
     /// Counts requests: a render whose generation is no longer current is cancelled.
     generation: AtomicU64,
@@ -27,7 +25,7 @@ struct Latest {
 }
 
 impl Latest {
-    fn post(&self, job: Job) {
+    fn post(&self, job: ViewRequest) {
         let mut slot = self.job.lock().unwrap_or_else(|e| e.into_inner());
         *slot = Some(job);
         self.generation.fetch_add(1, Ordering::SeqCst);
@@ -42,7 +40,7 @@ impl Latest {
     }
 
     /// Waits for the next request; `None` once the page has gone.
-    fn take(&self) -> Option<(Job, u64)> {
+    fn take(&self) -> Option<(ViewRequest, u64)> {
         let mut slot = self.job.lock().unwrap_or_else(|e| e.into_inner());
         loop {
             if self.closed.load(Ordering::SeqCst) {
@@ -149,7 +147,7 @@ fn handle(
             moving,
             appearance,
         } => match viewer.appearance(appearance) {
-            Ok(appearance) => latest.post(Job {
+            Ok(appearance) => latest.post(ViewRequest {
                 seq,
                 camera,
                 mode,

@@ -87,18 +87,21 @@ pub fn refine_test_poses(
         });
     }
     let levels = model.field.grid.levels;
-    let mut fit_model = model.clone();
-    fit_model.refine_cameras = Some(CameraRefinement {
+    let refinement = CameraRefinement {
         cameras: data.views.len(),
         lr_init: fit.lr_init,
         lr_final: fit.lr_final,
         anneal: [0.0, 0.0],
         start_levels: levels as f32,
-    });
+    };
+    let mut fit_model = model.clone();
+    fit_model.refine_cameras = Some(refinement);
     let config = ModelConfig::Fast(fit_model);
     let mut engine = crate::engine::cpu::open(&config, cfg.engine_options(), cfg.seed);
     let trained = run.engine.state();
-    let field_len = camera_refine_start(run).unwrap_or(trained.params.len());
+    // The field's parameters: all of them, less the run's own camera corrections.
+    let field_len =
+        camera_refine::corrections_start(run.engine.param_layout()).unwrap_or(trained.params.len());
     let mut params = trained.params[..field_len].to_vec();
     params.resize(engine.param_layout().total, 0.0);
     let n = params.len();
@@ -109,11 +112,6 @@ pub fn refine_test_poses(
         adam_t: 0,
         buffers: trained.buffers,
     })?;
-    let schedule = CameraRefinement {
-        lr_init: fit.lr_init,
-        lr_final: fit.lr_final,
-        ..CameraRefinement::new(0)
-    };
     let tenth = (fit.steps / 10).max(1);
     let (mut before, mut after) = (Vec::new(), Vec::new());
     for step in 0..fit.steps {
@@ -129,7 +127,7 @@ pub fn refine_test_poses(
             lr: 0.0,
             batch_rays: cfg.batch_rays,
             progress: 1.0,
-            camera_lr: schedule.learning_rate(progress),
+            camera_lr: refinement.learning_rate(progress),
             frozen_field: true,
         };
         let stats = engine.train_step(data, &spec)?;
@@ -159,15 +157,4 @@ pub fn refine_test_poses(
         batch_psnr_before: mean(&before),
         batch_psnr_after: mean(&after),
     })
-}
-
-/// Where `run`'s own camera corrections begin in its parameters (runs that refined their
-/// training cameras), i.e. where the field's parameters end.
-fn camera_refine_start(run: &LoadedRun) -> Option<usize> {
-    run.engine
-        .param_layout()
-        .tensors
-        .iter()
-        .find(|t| t.name == camera_refine::TENSOR)
-        .map(|t| t.offset)
 }

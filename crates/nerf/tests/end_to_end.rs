@@ -41,13 +41,7 @@ fn trains_a_small_scene_past_a_psnr_floor() {
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!((summary.steps, summary.reason), (400, StopReason::Steps));
     let loaded = LoadedRun::open(&out).expect("open run");
-    let report = nerf::eval::evaluate(
-        &loaded,
-        &nerf::eval::EvalOptions::new(Split::Test, 1),
-        &out.join("eval"),
-        &|_| {},
-    )
-    .expect("eval");
+    let report = common::eval_test(&loaded, 1, &out.join("eval"));
     // An all-white prediction scores about 11 dB on these views; an untrained net about 8.
     assert!(
         report.mean_psnr > 18.0,

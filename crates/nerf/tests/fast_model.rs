@@ -42,13 +42,7 @@ fn fast_model_trains_a_small_scene_past_a_psnr_floor() {
         "{:.1}% of the grid still occupied",
         100.0 * occupied
     );
-    let report = nerf::eval::evaluate(
-        &loaded,
-        &nerf::eval::EvalOptions::new(Split::Test, 1),
-        &out.join("eval"),
-        &|_| {},
-    )
-    .expect("eval");
+    let report = common::eval_test(&loaded, 1, &out.join("eval"));
     eprintln!(
         "fast model test PSNR {:.2} dB, SSIM {:.3}",
         report.mean_psnr, report.mean_ssim
@@ -186,13 +180,7 @@ fn appearance_codes_absorb_exposure_changes() {
         let out = dir.path().join(name);
         run::train(&options(&out, config, false, None), &mut |_| {}).expect("train");
         let loaded = LoadedRun::open(&out).expect("open");
-        let report = nerf::eval::evaluate(
-            &loaded,
-            &nerf::eval::EvalOptions::new(Split::Test, 1),
-            &out.join("eval"),
-            &|_| {},
-        )
-        .expect("eval");
+        let report = common::eval_test(&loaded, 1, &out.join("eval"));
         report.mean_psnr
     };
     let plain = psnr("plain", 0);
@@ -227,11 +215,7 @@ fn refinement_recovers_perturbed_cameras() {
     });
     if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
         // Errors of degrees: the learning rate for large errors (`--camera-lr 3e-3`).
-        m.refine_cameras = Some(CameraRefinement {
-            lr_init: 3e-3,
-            lr_final: 3e-5,
-            ..CameraRefinement::new(40)
-        });
+        m.refine_cameras = Some(CameraRefinement::new(40).with_learning_rate(3e-3));
     }
     let out = dir.path().join("run");
     run::train(&options(&out, config, false, None), &mut |_| {}).expect("train");
@@ -261,13 +245,7 @@ fn refinement_recovers_perturbed_cameras() {
         after.rotation_deg < 0.5 * before.rotation_deg,
         "{before:?} -> {after:?}"
     );
-    let report = nerf::eval::evaluate(
-        &loaded,
-        &nerf::eval::EvalOptions::new(Split::Test, 2),
-        &out.join("eval"),
-        &|_| {},
-    )
-    .expect("eval");
+    let report = common::eval_test(&loaded, 2, &out.join("eval"));
     assert_eq!(report.pose_error, Some(after));
     assert_eq!(report.cameras.as_deref(), Some("aligned"));
 

@@ -168,20 +168,8 @@ fn checkpoints_move_between_devices() {
         on_gpu.engine.state(),
         "the same checkpoint"
     );
-    let a = nerf::eval::evaluate(
-        &on_cpu,
-        &nerf::eval::EvalOptions::new(Split::Test, 2),
-        &dir.path().join("ea"),
-        &|_| {},
-    )
-    .expect("eval cpu");
-    let b = nerf::eval::evaluate(
-        &on_gpu,
-        &nerf::eval::EvalOptions::new(Split::Test, 2),
-        &dir.path().join("eb"),
-        &|_| {},
-    )
-    .expect("eval gpu");
+    let a = common::eval_test(&on_cpu, 2, &dir.path().join("ea"));
+    let b = common::eval_test(&on_gpu, 2, &dir.path().join("eb"));
     eprintln!(
         "eval after 30 steps: cpu {:.3} dB, gpu {:.3} dB",
         a.mean_psnr, b.mean_psnr
@@ -267,13 +255,7 @@ fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
     )
     .expect("train");
     let loaded = LoadedRun::open_on(&out, Device::Wgpu).expect("open");
-    let report = nerf::eval::evaluate(
-        &loaded,
-        &nerf::eval::EvalOptions::new(Split::Test, 1),
-        &out.join("eval"),
-        &|_| {},
-    )
-    .expect("eval");
+    let report = common::eval_test(&loaded, 1, &out.join("eval"));
     eprintln!(
         "GPU engine: test PSNR {:.2} dB, SSIM {:.3} after 400 steps ({:.0} s with eval)",
         report.mean_psnr,

@@ -151,13 +151,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
     )
     .expect("train");
     let run = nerf::train::run::LoadedRun::open(&out).expect("open run");
-    let report = nerf::eval::evaluate(
-        &run,
-        &nerf::eval::EvalOptions::new(Split::Test, 1),
-        &out.join("eval"),
-        &|_| {},
-    )
-    .expect("eval");
+    let report = common::eval_test(&run, 1, &out.join("eval"));
     // The best constant image (each view's own mean colour) scores far lower (measured:
     // 26.3 dB against 17.7 dB).
     let test = scene.load(Split::Test, 1).expect("test views");

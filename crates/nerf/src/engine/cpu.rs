@@ -394,13 +394,8 @@ mod tests {
             check_finite: false,
         };
         let mut engine = open(&config, options, 1);
-        let at = engine
-            .param_layout()
-            .tensors
-            .iter()
-            .find(|t| t.name == crate::model::camera_refine::TENSOR)
-            .expect("corrections")
-            .offset;
+        let at = crate::model::camera_refine::corrections_start(engine.param_layout())
+            .expect("corrections");
         let before = engine.state();
         for step in 0..3 {
             let spec = StepSpec {

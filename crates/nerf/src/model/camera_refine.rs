@@ -54,10 +54,21 @@ impl CameraRefinement {
     pub fn new(cameras: usize) -> Self {
         CameraRefinement {
             cameras,
-            lr_init: DEFAULT_LR,
-            lr_final: DEFAULT_LR / 100.0,
+            lr_init: 0.0,
+            lr_final: 0.0,
             anneal: [0.05, 0.4],
             start_levels: 4.0,
+        }
+        .with_learning_rate(DEFAULT_LR)
+    }
+
+    /// The same refinement at learning rate `lr`, decaying to a hundredth of it
+    /// (`--camera-lr`).
+    pub fn with_learning_rate(self, lr: f32) -> Self {
+        CameraRefinement {
+            lr_init: lr,
+            lr_final: lr / 100.0,
+            ..self
         }
     }
 
@@ -251,6 +262,16 @@ impl CameraStep {
 pub fn corrections<'a>(layout: &crate::nn::ParamLayout, params: &'a [f32]) -> Option<&'a [f32]> {
     let t = layout.tensors.iter().find(|t| t.name == TENSOR)?;
     params.get(t.range())
+}
+
+/// Where the corrections begin in a parameter vector laid out by `layout` (they come
+/// last: everything before them is the field's); `None` when no camera is refined.
+pub fn corrections_start(layout: &crate::nn::ParamLayout) -> Option<usize> {
+    layout
+        .tensors
+        .iter()
+        .find(|t| t.name == TENSOR)
+        .map(|t| t.offset)
 }
 
 #[cfg(test)]

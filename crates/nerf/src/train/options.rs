@@ -267,7 +267,7 @@ impl TrainOptions {
                                 "--camera-lr {lr}: the learning rate must be a positive number"
                             ));
                         }
-                        (r.lr_init, r.lr_final) = (lr, lr / 100.0);
+                        r = r.with_learning_rate(lr);
                     }
                     m.refine_cameras = Some(r);
                     on_notice("note: refining the training cameras' poses with the field");

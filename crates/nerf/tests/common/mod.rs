@@ -58,3 +58,14 @@ pub fn cpu_run(out: &Path, config: TrainConfig) -> nerf::train::run::RunOptions 
         device: nerf::engine::Device::Cpu,
     }
 }
+
+/// `nerf eval` of `run` on every `every`-th test view into `out` (cameras as given or
+/// aligned, no progress).
+pub fn eval_test(
+    run: &nerf::train::folder::LoadedRun,
+    every: usize,
+    out: &Path,
+) -> nerf::eval::EvalReport {
+    let options = nerf::eval::EvalOptions::new(nerf::data::Split::Test, every);
+    nerf::eval::evaluate(run, &options, out, &|_| {}).expect("eval")
+}
