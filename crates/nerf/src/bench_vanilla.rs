@@ -26,6 +26,10 @@ pub struct BenchOptions {
 #[derive(Clone, Debug, Serialize)]
 pub struct BenchReport {
     pub threads: usize,
+    /// The engine measured (`cpu, 16 threads`, `wgpu/vulkan: NVIDIA H100 80GB HBM3`).
+    pub engine: String,
+    /// Whether the step ran on the CPU, the only engine the GEMM peak describes.
+    pub on_cpu: bool,
     pub preset: String,
     /// GFLOP/s of one 16384x256 by 256x256 product on one thread.
     pub gemm_gflops_one_thread: f64,
@@ -189,6 +193,8 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
 
     Ok(BenchReport {
         threads,
+        on_cpu: trainer.engine.describe().starts_with("cpu"),
+        engine: trainer.engine.describe(),
         preset: opts.preset.clone(),
         gemm_gflops_one_thread: gemm_one,
         gemm_peak_gflops: gemm_peak,

@@ -64,18 +64,28 @@ pub fn run(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     let r = &report;
-    println!("\n{} threads, preset {}", r.threads, r.preset);
+    println!("\n{}, preset {}", r.engine, r.preset);
+    // The CPU's GEMM peak describes only the CPU engine's work.
+    let of_peak = |pct: f64| {
+        if r.on_cpu {
+            format!(" = {pct:.1}% of the GEMM peak")
+        } else {
+            String::new()
+        }
+    };
+    if r.on_cpu {
+        println!(
+            "GEMM peak (gemm crate, 16384x256x256): {:.1} GFLOP/s ({:.1} on one thread)",
+            r.gemm_peak_gflops, r.gemm_gflops_one_thread
+        );
+    }
     println!(
-        "GEMM peak (gemm crate, 16384x256x256): {:.1} GFLOP/s ({:.1} on one thread)",
-        r.gemm_peak_gflops, r.gemm_gflops_one_thread
+        "training step, {} rays: {:.3} s (median), {:.0} rays/s, {:.0} samples/s, {:.1} GFLOP/step, {:.1} GFLOP/s{}",
+        r.train_rays, r.train_step_seconds_median, r.train_rays_per_second, r.train_samples_per_second, r.train_gflop_per_step, r.train_gflops, of_peak(r.train_percent_of_gemm_peak)
     );
     println!(
-        "training step, {} rays: {:.3} s (median), {:.0} rays/s, {:.0} samples/s, {:.1} GFLOP/step, {:.1} GFLOP/s = {:.1}% of the GEMM peak",
-        r.train_rays, r.train_step_seconds_median, r.train_rays_per_second, r.train_samples_per_second, r.train_gflop_per_step, r.train_gflops, r.train_percent_of_gemm_peak
-    );
-    println!(
-        "rendering {0}x{0} (from {1} rows): {2:.1} s per view, {3:.0} rays/s, {4:.0} samples/s, {5:.1} GFLOP/s = {6:.1}% of the GEMM peak",
-        r.render_size, r.render_rows_measured, r.render_seconds_full_view, r.render_rays_per_second, r.render_samples_per_second, r.render_gflops, r.render_percent_of_gemm_peak
+        "rendering {0}x{0} (from {1} rows): {2:.1} s per view, {3:.0} rays/s, {4:.0} samples/s, {5:.1} GFLOP/s{6}",
+        r.render_size, r.render_rows_measured, r.render_seconds_full_view, r.render_rays_per_second, r.render_samples_per_second, r.render_gflops, of_peak(r.render_percent_of_gemm_peak)
     );
     println!("peak resident memory: {:.0} MiB", r.peak_resident_mib);
     Ok(())

@@ -72,7 +72,8 @@ pub struct TrainConfig {
     pub val_every: u64,
     /// Validation images are rendered at 1/val_downscale of the training resolution.
     pub val_downscale: usize,
-    /// Save a checkpoint every this many steps (and always at the end).
+    /// Save a checkpoint every this many steps, at most one every 30 s after the first (and
+    /// always at the end).
     pub checkpoint_every: u64,
     /// Move every training pose by random noise before training (BARF's synthetic test
     /// of camera refinement; `--perturb-poses`).

@@ -70,8 +70,8 @@ pub struct TrainOptions {
     pub appearance: Option<u32>,
     /// Fast: learn a correction of every training camera's pose with the field (after
     /// BARF), for poses that are a little off. Off by default: on llff_beer and ngp_fox
-    /// it moves the cameras by more than their COLMAP errors and lowers held-out PSNR,
-    /// even with the test cameras refined too (see the README).
+    /// (with --appearance) it is level with the plain run once the test cameras are fitted
+    /// too (`nerf eval --refine-test-poses`), not better (see the README).
     #[arg(long, conflicts_with = "no_refine_cameras")]
     pub refine_cameras: bool,
     /// With --refine-cameras: the corrections' learning rate, decaying to a hundredth of
@@ -119,7 +119,8 @@ pub struct TrainOptions {
     /// Render a validation image every N steps (0: never). Default: 500 fast, 1000 vanilla.
     #[arg(long)]
     pub val_every: Option<u64>,
-    /// Save a checkpoint every N steps (default: 500 fast, 1000 vanilla).
+    /// Save a checkpoint every N steps, at most one every 30 s after the first (default: 500
+    /// fast, 1000 vanilla).
     #[arg(long)]
     pub checkpoint_every: Option<u64>,
     /// Rays per work unit per thread (vanilla memory: about 10 KB x 192 samples per ray).
