@@ -37,21 +37,25 @@ use crate::stage::{RayBatch, RayOutput};
 
 /// Rays per rendering chunk and samples per round of the renderer. A software adapter
 /// takes small ones (2^14 rays, 2^16 samples: 70 MB of activations per chunk in flight),
-/// where a round trip costs little beside the field; a hardware GPU larger ones (2^16,
-/// 2^20: about 1.1 GB), which measured an 800x800 lego view on an H100 at 4.8 frames/s
-/// against 4.1 at the small sizes (2^18 rays gave 4.8 too: the field, not the round trips,
-/// sets the pace there). `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for
-/// tuning, up to 2^20 rays and 2^21 samples (2^22 overflowed the adapter's largest buffer).
+/// where a round trip costs little beside the field; a hardware GPU larger ones (2^18 rays,
+/// 2^19 samples), fewer round trips: on an H100 an 800x800 lego view measured 4.0
+/// frames/s against 3.2-3.3 at the small sizes (2^16 rays: 3.4-3.9). A round never
+/// exceeds `MAX_ROUND_SAMPLES`: 2^20 samples overflowed the adapter's largest storage
+/// binding (a 64-wide activation, 256 MiB) and failed wgpu's validation.
+/// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays
+/// and 2^19 samples.
+const MAX_ROUND_SAMPLES: usize = 1 << 19;
+
 fn render_sizes(gpu: &Gpu) -> (usize, usize) {
     let from_env = std::env::var("NERF_GPU_RENDER").ok().and_then(|v| {
         let (chunk, round) = v.split_once(',')?;
         let log2 = |s: &str, max: u32| s.trim().parse::<u32>().ok().filter(|&l| l <= max);
-        Some((1usize << log2(chunk, 20)?, 1usize << log2(round, 21)?))
+        Some((1usize << log2(chunk, 20)?, 1usize << log2(round, 19)?))
     });
     match from_env {
         Some(sizes) => sizes,
         None if gpu.software => (1 << 14, 1 << 16),
-        None => (1 << 16, 1 << 20),
+        None => (1 << 18, 1 << 19),
     }
 }
 
@@ -383,7 +387,11 @@ impl Engine for GpuEngine {
                 &marcher,
                 &self.model.grid,
                 &field,
-                self.model.config.batch_samples.max(round_samples),
+                self.model
+                    .config
+                    .batch_samples
+                    .max(round_samples)
+                    .min(MAX_ROUND_SAMPLES),
                 part,
             );
             match rendered {
