@@ -40,11 +40,13 @@ use crate::stage::{RayBatch, RayOutput};
 /// where a round trip costs little beside the field; a hardware GPU larger ones (2^18 rays,
 /// 2^19 samples), fewer round trips: on an H100 an 800x800 lego view measured 4.0
 /// frames/s against 3.2-3.3 at the small sizes (2^16 rays: 3.4-3.9). A round never
-/// exceeds `MAX_ROUND_SAMPLES`: 2^20 samples overflowed the adapter's largest storage
-/// binding (a 64-wide activation, 256 MiB) and failed wgpu's validation.
+/// exceeds [`MAX_DEVICE_SAMPLES`].
 /// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays
 /// and 2^19 samples.
-const MAX_ROUND_SAMPLES: usize = 1 << 19;
+/// The most samples one device call takes, in a training step or a rendering round: on
+/// an H100, 2^20 overflowed the adapter's largest storage binding (a 64-wide activation,
+/// 256 MiB) and failed wgpu's validation.
+pub const MAX_DEVICE_SAMPLES: usize = 1 << 19;
 
 fn render_sizes(gpu: &Gpu) -> (usize, usize) {
     let from_env = std::env::var("NERF_GPU_RENDER").ok().and_then(|v| {
@@ -391,7 +393,7 @@ impl Engine for GpuEngine {
                     .config
                     .batch_samples
                     .max(round_samples)
-                    .min(MAX_ROUND_SAMPLES),
+                    .min(MAX_DEVICE_SAMPLES),
                 part,
             );
             match rendered {

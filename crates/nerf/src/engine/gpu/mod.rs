@@ -80,6 +80,15 @@ pub fn open(
              (--refine-cameras) run on the CPU engine only so far; use --device cpu"
                 .into(),
         )),
+        ModelConfig::Fast(config) if config.batch_samples > engine::MAX_DEVICE_SAMPLES => {
+            Err(NerfError::Config(format!(
+                "--samples {}: the GPU engine takes at most {} samples a step (more would \
+                 overflow the adapter's largest storage buffer); lower --samples or use \
+                 --device cpu",
+                config.batch_samples,
+                engine::MAX_DEVICE_SAMPLES
+            )))
+        }
         ModelConfig::Fast(config) => Ok(Box::new(engine::GpuEngine::new(
             gpu,
             config.clone(),
@@ -92,5 +101,39 @@ pub fn open(
             options,
             seed,
         ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::FastModelConfig;
+
+    #[test]
+    fn a_step_larger_than_the_device_takes_is_refused() {
+        if device::test_gpu().is_none() {
+            return;
+        }
+        let config = FastModelConfig {
+            batch_samples: engine::MAX_DEVICE_SAMPLES * 2,
+            ..FastModelConfig::default()
+        };
+        let Err(e) = open(
+            Device::Wgpu,
+            &ModelConfig::Fast(config),
+            EngineOptions {
+                adam: crate::nn::adam::AdamConfig::default(),
+                chunk_rays: 64,
+                check_finite: false,
+            },
+            0,
+        ) else {
+            panic!("a step of 2^20 samples was accepted");
+        };
+        let text = e.to_string();
+        assert!(
+            text.contains("--samples 1048576") && text.contains("524288"),
+            "{text}"
+        );
     }
 }
