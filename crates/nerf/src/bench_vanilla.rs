@@ -191,10 +191,11 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
     let render_rays = (size * rows) as f64;
     let render_gflops = render_rays * macs_per_ray * 2.0 / render_s / 1e9;
 
+    let engine = trainer.engine.describe();
     Ok(BenchReport {
         threads,
-        on_cpu: trainer.engine.describe().starts_with("cpu"),
-        engine: trainer.engine.describe(),
+        on_cpu: engine.starts_with("cpu"),
+        engine,
         preset: opts.preset.clone(),
         gemm_gflops_one_thread: gemm_one,
         gemm_peak_gflops: gemm_peak,

@@ -284,9 +284,9 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
                 });
             }
         }
-        let saved_lately =
-            last_periodic_save.is_some_and(|t: Instant| t.elapsed() < MIN_CHECKPOINT_INTERVAL);
-        if config.checkpoint_every > 0 && stats.step % config.checkpoint_every == 0 && !saved_lately
+        if config.checkpoint_every > 0
+            && stats.step % config.checkpoint_every == 0
+            && last_periodic_save.is_none_or(|t: Instant| t.elapsed() >= MIN_CHECKPOINT_INTERVAL)
         {
             save(&trainer, elapsed)?;
             last_periodic_save = Some(Instant::now());

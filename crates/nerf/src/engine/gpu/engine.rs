@@ -35,24 +35,27 @@ use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{RayBatch, RayOutput};
 
+/// The most samples one device call takes, in a training step or a rendering round: on
+/// an H100, 2^20 overflowed the adapter's largest storage binding (a 64-wide activation,
+/// 256 MiB) and failed wgpu's validation. `gpu::open` refuses larger steps.
+pub const MAX_DEVICE_SAMPLES: usize = 1 << 19;
+
 /// Rays per rendering chunk and samples per round of the renderer. A software adapter
 /// takes small ones (2^14 rays, 2^16 samples: 70 MB of activations per chunk in flight),
 /// where a round trip costs little beside the field; a hardware GPU larger ones (2^18 rays,
 /// 2^19 samples), fewer round trips: on an H100 an 800x800 lego view measured 4.0
-/// frames/s against 3.2-3.3 at the small sizes (2^16 rays: 3.4-3.9). A round never
-/// exceeds [`MAX_DEVICE_SAMPLES`].
+/// frames/s against 3.2-3.3 at the small sizes (2^16 rays: 3.4-3.9).
 /// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays
-/// and 2^19 samples.
-/// The most samples one device call takes, in a training step or a rendering round: on
-/// an H100, 2^20 overflowed the adapter's largest storage binding (a 64-wide activation,
-/// 256 MiB) and failed wgpu's validation.
-pub const MAX_DEVICE_SAMPLES: usize = 1 << 19;
-
+/// and [`MAX_DEVICE_SAMPLES`] samples.
 fn render_sizes(gpu: &Gpu) -> (usize, usize) {
     let from_env = std::env::var("NERF_GPU_RENDER").ok().and_then(|v| {
         let (chunk, round) = v.split_once(',')?;
         let log2 = |s: &str, max: u32| s.trim().parse::<u32>().ok().filter(|&l| l <= max);
-        Some((1usize << log2(chunk, 20)?, 1usize << log2(round, 19)?))
+        let max_round = MAX_DEVICE_SAMPLES.trailing_zeros();
+        Some((
+            1usize << log2(chunk, 20)?,
+            1usize << log2(round, max_round)?,
+        ))
     });
     match from_env {
         Some(sizes) => sizes,
@@ -389,11 +392,8 @@ impl Engine for GpuEngine {
                 &marcher,
                 &self.model.grid,
                 &field,
-                self.model
-                    .config
-                    .batch_samples
-                    .max(round_samples)
-                    .min(MAX_DEVICE_SAMPLES),
+                // Both are at most MAX_DEVICE_SAMPLES (`open` refuses larger steps).
+                self.model.config.batch_samples.max(round_samples),
                 part,
             );
             match rendered {
