@@ -22,6 +22,28 @@ pub struct ViewMetrics {
     pub ssim: f32,
     pub image: PathBuf,
     pub depth: PathBuf,
+    /// The view's downscale factor (1, 2, 4, 8: `--multiscale`).
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub scale: usize,
+}
+
+fn one() -> usize {
+    1
+}
+
+fn is_one(v: &usize) -> bool {
+    *v == 1
+}
+
+/// Means over the views of one scale (`--multiscale`).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ScaleMetrics {
+    /// The downscale factor: 1, 2, 4, 8, ...
+    pub scale: usize,
+    pub width: usize,
+    pub height: usize,
+    pub mean_psnr: f32,
+    pub mean_ssim: f32,
 }
 
 /// `metrics.json` of an evaluation.
@@ -32,8 +54,13 @@ pub struct EvalReport {
     pub every: usize,
     pub width: usize,
     pub height: usize,
+    /// Means over every view (of every scale, which all hold as many views: the average of
+    /// the scales' means, as mip-NeRF reports).
     pub mean_psnr: f32,
     pub mean_ssim: f32,
+    /// Per scale, with `--multiscale` (empty: one scale).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub scales: Vec<ScaleMetrics>,
     /// Runs that refined (or perturbed) their training cameras: how far those ended from
     /// the given ones, after a similarity alignment (see `refined_cameras`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -57,6 +84,9 @@ pub struct EvalOptions {
     pub every: usize,
     /// Fit each camera of the split to the frozen model first (BARF's protocol).
     pub refine_poses: Option<TestPoseFit>,
+    /// Evaluate every view also at 1/2, ..., `1 / 2^(multiscale - 1)` of its resolution
+    /// (1: full resolution alone).
+    pub multiscale: usize,
 }
 
 impl EvalOptions {
@@ -66,6 +96,7 @@ impl EvalOptions {
             split,
             every,
             refine_poses: None,
+            multiscale: 1,
         }
     }
 }
@@ -113,11 +144,19 @@ pub fn evaluate(
     let bg = cfg.background.eval_colour();
     let settings = RenderSettings::of_dataset(&data, bg);
     let (width, height) = data.image_size();
-    let total_rays = data.views.len() * width * height;
+    let originals = data.views.len();
+    data.add_scales(options.multiscale.max(1))?;
+    let pixels = |v: &crate::data::View| v.image.width * v.image.height;
+    let total_rays = data.views.iter().map(pixels).sum();
     let mut views = Vec::new();
+    let mut done_before = 0;
     for (k, view) in data.views.iter().enumerate() {
-        let i = k * every;
-        let done_before = k * width * height;
+        let i = (k % originals) * every;
+        let scale = 1usize << (k / originals);
+        let suffix = match scale {
+            1 => String::new(),
+            s => format!("_d{s}"),
+        };
         let r = crate::views::render_view(run.engine.as_ref(), &view.camera, &settings, &|n| {
             on_progress(EvalProgress::Rendering {
                 rays: done_before + n,
@@ -125,8 +164,9 @@ pub fn evaluate(
             })
         });
         let truth = view.image.composite(bg);
-        let image = out_dir.join(format!("{i:03}.png"));
-        let depth = out_dir.join(format!("{i:03}_depth.png"));
+        done_before += pixels(view);
+        let image = out_dir.join(format!("{i:03}{suffix}.png"));
+        let depth = out_dir.join(format!("{i:03}{suffix}_depth.png"));
         save_rgb_png(&image, r.width, r.height, &r.rgb)?;
         save_rgb_png(
             &depth,
@@ -141,9 +181,24 @@ pub fn evaluate(
             ssim: ssim(&r.rgb, &truth, r.width, r.height),
             image,
             depth,
+            scale,
         });
     }
     let n = views.len().max(1) as f32;
+    let scales = match options.multiscale {
+        0 | 1 => Vec::new(),
+        _ => views
+            .chunks(originals)
+            .zip(data.views.chunks(originals))
+            .map(|(m, v)| ScaleMetrics {
+                scale: m[0].scale,
+                width: v[0].image.width,
+                height: v[0].image.height,
+                mean_psnr: m.iter().map(|v| v.psnr).sum::<f32>() / m.len() as f32,
+                mean_ssim: m.iter().map(|v| v.ssim).sum::<f32>() / m.len() as f32,
+            })
+            .collect(),
+    };
     let report = EvalReport {
         split,
         step: run.step,
@@ -152,6 +207,7 @@ pub fn evaluate(
         height,
         mean_psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
         mean_ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
+        scales,
         pose_error: run_cameras.as_ref().map(RunCameras::error),
         cameras: cameras.map(str::to_string),
         test_pose_refinement,

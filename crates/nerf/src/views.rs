@@ -67,6 +67,19 @@ impl RenderSettings {
         }
         batch
     }
+
+    /// [`ray_batch`](Self::ray_batch) of camera rays with their pixels' footprints (world
+    /// cone radii, see [`Camera::cone_radius`]), warped into ray space.
+    pub fn ray_batch_with_cones(&self, world: &[Ray], cones: &[f32], first: usize) -> RayBatch {
+        let mut batch = self.ray_batch(world, first);
+        batch.cylinders = self.space.cylinders();
+        batch.radii = world
+            .iter()
+            .zip(cones)
+            .map(|(r, &cone)| self.space.footprint_radius(cone, r.dir))
+            .collect();
+        batch
+    }
 }
 
 /// The appearance of training photo `which` of `scene` (`--appearance-of`): its index in
@@ -146,11 +159,14 @@ pub fn render_pixels(
             return None;
         }
         let first = k * slab;
-        let world: Vec<Ray> = (first..first + part.len())
+        let (world, cones): (Vec<Ray>, Vec<f32>) = (first..first + part.len())
             .into_par_iter()
-            .map(|p| camera.ray(p % w, p / w))
-            .collect();
-        let rays = settings.ray_batch(&world, first);
+            .map(|p| {
+                let (x, y) = ((p % w) as f32 + 0.5, (p / w) as f32 + 0.5);
+                (camera.ray_at(x, y), camera.cone_radius(x, y))
+            })
+            .unzip();
+        let rays = settings.ray_batch_with_cones(&world, &cones, first);
         engine.render_rays(&rays, part, &|n| on_progress(first + n));
     }
     Some(out)

@@ -31,6 +31,12 @@ pub struct EvalArgs {
     /// fast model, CPU; metrics.json says "cameras": "...refined" and what moved)
     #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = "200")]
     refine_test_poses: Option<u64>,
+    /// Also evaluate every view at 1/2, 1/4, ... of its resolution, N scales in all
+    /// (mip-NeRF's multi-scale benchmark: 4 goes down to 1/8); metrics.json gets the means
+    /// of each scale under "scales".
+    #[arg(long, value_name = "N", default_value_t = 1,
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=6))]
+    multiscale: usize,
 }
 
 pub fn run(a: EvalArgs) -> Result<()> {
@@ -40,6 +46,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         .unwrap_or_else(|| a.run.join(format!("eval_{}", a.split.name())));
     let options = EvalOptions {
         refine_poses: a.refine_test_poses.map(TestPoseFit::new),
+        multiscale: a.multiscale,
         ..EvalOptions::new(a.split, a.every)
     };
     let fit = bar(0, &format!("fit {} cameras, steps", a.split.name()));
@@ -66,9 +73,19 @@ pub fn run(a: EvalArgs) -> Result<()> {
 /// The per-view table and the means.
 pub fn print_report(report: &EvalReport, out: &std::path::Path) {
     for v in &report.views {
+        let scale = match v.scale {
+            1 => String::new(),
+            s => format!(" at 1/{s}"),
+        };
         println!(
-            "  view {:3}  PSNR {:6.2} dB  SSIM {:.4}",
+            "  view {:3}{scale}  PSNR {:6.2} dB  SSIM {:.4}",
             v.index, v.psnr, v.ssim
+        );
+    }
+    for s in &report.scales {
+        println!(
+            "  scale 1/{} ({}x{}): mean PSNR {:.2} dB, mean SSIM {:.4}",
+            s.scale, s.width, s.height, s.mean_psnr, s.mean_ssim
         );
     }
     println!(

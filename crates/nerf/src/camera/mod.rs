@@ -10,6 +10,7 @@
 //! marched: world or NDC), and [`path`] (camera paths for videos).
 
 pub mod distortion;
+pub mod footprint;
 pub mod path;
 pub mod ray_space;
 

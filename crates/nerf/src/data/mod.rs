@@ -62,6 +62,49 @@ impl Dataset {
             .collect();
     }
 
+    /// mip-NeRF's multi-scale variant of the split: every view also at 1/2, 1/4, ...,
+    /// `1 / 2^(scales - 1)` of its resolution (area-averaged, intrinsics scaled, masks
+    /// keeping a pixel where they kept any of its block), appended scale by scale after the
+    /// originals. Training draws a view, then a pixel: each scale gets the same share of
+    /// rays, which is mip-NeRF's loss weighted by pixel area with its variance reduced.
+    pub fn add_scales(&mut self, scales: usize) -> crate::Result<()> {
+        let originals = self.views.len();
+        for k in 1..scales {
+            let factor = 1usize << k;
+            for i in 0..originals {
+                let v = &self.views[i];
+                let (w, h) = (v.image.width / factor, v.image.height / factor);
+                if w == 0 || h == 0 {
+                    return Err(crate::NerfError::Config(format!(
+                        "--multiscale {scales}: {} is {}x{}, too small for 1/{factor} of it",
+                        v.name, v.image.width, v.image.height
+                    )));
+                }
+                let kept_pixels = v.kept_pixels.as_ref().map(|kept| {
+                    let mut blocks: Vec<u32> = kept
+                        .iter()
+                        .filter_map(|&p| {
+                            let (x, y) = (p as usize % v.image.width, p as usize / v.image.width);
+                            let (bx, by) = (x / factor, y / factor);
+                            (bx < w && by < h).then_some((by * w + bx) as u32)
+                        })
+                        .collect();
+                    blocks.sort_unstable();
+                    blocks.dedup();
+                    blocks
+                });
+                let view = View {
+                    camera: v.camera.downscaled(factor),
+                    image: v.image.downscale(factor),
+                    name: format!("{} (1/{factor})", v.name),
+                    kept_pixels,
+                };
+                self.views.push(view);
+            }
+        }
+        Ok(())
+    }
+
     pub fn image_size(&self) -> (usize, usize) {
         self.views
             .first()
@@ -107,5 +150,54 @@ impl Background {
             Background::Black => [0.0; 3],
             Background::White | Background::Random => [1.0; 3],
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::{look_at, Camera};
+
+    /// Issue 15 #4: each scale's views are area averages with intrinsics scaled, appended
+    /// after the originals, and masks keep a block where they kept any of its pixels.
+    #[test]
+    fn scales_are_area_averaged_views_with_scaled_cameras() {
+        let (w, h) = (8, 4);
+        let data: Vec<f32> = (0..w * h)
+            .flat_map(|i| [i as f32 / 32.0, 0.5, 1.0, 1.0])
+            .collect();
+        let view = View {
+            camera: Camera::from_fov_x(
+                w,
+                h,
+                0.8,
+                look_at([0.0, -4.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]),
+            ),
+            image: RgbaImage::from_straight_alpha(w, h, data),
+            name: "a.png".into(),
+            // Pixels (3, 0) and (6, 3).
+            kept_pixels: Some(vec![3, 3 * 8 + 6]),
+        };
+        let mut set = Dataset {
+            views: vec![view],
+            near: 2.0,
+            far: 6.0,
+            space: Default::default(),
+        };
+        set.add_scales(3).expect("scales");
+        assert_eq!(set.views.len(), 3);
+        let (half, quarter) = (&set.views[1], &set.views[2]);
+        assert_eq!((half.image.width, half.image.height), (4, 2));
+        assert_eq!((quarter.image.width, quarter.image.height), (2, 1));
+        assert_eq!(half.camera, set.views[0].camera.downscaled(2));
+        assert_eq!(half.name, "a.png (1/2)");
+        // Half-resolution pixel (1, 0) averages pixels 2, 3, 10, 11 of the original.
+        let expected = (2.0 + 3.0 + 10.0 + 11.0) / 4.0 / 32.0;
+        assert!((half.image.data[4] - expected).abs() < 1e-6);
+        assert_eq!(half.kept_pixels, Some(vec![1, 4 + 3]));
+        assert_eq!(quarter.kept_pixels, Some(vec![0, 1]));
+        // Too many scales for the image: a clear error.
+        let err = set.add_scales(5).expect_err("1/16 of 8x4 is empty");
+        assert!(err.to_string().contains("too small"), "{err}");
     }
 }

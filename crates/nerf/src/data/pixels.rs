@@ -47,6 +47,7 @@ impl TrainingRays {
         self.rays.near = data.near;
         self.rays.far = data.far;
         self.rays.appearance = how.appearance;
+        self.rays.cylinders = data.space.cylinders();
         self.targets.clear();
         self.rngs.clear();
         for k in range {
@@ -82,6 +83,7 @@ impl TrainingRays {
             r.view_dirs.extend_from_slice(&b.rays.view_dirs);
             r.backgrounds.extend_from_slice(&b.rays.backgrounds);
             r.pixels.extend_from_slice(&b.rays.pixels);
+            r.radii.extend_from_slice(&b.rays.radii);
             self.targets.extend_from_slice(&b.targets);
             self.rngs.extend(b.rngs);
         }
@@ -98,13 +100,18 @@ impl TrainingRays {
         } = PixelChoice::draw(data, how, k);
         let view = &data.views[v];
         let w = view.image.width;
-        let world = view.camera.ray(pixel % w, pixel / w);
+        let (x, y) = ((pixel % w) as f32 + 0.5, (pixel / w) as f32 + 0.5);
+        let world = view.camera.ray_at(x, y);
         let (origin, dir) = data.space.warp(world.origin, world.dir);
-        self.rays.push(
+        let radius = data
+            .space
+            .footprint_radius(view.camera.cone_radius(x, y), world.dir);
+        self.rays.push_with_radius(
             crate::camera::Ray { origin, dir },
             world.dir,
             background,
             ((v as u64) << 32) | pixel as u64,
+            radius,
         );
         self.targets
             .push(view.image.composite_pixel(pixel, background));
@@ -191,6 +198,8 @@ mod tests {
         assert_eq!(a.rays.view_dirs, b.rays.view_dirs);
         assert_eq!(a.rays.backgrounds, b.rays.backgrounds);
         assert_eq!(a.rays.pixels, b.rays.pixels);
+        assert_eq!(a.rays.radii, b.rays.radii);
+        assert_eq!(a.rays.radii.len(), 997);
         assert_eq!(a.targets, b.targets);
         assert_eq!((a.rays.near, a.rays.far), (b.rays.near, b.rays.far));
         // The streams continue alike (the lattice jitter is their next draw).

@@ -186,6 +186,22 @@ pub fn open_on(
     }
 }
 
+/// Whether a run asking for `device` ends up on the CPU engine: `cpu`, or `auto` on a
+/// machine with no hardware GPU (probes the adapters, as opening one does). Defaults that
+/// only the CPU engine supports (anti-aliasing) follow it.
+pub fn runs_on_cpu(device: Device) -> bool {
+    match device {
+        Device::Cpu => true,
+        Device::Wgpu | Device::Cuda => false,
+        #[cfg(feature = "wgpu")]
+        Device::Auto => {
+            gpu::device::Gpu::cuda().is_err() && gpu::device::Gpu::wgpu_hardware().is_none()
+        }
+        #[cfg(not(feature = "wgpu"))]
+        Device::Auto => true,
+    }
+}
+
 /// Renders `rays` into `out` in chunks of `chunk` rays, in parallel, `render_chunk` doing
 /// one chunk; `on_progress` hears how many rays are done after each chunk. Every engine's
 /// `render_rays` is this loop around its own chunk renderer.

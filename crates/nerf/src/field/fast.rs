@@ -47,6 +47,35 @@ pub struct FastFieldConfig {
     /// Training photos with a code (the training split's size).
     #[serde(default)]
     pub appearance_images: usize,
+    /// Anti-aliasing (after Zip-NeRF): each sample reads no hash-grid detail finer than
+    /// its footprint. `None`: point samples, as Instant-NGP.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub antialias: Option<Antialias>,
+}
+
+/// Zip-NeRF's feature down-weighting: level `l` (`N_l` cells per axis) of a sample whose
+/// footprint has standard deviation `sigma` (unit-cube units) is scaled by
+/// `erf(1 / sqrt(8 sigma^2 N_l^2))`: about 1 where a cell is much larger than the
+/// footprint, falling towards 0 where many cells fall inside it (their features would
+/// average out over the footprint, and a point sample would alias instead).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Antialias {
+    /// The footprint (field units) of samples that carry none: density queries of the
+    /// occupancy grid and of meshes. The training rays' typical footprint, so those see
+    /// what the training saw.
+    pub reference_footprint: f32,
+}
+
+/// The weight of a level of `resolution` cells per axis for a footprint of standard
+/// deviation `sigma` in unit-cube units (see [`Antialias`]).
+#[inline]
+pub fn level_weight(sigma: f32, resolution: u32) -> f32 {
+    let x = 8.0 * (sigma * resolution as f32).powi(2);
+    if x <= 0.0 {
+        1.0
+    } else {
+        crate::math::erf(x.sqrt().recip())
+    }
 }
 
 impl Default for FastFieldConfig {
@@ -58,6 +87,7 @@ impl Default for FastFieldConfig {
             bound: 1.5,
             appearance_dims: 0,
             appearance_images: 0,
+            antialias: None,
         }
     }
 }
@@ -80,6 +110,8 @@ pub struct FastField {
 #[derive(Default, Debug)]
 pub struct FastWorkspace {
     unit: Vec<f32>,
+    /// Anti-aliased fields: each sample's weight of each level (`n x levels`).
+    level_scale: Vec<f32>,
     enc: Vec<f32>,
     h: Vec<f32>,
     geo: Vec<f32>,
@@ -142,12 +174,44 @@ impl FastField {
         }
     }
 
-    /// Scales each level's features (`n x dims()`, in place) by its weight.
-    fn weigh_levels(&self, values: &mut [f32]) {
+    /// Anti-aliased fields: each of `n` samples' weight of each level into `out`
+    /// (`n x levels`), from their footprints (`n`, field units; empty: the reference
+    /// footprint) and the coarse-to-fine schedule's level weights.
+    fn level_scales(&self, footprints: &[f32], n: usize, out: &mut Vec<f32>) {
+        let Some(aa) = self.config.antialias else {
+            return;
+        };
+        let levels = &self.grid.levels;
+        grow(out, n * levels.len());
+        let to_unit = 0.5 / self.config.bound;
+        for (s, row) in out.chunks_exact_mut(levels.len()).take(n).enumerate() {
+            let sigma = footprints.get(s).copied().unwrap_or(aa.reference_footprint) * to_unit;
+            for (l, (w, level)) in row.iter_mut().zip(levels).enumerate() {
+                let schedule = self.level_weights.get(l).copied().unwrap_or(1.0);
+                *w = schedule * level_weight(sigma, level.resolution);
+            }
+        }
+    }
+
+    /// Scales each level's features (`n x dims()`, in place) by its weight: the sample's
+    /// own (`scales`, anti-aliased fields) or the level's (the coarse-to-fine schedule).
+    fn weigh_levels(&self, values: &mut [f32], scales: &[f32]) {
+        let f = crate::encoding::hash_grid::FEATURES;
+        if self.config.antialias.is_some() {
+            let levels = self.grid.levels.len();
+            for (row, ws) in values
+                .chunks_exact_mut(self.grid.dims())
+                .zip(scales.chunks_exact(levels))
+            {
+                for (level, w) in row.chunks_exact_mut(f).zip(ws) {
+                    level.iter_mut().for_each(|v| *v *= w);
+                }
+            }
+            return;
+        }
         if self.level_weights.is_empty() {
             return;
         }
-        let f = crate::encoding::hash_grid::FEATURES;
         for row in values.chunks_exact_mut(self.grid.dims()) {
             for (level, w) in row.chunks_exact_mut(f).zip(&self.level_weights) {
                 level.iter_mut().for_each(|v| *v *= w);
@@ -249,8 +313,15 @@ impl FastField {
         }
     }
 
-    /// Density network only: leaves `ws.sigma` (and `ws.geo`) for `n` positions.
-    fn eval_density(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
+    /// Density network only: leaves `ws.sigma` (and `ws.geo`) for `n` positions with their
+    /// `footprints` (see [`FieldInput::footprints`]).
+    fn eval_density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        footprints: &[f32],
+        ws: &mut FastWorkspace,
+    ) {
         let n = positions.len() / 3;
         let (w, g, e) = (
             self.config.hidden,
@@ -264,7 +335,8 @@ impl FastField {
         grow(&mut ws.sigma, n);
         self.to_unit(positions, &mut ws.unit[..n * 3]);
         self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
-        self.weigh_levels(&mut ws.enc[..n * e]);
+        self.level_scales(footprints, n, &mut ws.level_scale);
+        self.weigh_levels(&mut ws.enc[..n * e], &ws.level_scale);
         let h = &mut ws.h[..n * w];
         matmul(
             h,
@@ -292,22 +364,22 @@ impl FastField {
         }
         WS.with(|ws| {
             let ws = &mut ws.borrow_mut();
-            self.eval_density(params, positions, ws);
+            self.eval_density(params, positions, &[], ws);
             out.copy_from_slice(&ws.sigma[..out.len()]);
         })
     }
 
-    /// Density and colour of `n` samples at `positions` (`n x 3`) seen along unit `dirs`
-    /// (one per `spd` consecutive samples), into `ws.sigma` and `ws.rgb`.
-    fn eval_samples(
-        &self,
-        params: &[f32],
-        positions: &[f32],
-        dirs: &[f32],
-        spd: usize,
-        appearance: &[u32],
-        ws: &mut FastWorkspace,
-    ) {
+    /// Density and colour of the `n` samples of `input` (positions, unit directions shared
+    /// by `samples_per_dir` consecutive samples, appearance indices, footprints), into
+    /// `ws.sigma` and `ws.rgb`.
+    fn eval_samples(&self, params: &[f32], input: FieldInput, ws: &mut FastWorkspace) {
+        let FieldInput {
+            positions,
+            dirs,
+            samples_per_dir: spd,
+            appearance,
+            footprints,
+        } = input;
         let n = positions.len() / 3;
         let (w, g, ci) = (
             self.config.hidden,
@@ -315,7 +387,7 @@ impl FastField {
             self.colour_in_dims(),
         );
         let dims = self.appearance_dims();
-        self.eval_density(params, positions, ws);
+        self.eval_density(params, positions, footprints, ws);
         self.gather_codes(params, appearance, n, ws);
         let codes = self.codes(params);
         grow(&mut ws.colour_in, n * ci);
@@ -476,7 +548,7 @@ impl FastField {
             true,
         );
         matmul(&mut ws.d_enc, d_h, self.weight(params, 0, e, w).t(), false);
-        self.weigh_levels(&mut ws.d_enc[..n * e]);
+        self.weigh_levels(&mut ws.d_enc[..n * e], &ws.level_scale);
         grads.mark(self.mlp_range());
         self.grid
             .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
@@ -533,14 +605,7 @@ impl Field for FastField {
         ctx: &'c mut FastWorkspace,
     ) -> FieldOutput<'c> {
         let n = input.len();
-        self.eval_samples(
-            params,
-            input.positions,
-            input.dirs,
-            input.samples_per_dir,
-            input.appearance,
-            ctx,
-        );
+        self.eval_samples(params, input, ctx);
         FieldOutput {
             sigma: &ctx.sigma[..n],
             rgb: &ctx.rgb[..n * 3],
@@ -561,7 +626,7 @@ impl Field for FastField {
     }
 
     fn density(&self, params: &[f32], positions: &[f32], ctx: &mut FastWorkspace, out: &mut [f32]) {
-        self.eval_density(params, positions, ctx);
+        self.eval_density(params, positions, &[], ctx);
         out.copy_from_slice(&ctx.sigma[..out.len()]);
     }
 }
@@ -577,6 +642,7 @@ mod tests {
             dirs,
             samples_per_dir: 1,
             appearance: &[],
+            footprints: &[],
         }
     }
 
@@ -597,12 +663,88 @@ mod tests {
             bound: 1.5,
             appearance_dims,
             appearance_images,
+            antialias: None,
         })
+    }
+
+    fn tiny_antialiased(reference_footprint: f32) -> FastField {
+        let mut field = tiny();
+        field.config.antialias = Some(Antialias {
+            reference_footprint,
+        });
+        field
     }
 
     #[test]
     fn backward_matches_finite_differences() {
-        backward_matches_finite_differences_of(&tiny(), &[]);
+        backward_matches_finite_differences_of(&tiny(), &[], &[]);
+    }
+
+    /// Issue 15 #3: the anti-aliased field's gradients, with footprints that weigh the
+    /// levels anywhere from nearly 1 to nearly 0, and with the coarse-to-fine schedule.
+    #[test]
+    fn antialiased_backward_matches_finite_differences() {
+        let mut field = tiny_antialiased(0.05);
+        let footprints = [0.01, 0.05, 0.1, 0.2, 0.4, 0.02];
+        let weights: Vec<f32> = field
+            .grid
+            .levels
+            .iter()
+            .map(|l| level_weight(footprints[4] * 0.5 / 1.5, l.resolution))
+            .collect();
+        assert!(weights[0] > 0.9 && weights[2] < 0.5, "{weights:?}");
+        backward_matches_finite_differences_of(&field, &[], &footprints);
+        field.level_weights = vec![1.0, 0.7, 0.2];
+        backward_matches_finite_differences_of(&field, &[], &footprints);
+        // No footprints: the reference footprint everywhere.
+        backward_matches_finite_differences_of(&field, &[], &[]);
+    }
+
+    /// A level is weighed by how many of its cells a footprint covers: all of it for a
+    /// point, less for finer levels and wider footprints, nothing in the limit.
+    #[test]
+    fn level_weights_fall_with_footprint_and_resolution() {
+        assert_eq!(level_weight(0.0, 2048), 1.0);
+        assert!(level_weight(1e-5, 16) > 0.999_999);
+        let by_level: Vec<f32> = [16, 64, 256, 1024, 4096]
+            .iter()
+            .map(|&n| level_weight(1e-3, n))
+            .collect();
+        assert!(by_level.windows(2).all(|w| w[1] <= w[0]), "{by_level:?}");
+        assert!(by_level[0] > 0.999 && by_level[4] < 0.2, "{by_level:?}");
+        // One cell as wide as the footprint's standard deviation: erf(1 / sqrt(8)).
+        assert!((level_weight(0.01, 100) - 0.383_8).abs() < 1e-3);
+        assert!(level_weight(1.0, 4096) < 1e-3);
+    }
+
+    /// With footprints far below every cell, anti-aliasing changes nothing; density
+    /// queries without footprints see the reference footprint.
+    #[test]
+    fn tiny_footprints_are_point_samples_and_density_uses_the_reference() {
+        let plain = tiny();
+        let params = plain.init_params(5);
+        let pos = [0.1, 0.2, -0.3, 1.0, -1.2, 0.4];
+        let dirs = [0.0, 0.0, 1.0, 1.0, 0.0, 0.0];
+        let mut ws = FastWorkspace::default();
+        let point = plain.forward(&params, input(&pos, &dirs), &mut ws);
+        let (point_sigma, point_rgb) = (point.sigma.to_vec(), point.rgb.to_vec());
+        let aa = tiny_antialiased(0.3);
+        let mut inp = input(&pos, &dirs);
+        inp.footprints = &[1e-6, 1e-6];
+        let out = aa.forward(&params, inp, &mut ws);
+        for (a, b) in out.sigma.iter().zip(&point_sigma) {
+            assert!((a / b - 1.0).abs() < 1e-5, "{a} vs {b}");
+        }
+        for (a, b) in out.rgb.iter().zip(&point_rgb) {
+            assert!((a - b).abs() < 1e-6);
+        }
+        let mut inp = input(&pos, &dirs);
+        inp.footprints = &[0.3, 0.3];
+        let wide = aa.forward(&params, inp, &mut ws).sigma.to_vec();
+        let mut alone = [0.0; 2];
+        aa.density(&params, &pos, &mut FastWorkspace::default(), &mut alone);
+        assert_eq!(wide, alone.to_vec());
+        assert_ne!(wide, point_sigma, "a wide footprint reads less detail");
     }
 
     /// Issue 14 #3: the appearance codes' gradient, per photo and through the mean code.
@@ -610,7 +752,7 @@ mod tests {
     fn appearance_code_gradients_match_finite_differences() {
         let field = tiny_with_codes(4, 3);
         let mean = crate::stage::MEAN_APPEARANCE;
-        backward_matches_finite_differences_of(&field, &[0, 2, mean, 1, mean, 0]);
+        backward_matches_finite_differences_of(&field, &[0, 2, mean, 1, mean, 0], &[]);
     }
 
     /// Codes colour only: density is the same whatever the photo, and a photo's code
@@ -642,7 +784,11 @@ mod tests {
         assert_eq!(field.codes(&params).len(), 12);
     }
 
-    fn backward_matches_finite_differences_of(field: &FastField, looks: &[u32]) {
+    fn backward_matches_finite_differences_of(
+        field: &FastField,
+        looks: &[u32],
+        footprints: &[f32],
+    ) {
         let mut rng = Rng::new(11);
         // Larger table values than the init so every path carries signal.
         let params: Vec<f32> = (0..field.num_params())
@@ -666,6 +812,7 @@ mod tests {
             let mut ws = FastWorkspace::default();
             let mut inp = input(&pos, &dirs);
             inp.appearance = looks;
+            inp.footprints = footprints;
             let out = field.forward(p, inp, &mut ws);
             let ls: f64 = out.sigma.iter().zip(&a).map(|(s, a)| (s * a) as f64).sum();
             let lc: f64 = out.rgb.iter().zip(&b).map(|(c, b)| (c * b) as f64).sum();
@@ -674,6 +821,7 @@ mod tests {
         let mut ws = FastWorkspace::default();
         let mut inp = input(&pos, &dirs);
         inp.appearance = looks;
+        inp.footprints = footprints;
         field.forward(&params, inp, &mut ws);
         let mut grads = GradBuffer::new(field.num_params());
         let d = FieldGrad {
@@ -728,6 +876,7 @@ mod tests {
             dirs: &dirs[..3],
             samples_per_dir: 2,
             appearance: &[],
+            footprints: &[],
         };
         let rgb = field.forward(&params, shared, &mut ws).rgb.to_vec();
         let per_sample = [0.0, 0.0, 1.0, 0.0, 0.0, 1.0];

@@ -301,7 +301,12 @@ impl FastModel {
             ws.samples.dirs.extend_from_slice(&s.dirs[range.clone()]);
             ws.samples
                 .appearance
-                .extend_from_slice(&s.appearance[range]);
+                .extend_from_slice(&s.appearance[range.clone()]);
+            if !s.footprints.is_empty() {
+                ws.samples
+                    .footprints
+                    .extend_from_slice(&s.footprints[range]);
+            }
             ws.samples.end_ray();
             ws.backgrounds.push(block.rays.rays.backgrounds[r]);
             ws.targets.push(block.rays.targets[r]);

@@ -36,6 +36,21 @@ pub fn world_step(p: V3, r: f32, dt: f32) -> f32 {
     dt * (n * n).max(1.0)
 }
 
+/// How much contraction shrinks a small region around world point `p`: the geometric
+/// mean of its scale along the contracted axis (`d(2 - 1/n)/dn = 1/n^2`) and across it
+/// (`s = (2 - 1/n)/n`, twice), `(s^2 / n^2)^(1/3)` (the cube root of the Jacobian's
+/// determinant, as Zip-NeRF scales its Gaussians); 1 inside the inner cube.
+#[inline]
+pub fn footprint_scale(p: V3, r: f32) -> f32 {
+    let n = norm(p, r);
+    if n <= 1.0 {
+        1.0
+    } else {
+        let s = (2.0 - 1.0 / n) / n;
+        (s * s / (n * n)).cbrt()
+    }
+}
+
 /// Beyond this `n` a point lies within `r / FAR_N` of the contracted box's surface: rays
 /// stop there.
 pub const FAR_N: f32 = 64.0;

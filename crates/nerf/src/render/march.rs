@@ -83,6 +83,17 @@ impl Marcher {
             Some(r) => contraction::contract(p, r),
         }
     }
+
+    /// The field-space footprint of ray `r`'s sample at metric depth `t` (world point
+    /// `p`): the ray's radius there, shrunk as contraction shrinks space.
+    #[inline]
+    pub fn footprint(&self, rays: &RayBatch, r: usize, t: f32, p: [f32; 3]) -> f32 {
+        let radius = rays.radius_at(r, t);
+        match self.contract {
+            None => radius,
+            Some(half) => radius * contraction::footprint_scale(p, half),
+        }
+    }
 }
 
 /// Marching through contracted space: steps grow with distance so each covers about `dt`
@@ -150,6 +161,7 @@ impl Marcher {
         let added = out.t.len() - before;
         out.appearance
             .extend(std::iter::repeat_n(rays.appearance_of(r), added));
+        let footprints = !rays.radii.is_empty();
         for &tt in &out.t[before..] {
             let p = [
                 origin[0] + tt * d[0],
@@ -158,6 +170,9 @@ impl Marcher {
             ];
             out.positions.push(self.field_point(p));
             out.dirs.push(view);
+            if footprints {
+                out.footprints.push(self.footprint(rays, r, tt, p));
+            }
         }
         out.end_ray();
         out.t.len() - before
@@ -268,6 +283,9 @@ pub fn render_marched<F: Field>(
                     let p = [o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]];
                     ws.round.positions.push(marcher.field_point(p));
                     ws.round.dirs.push(view_dir);
+                    if !rays.radii.is_empty() {
+                        ws.round.footprints.push(marcher.footprint(rays, k, tt, p));
+                    }
                 }
                 ws.round.end_ray();
                 ws.round_rays.push(k);
@@ -299,5 +317,71 @@ pub fn render_marched<F: Field>(
     }
     for k in 0..r {
         out[k] = ws.acc[k].finish(rays.backgrounds[k]);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::camera::Ray;
+
+    /// Issue 15 #1: a marched sample's footprint is its ray's cone radius times its
+    /// distance (world rays), the radius itself (NDC cylinders), shrunk by contraction.
+    #[test]
+    fn samples_carry_their_pixel_footprints() {
+        let grid = OccupancyGrid::new(16, 1.5);
+        let mut rays = RayBatch::new(2.0, 6.0);
+        let ray = Ray {
+            origin: [0.0, -4.0, 0.0],
+            dir: [0.0, 2.0, 0.0],
+        };
+        rays.push_with_radius(ray, [0.0, 1.0, 0.0], [1.0; 3], 0, 0.01);
+        let marcher = Marcher {
+            dt: 0.1,
+            max_samples: 1000,
+            near: 2.0,
+            far: 6.0,
+            contract: None,
+        };
+        let mut out = PackedSamples::default();
+        out.clear();
+        let n = marcher.pack_ray(&grid, &rays, 0, 0.5, &mut out);
+        assert!(n > 10);
+        assert_eq!(out.footprints.len(), n);
+        for (f, t) in out.footprints.iter().zip(&out.t) {
+            assert!((f - 0.01 * t).abs() < 1e-6, "{f} at {t}");
+        }
+        rays.cylinders = true;
+        out.clear();
+        marcher.pack_ray(&grid, &rays, 0, 0.5, &mut out);
+        assert!(out.footprints.iter().all(|&f| f == 0.01));
+        // Contracted: samples beyond the inner cube stand for more space, so their
+        // footprint in the field shrinks.
+        rays.cylinders = false;
+        let contracted = Marcher {
+            contract: Some(0.5),
+            far: 40.0,
+            ..marcher
+        };
+        out.clear();
+        contracted.pack_ray(&grid, &rays, 0, 0.5, &mut out);
+        let (first, last) = (out.footprints[0], out.footprints[out.len() - 1]);
+        let t_first = out.t[0];
+        assert!(
+            (first
+                - 0.01 * t_first * contraction::footprint_scale([0.0, -4.0 + t_first, 0.0], 0.5))
+            .abs()
+                < 1e-6
+        );
+        assert!(
+            last < 0.01 * out.t[out.len() - 1],
+            "contraction shrinks footprints"
+        );
+        // A batch without radii marches point samples.
+        let mut points = RayBatch::new(2.0, 6.0);
+        points.push(ray, [0.0, 1.0, 0.0], [1.0; 3], 0);
+        out.clear();
+        marcher.pack_ray(&grid, &points, 0, 0.5, &mut out);
+        assert!(out.footprints.is_empty() && !out.t.is_empty());
     }
 }

@@ -25,6 +25,14 @@ pub struct RayBatch {
     /// `n`: where each ray came from: `view << 32 | pixel` for training rays, the ray's
     /// index in its image (or list) when rendering.
     pub pixels: Vec<u64>,
+    /// `n`, or empty (point rays: no footprint known): the pixel's footprint radius, the
+    /// standard deviation of a disc as wide as the pixel (mip-NeRF's `2 / sqrt(12)` of
+    /// its width). Per unit of metric distance along the ray for world rays (cones), or
+    /// the same at every depth where [`cylinders`](Self::cylinders) is set (NDC rays: a
+    /// pixel covers the same NDC `x, y` at any depth). See [`crate::camera::footprint`].
+    pub radii: Vec<f32>,
+    /// `radii` are absolute (NDC), not per unit distance.
+    pub cylinders: bool,
     /// Bounds of `t` along `dirs`, shared by the batch (see `Dataset::near`).
     pub near: f32,
     pub far: f32,
@@ -84,6 +92,7 @@ impl RayBatch {
         self.view_dirs.clear();
         self.backgrounds.clear();
         self.pixels.clear();
+        self.radii.clear();
     }
 
     /// Appends a ray already in ray space, seen from `view_dir`.
@@ -95,6 +104,31 @@ impl RayBatch {
         self.pixels.push(pixel);
     }
 
+    /// [`push`](Self::push) with the pixel's footprint radius (see [`radii`](Self::radii)):
+    /// a batch holds footprints for all its rays or for none.
+    pub fn push_with_radius(
+        &mut self,
+        ray: Ray,
+        view_dir: [f32; 3],
+        background: [f32; 3],
+        pixel: u64,
+        radius: f32,
+    ) {
+        debug_assert_eq!(self.radii.len(), self.origins.len());
+        self.push(ray, view_dir, background, pixel);
+        self.radii.push(radius);
+    }
+
+    /// Ray `r`'s footprint radius at metric distance `s` along it (0: no footprints).
+    #[inline]
+    pub fn radius_at(&self, r: usize, s: f32) -> f32 {
+        match self.radii.get(r) {
+            None => 0.0,
+            Some(&radius) if self.cylinders => radius,
+            Some(&radius) => radius * s,
+        }
+    }
+
     /// Rays `range` of this batch as a new batch (for tests and chunked callers).
     pub fn slice(&self, range: std::ops::Range<usize>) -> RayBatch {
         RayBatch {
@@ -102,7 +136,13 @@ impl RayBatch {
             dirs: self.dirs[range.clone()].to_vec(),
             view_dirs: self.view_dirs[range.clone()].to_vec(),
             backgrounds: self.backgrounds[range.clone()].to_vec(),
-            pixels: self.pixels[range].to_vec(),
+            pixels: self.pixels[range.clone()].to_vec(),
+            radii: self
+                .radii
+                .get(range)
+                .map(<[f32]>::to_vec)
+                .unwrap_or_default(),
+            cylinders: self.cylinders,
             near: self.near,
             far: self.far,
             appearance: self.appearance,
@@ -131,6 +171,8 @@ pub struct PackedSamples {
     /// `n` appearance indices (see [`RayBatch::appearance_of`]), or empty: the mean code
     /// for every sample. Only fields with appearance codes read them.
     pub appearance: Vec<u32>,
+    /// `n` footprints, or empty (see [`FieldInput::footprints`]).
+    pub footprints: Vec<f32>,
 }
 
 impl PackedSamples {
@@ -158,6 +200,7 @@ impl PackedSamples {
         self.dirs.clear();
         self.samples_per_dir = 1;
         self.appearance.clear();
+        self.footprints.clear();
     }
 
     /// Closes the current ray (its samples are those pushed since the last close).
@@ -172,6 +215,7 @@ impl PackedSamples {
             dirs: self.dirs.as_flattened(),
             samples_per_dir: self.samples_per_dir.max(1),
             appearance: &self.appearance,
+            footprints: &self.footprints,
         }
     }
 }
@@ -187,6 +231,11 @@ pub struct FieldInput<'a> {
     pub samples_per_dir: usize,
     /// `n` appearance indices, or empty (the mean code); see [`PackedSamples::appearance`].
     pub appearance: &'a [u32],
+    /// `n` footprints, or empty: the radius (standard deviation, in field units) of the
+    /// region of space each sample stands for, the pixel's cone at its depth. Anti-aliased
+    /// fields read no detail finer than it; others ignore it. Empty: the field's own
+    /// reference footprint (occupancy refreshes, meshes).
+    pub footprints: &'a [f32],
 }
 
 impl FieldInput<'_> {

@@ -63,6 +63,10 @@ pub struct TrainConfig {
     pub background: Background,
     /// Area-average downscale of the images.
     pub downscale: usize,
+    /// Train on mip-NeRF's multi-scale variant of the scene: every training image also at
+    /// 1/2, ..., `1 / 2^(multiscale - 1)` of its resolution (1: the images alone).
+    #[serde(default = "one", skip_serializing_if = "is_one")]
+    pub multiscale: usize,
     /// Keep this many training views, spread evenly (`None`: all).
     pub train_views: Option<usize>,
     pub seed: u64,
@@ -79,6 +83,17 @@ pub struct TrainConfig {
     /// of camera refinement; `--perturb-poses`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
+}
+
+/// The most scales of `--multiscale` (down to 1/32 of the resolution).
+pub const MAX_SCALES: usize = 6;
+
+fn one() -> usize {
+    1
+}
+
+fn is_one(v: &usize) -> bool {
+    *v == 1
 }
 
 impl TrainConfig {
@@ -100,6 +115,7 @@ impl TrainConfig {
             precrop_fraction: 0.5,
             background: Background::White,
             downscale: 1,
+            multiscale: 1,
             train_views,
             seed: 0,
             chunk_rays: 64,
@@ -132,6 +148,7 @@ impl TrainConfig {
             precrop_fraction: 1.0,
             background: Background::Random,
             downscale: 1,
+            multiscale: 1,
             train_views: None,
             seed: 0,
             chunk_rays: 1024,
@@ -163,6 +180,7 @@ impl TrainConfig {
                 data.views.iter_mut().map(|v| &mut v.camera.c2w).collect();
             p.apply(&mut poses);
         }
+        data.add_scales(self.multiscale)?;
         Ok(data)
     }
 
@@ -234,6 +252,9 @@ impl TrainConfig {
         }
         if self.downscale == 0 || self.val_downscale == 0 {
             return bad("downscale factors must be at least 1");
+        }
+        if !(1..=MAX_SCALES).contains(&self.multiscale) {
+            return bad("multiscale must be 1 (off) to 6 scales");
         }
         if self.scene.holdout < 2 {
             return bad("scene.holdout must be at least 2");

@@ -103,6 +103,22 @@ pub struct TrainOptions {
     /// Default: random for fast, white for vanilla.
     #[arg(long, value_enum)]
     pub background: Option<Background>,
+    /// Train on the multi-scale variant of the scene (mip-NeRF's benchmark): every
+    /// training image also at 1/2, 1/4, ... of its resolution, N scales in all (4: down
+    /// to 1/8), area-averaged, each scale drawing the same share of rays. Evaluate it with
+    /// `nerf eval --multiscale N`.
+    #[arg(long, value_name = "N",
+          value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=6))]
+    pub multiscale: Option<usize>,
+    /// Fast: anti-alias (after Zip-NeRF): each sample reads no hash-grid detail finer
+    /// than its pixel's footprint, so views from far away or at low resolution do not
+    /// alias, nor close ones blur. The default on the CPU engine.
+    #[arg(long, conflicts_with = "no_antialias")]
+    pub antialias: bool,
+    /// Fast: point samples, as Instant-NGP (the default on a GPU, whose kernels do not
+    /// anti-alias yet).
+    #[arg(long)]
+    pub no_antialias: bool,
     /// Area-average downscale factor of the images (default 1).
     #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=64))]
     pub downscale: Option<usize>,
@@ -162,6 +178,16 @@ impl TrainOptions {
             (None, Some(_)) => Ok(ModelKind::Vanilla),
             (None, None) => Ok(ModelKind::Fast),
         }
+    }
+
+    /// Whether the fast model anti-aliases: as asked, else when the run will be on the
+    /// CPU engine (the GPU kernels do not anti-alias yet).
+    pub fn antialias(&self) -> Result<bool> {
+        Ok(match (self.antialias, self.no_antialias) {
+            (true, _) => true,
+            (_, true) => false,
+            _ => crate::engine::runs_on_cpu(self.device.device),
+        })
     }
 
     /// Name for the default run folder: `fast`, or the vanilla preset.
@@ -230,6 +256,7 @@ impl TrainOptions {
         }
         c.background = self.background.unwrap_or(c.background);
         c.downscale = self.downscale.unwrap_or(c.downscale);
+        c.multiscale = self.multiscale.unwrap_or(c.multiscale);
         c.scene = self.scene.clone();
         let scene = c.open_scene(1)?;
         for n in &scene.notes {
@@ -242,6 +269,25 @@ impl TrainOptions {
             ModelConfig::Fast(m) => {
                 m.field.bound = self.bound.unwrap_or(scene.bound);
                 m.contract = scene.contract && !self.no_contract;
+                if self.antialias()? {
+                    let cameras = scene.cameras(crate::data::Split::Train);
+                    let reference = crate::camera::footprint::reference_footprint(
+                        &cameras,
+                        &scene.space,
+                        0.5 * m.field.bound,
+                    );
+                    m.field.antialias = Some(crate::field::fast::Antialias {
+                        reference_footprint: reference,
+                    });
+                }
+                if c.multiscale > 1 && (self.appearance.is_some() || self.refine_cameras) {
+                    return refuse(
+                        "--multiscale cannot be combined with --appearance or \
+                         --refine-cameras yet (each scale of a photo would get its own code \
+                         and pose)"
+                            .into(),
+                    );
+                }
                 if let Some(dims) = self.appearance {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
@@ -276,6 +322,9 @@ impl TrainOptions {
             }
             ModelConfig::Vanilla(_) if self.bound.is_some() || self.no_contract => {
                 return refuse("--bound and --no-contract apply to --model fast only".into());
+            }
+            ModelConfig::Vanilla(_) if self.antialias => {
+                return refuse("--antialias applies to --model fast only".into());
             }
             ModelConfig::Vanilla(_) if self.appearance.is_some() || self.refine_cameras => {
                 return refuse(
@@ -417,6 +466,11 @@ impl TrainOptions {
             saved.downscale.to_string(),
         );
         check(
+            "--multiscale",
+            self.multiscale.map(|v| v.to_string()),
+            saved.multiscale.to_string(),
+        );
+        check(
             "--background",
             self.background.map(|b| format!("{b:?}").to_lowercase()),
             format!("{:?}", saved.background).to_lowercase(),
@@ -448,10 +502,13 @@ impl TrainOptions {
             || self.no_refine_cameras
             || self.camera_lr.is_some()
             || self.perturb_poses.is_some()
+            || self.antialias
+            || self.no_antialias
         {
             out.push(
                 "--paper-pe / --no-contract / --appearance / --refine-cameras / \
-                 --no-refine-cameras / --camera-lr / --perturb-poses (set when the run was made)"
+                 --no-refine-cameras / --camera-lr / --perturb-poses / --antialias / \
+                 --no-antialias (set when the run was made)"
                     .into(),
             );
         }

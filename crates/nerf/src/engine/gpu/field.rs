@@ -458,6 +458,7 @@ pub(super) mod tests {
             dirs: &dirs,
             samples_per_dir: 1,
             appearance: &[],
+            footprints: &[],
         };
         let out = field.forward(&params, input, &mut ws);
         let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());

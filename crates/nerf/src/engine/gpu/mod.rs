@@ -59,9 +59,12 @@ pub fn open(
     options: EngineOptions,
     seed: u64,
 ) -> Result<Box<dyn Engine>> {
-    // Appearance codes and camera refinement have no GPU kernels yet: `auto` picks the CPU.
+    // Appearance codes, camera refinement and anti-aliasing have no GPU kernels yet:
+    // `auto` picks the CPU.
     let cpu_only = matches!(model, ModelConfig::Fast(c)
-        if c.field.appearance_dims > 0 || c.refine_cameras.is_some());
+        if c.field.appearance_dims > 0
+            || c.refine_cameras.is_some()
+            || c.field.antialias.is_some());
     if cpu_only && device == Device::Auto {
         return Ok(super::open(model, options, seed));
     }
@@ -76,8 +79,9 @@ pub fn open(
     };
     match model {
         ModelConfig::Fast(_) if cpu_only => Err(NerfError::Device(
-            "per-photo appearance codes (--appearance) and camera refinement \
-             (--refine-cameras) run on the CPU engine only so far; use --device cpu"
+            "per-photo appearance codes (--appearance), camera refinement \
+             (--refine-cameras) and anti-aliasing (--antialias; trained without it: \
+             --no-antialias) run on the CPU engine only so far; use --device cpu"
                 .into(),
         )),
         ModelConfig::Fast(config) if config.batch_samples > engine::MAX_DEVICE_SAMPLES => {

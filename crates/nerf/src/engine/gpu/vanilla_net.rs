@@ -584,6 +584,7 @@ mod tests {
                 dirs: &ray_dirs,
                 samples_per_dir: spr,
                 appearance: &[],
+                footprints: &[],
             };
             let out = net.forward(&params, input, &mut ws);
             let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());
