@@ -125,8 +125,16 @@ impl TrainProgress {
                 resumed_from,
                 elapsed_s,
             } => {
+                let views = match config.multiscale {
+                    1 => format!("{views} views"),
+                    n => format!("{} views at {n} scales", views / n),
+                };
+                let antialiased = match &config.model {
+                    ModelConfig::Fast(m) if m.field.antialias.is_some() => ", anti-aliased",
+                    _ => "",
+                };
                 println!(
-                    "training {} on {} ({views} views, {width}x{height}): {}{}, {params} parameters",
+                    "training {} on {} ({views}, {width}x{height}): {}{}{antialiased}, {params} parameters",
                     config.preset,
                     config.data.display(),
                     config.model.describe(),

@@ -279,6 +279,48 @@ fn fast_model_through_the_same_commands() {
     assert!(text.contains("stopped after step 24"), "{text}");
     let text = ok(&nerf(&["eval", "--run", "run"], d));
     assert!(text.contains("2 views of test"), "{text}");
+    assert!(
+        text.contains("LPIPS skipped: no --lpips-weights given"),
+        "{text}"
+    );
+    // Issue 15: a multi-scale run, anti-aliased, evaluated per scale.
+    let mut multiscale = fast.to_vec();
+    multiscale[4] = "ms";
+    multiscale.extend(["--multiscale", "2", "--antialias"]);
+    let text = ok(&nerf(&multiscale, d));
+    assert!(text.contains("stopped after step 20"), "{text}");
+    let config = std::fs::read_to_string(d.join("ms/config.json")).expect("config");
+    assert!(
+        config.contains("\"multiscale\": 2") && config.contains("\"reference_footprint\""),
+        "{config}"
+    );
+    let text = ok(&nerf(&["eval", "--run", "ms", "--multiscale", "2"], d));
+    assert!(
+        text.contains("scale 1/1 (16x16)") && text.contains("scale 1/2 (8x8)"),
+        "{text}"
+    );
+    let metrics: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("ms/eval_test/metrics.json")).expect("metrics"),
+    )
+    .expect("json");
+    let scales = metrics["scales"].as_array().expect("scales");
+    assert_eq!(scales.len(), 2);
+    assert_eq!(
+        (scales[1]["scale"].as_u64(), scales[1]["width"].as_u64()),
+        (Some(2), Some(8))
+    );
+    assert!(scales[1]["mean_psnr"].as_f64().is_some());
+    assert!(d.join("ms/eval_test/001_d2.png").exists());
+    // LPIPS weights that are not there: a clear error before any rendering.
+    let out = nerf(
+        &["eval", "--run", "ms", "--lpips-weights", "alex.safetensors"],
+        d,
+    );
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && err.contains("alex.safetensors"),
+        "{err}"
+    );
     // Issue 14 #2: the test cameras fitted to the frozen model first, and said so.
     let text = ok(&nerf(
         &[

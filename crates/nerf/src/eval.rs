@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{image::save_rgb_png, Split};
 use crate::error::Result;
+use crate::metrics::lpips::Lpips;
 use crate::metrics::{psnr, ssim};
 use crate::refined_cameras::{PoseError, RunCameras};
 use crate::test_poses::{refine_test_poses, TestPoseFit, TestPoseReport};
@@ -20,6 +21,10 @@ pub struct ViewMetrics {
     pub name: String,
     pub psnr: f32,
     pub ssim: f32,
+    /// LPIPS (AlexNet; lower is better), with `--lpips-weights` and views of at least 32
+    /// pixels a side.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips: Option<f32>,
     pub image: PathBuf,
     pub depth: PathBuf,
     /// The view's downscale factor (1, 2, 4, 8: `--multiscale`).
@@ -44,6 +49,15 @@ pub struct ScaleMetrics {
     pub height: usize,
     pub mean_psnr: f32,
     pub mean_ssim: f32,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mean_lpips: Option<f32>,
+}
+
+/// The mean of the views' LPIPS, when every one has it.
+fn mean_lpips(views: &[ViewMetrics]) -> Option<f32> {
+    let all: Option<Vec<f32>> = views.iter().map(|v| v.lpips).collect();
+    all.filter(|a| !a.is_empty())
+        .map(|a| a.iter().sum::<f32>() / a.len() as f32)
 }
 
 /// `metrics.json` of an evaluation.
@@ -58,6 +72,12 @@ pub struct EvalReport {
     /// the scales' means, as mip-NeRF reports).
     pub mean_psnr: f32,
     pub mean_ssim: f32,
+    /// Mean LPIPS (AlexNet), with `--lpips-weights`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mean_lpips: Option<f32>,
+    /// Why there is no LPIPS (no weights given, views too small).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lpips_skipped: Option<String>,
     /// Per scale, with `--multiscale` (empty: one scale).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub scales: Vec<ScaleMetrics>,
@@ -77,7 +97,7 @@ pub struct EvalReport {
 }
 
 /// What to evaluate.
-#[derive(Clone, Copy, Debug)]
+#[derive(Clone, Debug)]
 pub struct EvalOptions {
     pub split: Split,
     /// Every `every`-th view of the split.
@@ -87,7 +107,14 @@ pub struct EvalOptions {
     /// Evaluate every view also at 1/2, ..., `1 / 2^(multiscale - 1)` of its resolution
     /// (1: full resolution alone).
     pub multiscale: usize,
+    /// The LPIPS network (`--lpips-weights`); `None`: LPIPS is skipped, and the report
+    /// says why.
+    pub lpips: Option<std::sync::Arc<Lpips>>,
 }
+
+/// Why LPIPS is missing without weights.
+pub const LPIPS_WITHOUT_WEIGHTS: &str = "no --lpips-weights given: AlexNet's and the LPIPS \
+     heads' weights cannot ship with nerf; scripts/lpips_weights.py makes the file";
 
 impl EvalOptions {
     /// Every `every`-th view of `split`, cameras as given (or aligned).
@@ -97,6 +124,7 @@ impl EvalOptions {
             every,
             refine_poses: None,
             multiscale: 1,
+            lpips: None,
         }
     }
 }
@@ -174,11 +202,16 @@ pub fn evaluate(
             r.height,
             &r.depth_image(data.near, data.far),
         )?;
+        let lpips = match &options.lpips {
+            Some(net) => net.distance(&r.rgb, &truth, r.width, r.height).ok(),
+            None => None,
+        };
         views.push(ViewMetrics {
             index: i,
             name: view.name.clone(),
             psnr: psnr(&r.rgb, &truth),
             ssim: ssim(&r.rgb, &truth, r.width, r.height),
+            lpips,
             image,
             depth,
             scale,
@@ -196,6 +229,7 @@ pub fn evaluate(
                 height: v[0].image.height,
                 mean_psnr: m.iter().map(|v| v.psnr).sum::<f32>() / m.len() as f32,
                 mean_ssim: m.iter().map(|v| v.ssim).sum::<f32>() / m.len() as f32,
+                mean_lpips: mean_lpips(m),
             })
             .collect(),
     };
@@ -207,6 +241,14 @@ pub fn evaluate(
         height,
         mean_psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
         mean_ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
+        mean_lpips: mean_lpips(&views),
+        lpips_skipped: match (&options.lpips, mean_lpips(&views)) {
+            (None, _) => Some(LPIPS_WITHOUT_WEIGHTS.to_string()),
+            (Some(_), None) => {
+                Some("some views are smaller than the 32x32 pixels LPIPS needs".to_string())
+            }
+            (Some(_), Some(_)) => None,
+        },
         scales,
         pose_error: run_cameras.as_ref().map(RunCameras::error),
         cameras: cameras.map(str::to_string),

@@ -37,9 +37,20 @@ pub struct EvalArgs {
     #[arg(long, value_name = "N", default_value_t = 1,
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=6))]
     multiscale: usize,
+    /// Also report LPIPS (AlexNet, lower is better) with these weights: a safetensors file
+    /// made by scripts/lpips_weights.py (the weights cannot ship with nerf).
+    #[arg(long, value_name = "FILE")]
+    lpips_weights: Option<PathBuf>,
 }
 
 pub fn run(a: EvalArgs) -> Result<()> {
+    // Read first: a wrong file fails before minutes of rendering.
+    let lpips = match &a.lpips_weights {
+        Some(path) => Some(std::sync::Arc::new(nerf::metrics::lpips::Lpips::load(
+            path,
+        )?)),
+        None => None,
+    };
     let run = LoadedRun::open_on(&a.run, a.device.device)?;
     let out = a
         .out
@@ -47,6 +58,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
     let options = EvalOptions {
         refine_poses: a.refine_test_poses.map(TestPoseFit::new),
         multiscale: a.multiscale,
+        lpips,
         ..EvalOptions::new(a.split, a.every)
     };
     let fit = bar(0, &format!("fit {} cameras, steps", a.split.name()));
@@ -77,19 +89,31 @@ pub fn print_report(report: &EvalReport, out: &std::path::Path) {
             1 => String::new(),
             s => format!(" at 1/{s}"),
         };
+        let lpips = v
+            .lpips
+            .map(|l| format!("  LPIPS {l:.4}"))
+            .unwrap_or_default();
         println!(
-            "  view {:3}{scale}  PSNR {:6.2} dB  SSIM {:.4}",
+            "  view {:3}{scale}  PSNR {:6.2} dB  SSIM {:.4}{lpips}",
             v.index, v.psnr, v.ssim
         );
     }
     for s in &report.scales {
+        let lpips = s
+            .mean_lpips
+            .map(|l| format!(", mean LPIPS {l:.4}"))
+            .unwrap_or_default();
         println!(
-            "  scale 1/{} ({}x{}): mean PSNR {:.2} dB, mean SSIM {:.4}",
+            "  scale 1/{} ({}x{}): mean PSNR {:.2} dB, mean SSIM {:.4}{lpips}",
             s.scale, s.width, s.height, s.mean_psnr, s.mean_ssim
         );
     }
+    let lpips = report
+        .mean_lpips
+        .map(|l| format!(", mean LPIPS {l:.4}"))
+        .unwrap_or_default();
     println!(
-        "{} views of {} at step {} ({}x{}): mean PSNR {:.2} dB, mean SSIM {:.4}; images and metrics.json in {}",
+        "{} views of {} at step {} ({}x{}): mean PSNR {:.2} dB, mean SSIM {:.4}{lpips}; images and metrics.json in {}",
         report.views.len(),
         report.split.name(),
         report.step,
@@ -99,6 +123,9 @@ pub fn print_report(report: &EvalReport, out: &std::path::Path) {
         report.mean_ssim,
         out.display()
     );
+    if let Some(why) = &report.lpips_skipped {
+        println!("LPIPS skipped: {why}");
+    }
     if let Some(e) = &report.pose_error {
         println!(
             "training cameras against the given poses, after a similarity alignment: {:.3} \

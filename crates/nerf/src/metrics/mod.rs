@@ -1,4 +1,7 @@
-//! Image metrics: PSNR and SSIM, as the paper's tables report them.
+//! Image metrics: PSNR and SSIM, as the paper's tables report them, and [`lpips`], the
+//! third metric of its tables.
+
+pub mod lpips;
 
 /// `-10 log10(mse)`, for images in [0, 1].
 pub fn psnr_from_mse(mse: f64) -> f32 {
