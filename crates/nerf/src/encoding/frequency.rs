@@ -27,7 +27,8 @@ impl FrequencyEncoding {
         }
     }
 
-    fn scale(&self, k: usize) -> f32 {
+    /// The `k`-th frequency: `2^k`, times pi in the paper's form.
+    pub fn frequency(&self, k: usize) -> f32 {
         let f = (1u64 << k) as f32;
         if self.paper_form {
             f * std::f32::consts::PI
@@ -45,7 +46,7 @@ impl FrequencyEncoding {
             o = 3;
         }
         for k in 0..self.frequencies {
-            let s = self.scale(k);
+            let s = self.frequency(k);
             for c in 0..3 {
                 let (sin, cos) = (s * p[c]).sin_cos();
                 out[o + c] = sin;
@@ -72,7 +73,7 @@ impl FrequencyEncoding {
             o = 3;
         }
         for k in 0..self.frequencies {
-            let s = self.scale(k);
+            let s = self.frequency(k);
             for c in 0..3 {
                 let (sin, cos) = (s * p[c]).sin_cos();
                 g[c] += s * (cos * d_out[o + c] - sin * d_out[o + 3 + c]);

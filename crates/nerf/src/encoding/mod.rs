@@ -2,6 +2,7 @@
 
 pub mod frequency;
 pub mod hash_grid;
+pub mod integrated;
 pub mod spherical_harmonics;
 
 pub use frequency::FrequencyEncoding;
