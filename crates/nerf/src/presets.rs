@@ -64,6 +64,11 @@ pub const PRESETS: &[Preset] = &[
         paper_psnr: Some(30.81),
     },
     Preset {
+        name: "mip",
+        help: "mip-NeRF: conical frustums, integrated PE (L=16), one network for both passes; not in the NeRF paper",
+        paper_psnr: None,
+    },
+    Preset {
         name: "demo",
         help: "reduced model for minutes on a CPU (4x64 trunk, 32+32 samples); not in the paper",
         paper_psnr: None,
@@ -83,6 +88,8 @@ pub fn paper() -> VanillaModelConfig {
         net: VanillaConfig::paper(),
         n_coarse: 64,
         n_fine: 128,
+        integrated: false,
+        shared_network: false,
     }
 }
 
@@ -130,6 +137,13 @@ pub fn build(name: &str) -> Result<(VanillaModelConfig, Option<usize>)> {
         "views-50" => views = Some(50),
         "pe-5" => m.net.position_encoding = frequencies(5),
         "pe-15" => m.net.position_encoding = frequencies(15),
+        "mip" => {
+            // mip-NeRF's 16 frequencies: the integrated encoding fades those finer than
+            // each frustum, so high ones cost no aliasing.
+            m.net.position_encoding = frequencies(16);
+            m.integrated = true;
+            m.shared_network = true;
+        }
         "demo" => {
             m.net = VanillaConfig {
                 depth: 4,
@@ -171,6 +185,9 @@ mod tests {
                 "pe-5" => assert_eq!(m.net.position_encoding.dims(), 33),
                 "pe-15" => assert_eq!(m.net.position_encoding.dims(), 93),
                 "demo" => assert!(m.net.width < 256),
+                "mip" => assert!(
+                    m.integrated && m.shared_network && m.net.position_encoding.frequencies == 16
+                ),
                 _ => panic!("untested preset {}", p.name),
             }
         }

@@ -379,6 +379,7 @@ impl FastField {
             samples_per_dir: spd,
             appearance,
             footprints,
+            ..
         } = input;
         let n = positions.len() / 3;
         let (w, g, ci) = (
@@ -643,6 +644,7 @@ mod tests {
             samples_per_dir: 1,
             appearance: &[],
             footprints: &[],
+            variances: &[],
         }
     }
 
@@ -877,6 +879,7 @@ mod tests {
             samples_per_dir: 2,
             appearance: &[],
             footprints: &[],
+            variances: &[],
         };
         let rgb = field.forward(&params, shared, &mut ws).rgb.to_vec();
         let per_sample = [0.0, 0.0, 1.0, 0.0, 0.0, 1.0];

@@ -163,12 +163,14 @@ impl VanillaNet {
     }
 
     /// Evaluates `n = dirs.len() / 3 * samples_per_ray` samples. `positions` is `n x 3`,
-    /// `dirs` is one unit direction per ray (`r x 3`). Fills `ws.sigma` (`n`, after ReLU)
+    /// `variances` `n x 3` covariance diagonals (mip-NeRF's frustums, encoded by the
+    /// integrated encoding) or empty (points), `dirs` one unit direction per ray (`r x 3`). Fills `ws.sigma` (`n`, after ReLU)
     /// and `ws.rgb` (`n x 3`, after sigmoid) and keeps what [`Self::eval_rays_bwd`] needs.
     pub fn eval_rays(
         &self,
         params: &[f32],
         positions: &[f32],
+        variances: &[f32],
         dirs: &[f32],
         samples_per_ray: usize,
         ws: &mut VanillaWorkspace,
@@ -183,8 +185,19 @@ impl VanillaNet {
         ws.resize(&self.config, n, rays);
         let cfg = &self.config;
         let (in_x, w) = (cfg.position_encoding.dims(), cfg.width);
-        cfg.position_encoding
-            .encode_all(positions, &mut ws.enc[..n * in_x]);
+        if variances.is_empty() {
+            cfg.position_encoding
+                .encode_all(positions, &mut ws.enc[..n * in_x]);
+        } else {
+            assert_eq!(variances.len(), n * 3, "variances must be n x 3");
+            for ((p, v), o) in positions
+                .chunks_exact(3)
+                .zip(variances.chunks_exact(3))
+                .zip(ws.enc.chunks_exact_mut(in_x))
+            {
+                cfg.position_encoding.encode_integrated(p, v, o);
+            }
+        }
 
         for (l, layer) in self.trunk.iter().enumerate() {
             let (before, rest) = ws.hidden.split_at_mut(l);
@@ -544,6 +557,7 @@ impl Field for VanillaNet {
         self.eval_rays(
             params,
             input.positions,
+            input.variances,
             input.dirs,
             input.samples_per_dir,
             ctx,
@@ -572,7 +586,7 @@ impl Field for VanillaNet {
         out: &mut [f32],
     ) {
         // Density does not depend on the direction: one "ray" of all the points.
-        self.eval_rays(params, positions, &[0.0, 0.0, 1.0], out.len(), ctx);
+        self.eval_rays(params, positions, &[], &[0.0, 0.0, 1.0], out.len(), ctx);
         out.copy_from_slice(&ctx.sigma[..out.len()]);
     }
 }
@@ -704,7 +718,7 @@ mod tests {
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let mut ws = VanillaWorkspace::default();
         let loss = |p: &[f32], ws: &mut VanillaWorkspace| -> f64 {
-            net.eval_rays(p, &pos, &dirs, spr, ws);
+            net.eval_rays(p, &pos, &[], &dirs, spr, ws);
             let s: f64 = ws.sigma[..n]
                 .iter()
                 .zip(&a)
@@ -769,9 +783,9 @@ mod tests {
             let params = net.layout.init_glorot(&mut Rng::new(2));
             let mut ws = VanillaWorkspace::default();
             let pos = [0.1, 0.2, 0.3];
-            net.eval_rays(&params, &pos, &[1.0, 0.0, 0.0], 1, &mut ws);
+            net.eval_rays(&params, &pos, &[], &[1.0, 0.0, 0.0], 1, &mut ws);
             let c1 = ws.rgb[..3].to_vec();
-            net.eval_rays(&params, &pos, &[0.0, 1.0, 0.0], 1, &mut ws);
+            net.eval_rays(&params, &pos, &[], &[0.0, 1.0, 0.0], 1, &mut ws);
             assert_eq!(c1 != ws.rgb[..3], vd);
         }
     }

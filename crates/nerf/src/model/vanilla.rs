@@ -25,6 +25,15 @@ pub struct VanillaModelConfig {
     /// Importance samples per ray for the fine network (paper: 128); 0 disables the fine
     /// network (the "no hierarchical sampling" ablation).
     pub n_fine: usize,
+    /// mip-NeRF: every sample is the conical frustum of its pixel between it and its
+    /// neighbours, encoded by the integrated positional encoding (see
+    /// `encoding::integrated`), so no sample reads detail finer than its pixel.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub integrated: bool,
+    /// mip-NeRF: one network answers both the coarse and the fine samples (its
+    /// integrated encoding tells the scales apart); else a fine network of its own.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub shared_network: bool,
 }
 
 impl VanillaModelConfig {
@@ -53,8 +62,7 @@ pub struct VanillaModel {
 impl VanillaModel {
     pub fn new(config: VanillaModelConfig) -> Self {
         let coarse = VanillaNet::new(config.net.clone(), "coarse.");
-        let fine = config
-            .hierarchical()
+        let fine = (config.hierarchical() && !config.shared_network)
             .then(|| VanillaNet::new(config.net.clone(), "fine."));
         let mut layout = coarse.layout.clone();
         if let Some(f) = &fine {
@@ -162,8 +170,9 @@ fn fine_samples(
 }
 
 /// Packs depths `t` (`r x spr`) of `rays` as samples: positions `o + t d`, the paper's
-/// deltas, one unit view direction per ray.
-fn pack(samples: &mut PackedSamples, rays: &RayBatch, t: &[f32], spr: usize) {
+/// deltas, one unit view direction per ray; `integrated`: each sample the Gaussian of its
+/// conical frustum (mean as position, covariance diagonal in `variances`).
+fn pack(samples: &mut PackedSamples, rays: &RayBatch, t: &[f32], spr: usize, integrated: bool) {
     let r = rays.len();
     samples.clear();
     samples.samples_per_dir = spr;
@@ -173,10 +182,14 @@ fn pack(samples: &mut PackedSamples, rays: &RayBatch, t: &[f32], spr: usize) {
         let (o, d) = (rays.origins[k], rays.dirs[k]);
         let tk = &t[k * spr..][..spr];
         depth_deltas(tk, length(d), &mut samples.dt[k * spr..][..spr]);
-        for &tt in tk {
-            samples
-                .positions
-                .push([o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
+        if integrated {
+            push_frustums(samples, rays, k, tk);
+        } else {
+            for &tt in tk {
+                samples
+                    .positions
+                    .push([o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
+            }
         }
         let v = rays.view_dirs[k];
         samples.dirs.push(scale(v, 1.0 / length(v)));
@@ -184,19 +197,50 @@ fn pack(samples: &mut PackedSamples, rays: &RayBatch, t: &[f32], spr: usize) {
     }
 }
 
+/// mip-NeRF's samples of ray `k` at depths `tk` (sorted): each is the frustum from its
+/// depth to the next one's (the interval compositing gives it; the last as long as the
+/// one before), with the ray's pixel radius (per unit of `t`: the metric radius times
+/// `|d|`; none for rays without footprints).
+fn push_frustums(samples: &mut PackedSamples, rays: &RayBatch, k: usize, tk: &[f32]) {
+    use crate::encoding::integrated::{diagonal_covariance, frustum_gaussian};
+    let (o, d) = (rays.origins[k], rays.dirs[k]);
+    let radius = rays.radii.get(k).map_or(0.0, |r| match rays.cylinders {
+        true => *r,
+        false => r * length(d),
+    });
+    let n = tk.len();
+    for i in 0..n {
+        let length = match i + 1 < n {
+            true => tk[i + 1] - tk[i],
+            false if n > 1 => tk[i] - tk[i - 1],
+            false => 0.0,
+        };
+        let (t0, t1) = (tk[i], tk[i] + length);
+        let (mean, var_t, var_r) = frustum_gaussian(t0, t1, radius, rays.cylinders);
+        samples
+            .positions
+            .push([o[0] + mean * d[0], o[1] + mean * d[1], o[2] + mean * d[2]]);
+        samples
+            .variances
+            .extend_from_slice(&diagonal_covariance(d, var_t, var_r));
+    }
+}
+
 /// Evaluates `net` at depths `t` (`r x spr`) and composites each ray into `ws.outputs`,
 /// leaving the weights in `ws.weights` and the activations (the context) in `ws.net`.
+#[allow(clippy::too_many_arguments)]
 fn pass_forward(
     net: &VanillaNet,
     params: &[f32],
     rays: &RayBatch,
     t: &[f32],
     spr: usize,
+    integrated: bool,
     ws: &mut ChunkWorkspace,
     check: &FiniteCheck,
 ) {
     let r = rays.len();
-    pack(&mut ws.samples, rays, t, spr);
+    pack(&mut ws.samples, rays, t, spr, integrated);
     ws.weights.resize(r * spr, 0.0);
     ws.outputs.resize(r, RayOutput::default());
     let field = net.forward(params, ws.samples.field_input(), &mut ws.net);
@@ -250,7 +294,13 @@ impl VanillaModel {
     ) -> &'w PackedSamples {
         let n_c = self.config.n_coarse;
         coarse_samples(ws, rays, n_c, rngs);
-        pack(&mut ws.samples, rays, &ws.t_coarse, n_c);
+        pack(
+            &mut ws.samples,
+            rays,
+            &ws.t_coarse,
+            n_c,
+            self.config.integrated,
+        );
         &ws.samples
     }
 
@@ -268,15 +318,28 @@ impl VanillaModel {
         ws.weights.clear();
         ws.weights.extend_from_slice(coarse_weights);
         fine_samples(ws, rays.len(), n_c, n_f, rngs);
-        pack(&mut ws.samples, rays, &ws.t_fine, n_c + n_f);
+        pack(
+            &mut ws.samples,
+            rays,
+            &ws.t_fine,
+            n_c + n_f,
+            self.config.integrated,
+        );
         &ws.samples
     }
 
     fn coarse_range(&self) -> std::ops::Range<usize> {
         0..self.coarse.num_params()
     }
-    fn fine_range(&self) -> std::ops::Range<usize> {
-        self.coarse.num_params()..self.layout.total
+
+    /// The network of the fine pass and its parameters' range: its own, or the coarse
+    /// one's when they are shared (`None`: no fine pass).
+    pub fn fine_pass(&self) -> Option<(&VanillaNet, std::ops::Range<usize>)> {
+        match &self.fine {
+            Some(fine) => Some((fine, self.coarse.num_params()..self.layout.total)),
+            None if self.config.hierarchical() => Some((&self.coarse, self.coarse_range())),
+            None => None,
+        }
     }
 
     /// One training chunk (the rays in `ws.rays`): forward and backward of both passes,
@@ -290,12 +353,22 @@ impl VanillaModel {
         check: &FiniteCheck,
     ) -> (f64, f64) {
         let (n_c, n_f) = (self.config.n_coarse, self.config.n_fine);
-        let (p_coarse, p_fine) = self.split(params);
+        let integrated = self.config.integrated;
+        let p_coarse = &params[self.coarse_range()];
         let mut batch = std::mem::take(&mut ws.rays);
         let r = batch.len();
         coarse_samples(ws, &batch.rays, n_c, Some(&mut batch.rngs));
         let t = std::mem::take(&mut ws.t_coarse);
-        pass_forward(&self.coarse, p_coarse, &batch.rays, &t, n_c, ws, check);
+        pass_forward(
+            &self.coarse,
+            p_coarse,
+            &batch.rays,
+            &t,
+            n_c,
+            integrated,
+            ws,
+            check,
+        );
         let coarse_sse = pass_backward(
             &self.coarse,
             p_coarse,
@@ -307,17 +380,19 @@ impl VanillaModel {
         );
         ws.t_coarse = t;
         let mut fine_sse = 0.0;
-        if let Some(fine) = &self.fine {
+        if let Some((fine, range)) = self.fine_pass() {
+            let p_fine = &params[range.clone()];
             fine_samples(ws, r, n_c, n_f, Some(&mut batch.rngs));
             let t = std::mem::take(&mut ws.t_fine);
-            pass_forward(fine, p_fine, &batch.rays, &t, n_c + n_f, ws, check);
+            let spr = n_c + n_f;
+            pass_forward(fine, p_fine, &batch.rays, &t, spr, integrated, ws, check);
             fine_sse = pass_backward(
                 fine,
                 p_fine,
                 &batch.rays,
                 &batch.targets,
                 ws,
-                &mut grads.window(self.fine_range()),
+                &mut grads.window(range),
                 check,
             );
             ws.t_fine = t;
@@ -374,7 +449,11 @@ impl Model for VanillaModel {
         let (coarse, fine) = sums.iter().fold((0.0, 0.0), |(c, f), s| (c + s.0, f + s.1));
         PassTotals {
             sse: coarse + fine,
-            final_sse: if self.fine.is_some() { fine } else { coarse },
+            final_sse: if self.config.hierarchical() {
+                fine
+            } else {
+                coarse
+            },
             rays: batch,
             samples: batch * self.config.evals_per_ray(),
         }
@@ -391,42 +470,40 @@ impl Model for VanillaModel {
     ) {
         let r = rays.len();
         let (n_c, n_f) = (self.config.n_coarse, self.config.n_fine);
-        let (p_coarse, p_fine) = self.split(params);
+        let integrated = self.config.integrated;
+        let check = FiniteCheck::default();
         coarse_samples(ws, rays, n_c, None);
         let t = std::mem::take(&mut ws.t_coarse);
+        let p_coarse = &params[self.coarse_range()];
         pass_forward(
             &self.coarse,
             p_coarse,
             rays,
             &t,
             n_c,
+            integrated,
             ws,
-            &FiniteCheck::default(),
+            &check,
         );
         ws.t_coarse = t;
-        if let Some(fine) = &self.fine {
+        if let Some((fine, range)) = self.fine_pass() {
             fine_samples(ws, r, n_c, n_f, None);
             let t = std::mem::take(&mut ws.t_fine);
-            pass_forward(
-                fine,
-                p_fine,
-                rays,
-                &t,
-                n_c + n_f,
-                ws,
-                &FiniteCheck::default(),
-            );
+            let spr = n_c + n_f;
+            pass_forward(fine, &params[range], rays, &t, spr, integrated, ws, &check);
             ws.t_fine = t;
         }
         out[..r].copy_from_slice(&ws.outputs[..r]);
     }
 
-    /// The fine network's density (the coarse one's without a fine network).
+    /// The fine pass's density (the coarse one's without a fine pass), at points.
     fn density(&self, params: &[f32], positions: &[f32], ws: &mut ChunkWorkspace, out: &mut [f32]) {
-        let (coarse, fine) = self.split(params);
-        match &self.fine {
-            Some(f) => f.density(fine, positions, &mut ws.net, out),
-            None => self.coarse.density(coarse, positions, &mut ws.net, out),
+        match self.fine_pass() {
+            Some((net, range)) => net.density(&params[range], positions, &mut ws.net, out),
+            None => {
+                let coarse = &params[self.coarse_range()];
+                self.coarse.density(coarse, positions, &mut ws.net, out)
+            }
         }
     }
 }
@@ -436,7 +513,13 @@ mod tests {
     use super::*;
 
     fn tiny_model() -> VanillaModel {
-        let (mut config, _) = crate::presets::build("demo").expect("preset");
+        tiny_model_of("demo")
+    }
+
+    fn tiny_model_of(preset: &str) -> VanillaModel {
+        let (mut config, _) = crate::presets::build(preset).expect("preset");
+        config.net.depth = 4;
+        config.net.skip = Some(1);
         config.net.width = 16;
         config.net.view_width = 8;
         config.n_coarse = 8;
@@ -457,7 +540,8 @@ mod tests {
                 origin: [0.0, -4.0, 0.5],
                 dir,
             };
-            t.rays.push(ray, dir, bg, k as u64);
+            t.rays
+                .push_with_radius(ray, dir, bg, k as u64, 0.002 * (1 + k % 3) as f32);
             t.targets
                 .push([(k % 5) as f32 * 0.2, (k % 3) as f32 * 0.3, 0.5]);
             t.rngs.push(Rng::for_stream(1, 2, k as u64));
@@ -469,7 +553,56 @@ mod tests {
     /// loss and gradients, in training and in rendering.
     #[test]
     fn results_do_not_depend_on_chunking() {
-        let model = tiny_model();
+        results_do_not_depend_on_chunking_of(&tiny_model());
+        results_do_not_depend_on_chunking_of(&tiny_model_of("mip"));
+    }
+
+    /// Issue 15 #2: mip-NeRF's model is one network (the fine pass asks the coarse one),
+    /// and its samples are frustums: means on the ray, variances growing with the pixel's
+    /// radius, the depth and the gap to the neighbours.
+    #[test]
+    fn mip_model_shares_one_network_and_samples_frustums() {
+        let (mip, paper) = (tiny_model_of("mip"), tiny_model_of("paper"));
+        assert!(mip.fine.is_none() && mip.config.hierarchical());
+        assert_eq!(mip.layout.total, mip.coarse.num_params());
+        assert_eq!(paper.layout.total, 2 * paper.coarse.num_params());
+        let params = mip.init_params(1);
+        let mut ws = ChunkWorkspace {
+            rays: rays(4),
+            ..ChunkWorkspace::default()
+        };
+        let mut grads = GradBuffer::new(params.len());
+        let (coarse, fine) = mip.train_chunk(&params, &mut ws, &mut grads, &FiniteCheck::default());
+        assert!(coarse > 0.0 && fine > 0.0);
+        assert!(grads.values.iter().any(|g| *g != 0.0));
+
+        let batch = rays(3).rays;
+        let t = [2.5f32, 3.0, 3.5, 5.0];
+        let mut samples = PackedSamples::default();
+        pack(&mut samples, &batch, &[t, t, t].concat(), 4, true);
+        assert_eq!(samples.variances.len(), 12 * 3);
+        for k in 0..3 {
+            let (o, d) = (batch.origins[k], batch.dirs[k]);
+            for (i, tt) in t.iter().enumerate() {
+                let p = samples.positions[k * 4 + i];
+                // The mean sits a little beyond the middle of the interval (its far end
+                // is wider).
+                let along = crate::math::dot(crate::math::sub(p, o), d) / crate::math::dot(d, d);
+                let end = t.get(i + 1).copied().unwrap_or(6.5);
+                let middle = 0.5 * (tt + end);
+                assert!(along >= middle && along < end, "{along} in {tt}..{end}");
+            }
+            let var = |i: usize| -> f32 { samples.variances[(k * 4 + i) * 3..][..3].iter().sum() };
+            // Wider gaps, larger frustums; the wider pixel of ray 2 too.
+            assert!(var(3) > var(1) && var(0) < var(3));
+        }
+        let trace = |k: usize| -> f32 { samples.variances[k * 12..][..3].iter().sum() };
+        assert!(trace(2) > trace(0), "a wider pixel, a wider frustum");
+        pack(&mut samples, &batch, &[t, t, t].concat(), 4, false);
+        assert!(samples.variances.is_empty());
+    }
+
+    fn results_do_not_depend_on_chunking_of(model: &VanillaModel) {
         let params = model.init_params(3);
         let all = rays(8);
         let run = |ranges: &[std::ops::Range<usize>]| {

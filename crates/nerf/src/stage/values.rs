@@ -173,6 +173,8 @@ pub struct PackedSamples {
     pub appearance: Vec<u32>,
     /// `n` footprints, or empty (see [`FieldInput::footprints`]).
     pub footprints: Vec<f32>,
+    /// `n x 3` covariance diagonals, or empty (see [`FieldInput::variances`]).
+    pub variances: Vec<f32>,
 }
 
 impl PackedSamples {
@@ -201,6 +203,7 @@ impl PackedSamples {
         self.samples_per_dir = 1;
         self.appearance.clear();
         self.footprints.clear();
+        self.variances.clear();
     }
 
     /// Closes the current ray (its samples are those pushed since the last close).
@@ -216,6 +219,7 @@ impl PackedSamples {
             samples_per_dir: self.samples_per_dir.max(1),
             appearance: &self.appearance,
             footprints: &self.footprints,
+            variances: &self.variances,
         }
     }
 }
@@ -236,6 +240,10 @@ pub struct FieldInput<'a> {
     /// fields read no detail finer than it; others ignore it. Empty: the field's own
     /// reference footprint (occupancy refreshes, meshes).
     pub footprints: &'a [f32],
+    /// `n x 3`, or empty: the diagonal of the covariance of the conical frustum each sample
+    /// stands for (mip-NeRF; the positions are its means). Fields with an integrated
+    /// positional encoding read them; others ignore them.
+    pub variances: &'a [f32],
 }
 
 impl FieldInput<'_> {

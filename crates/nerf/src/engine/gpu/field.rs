@@ -459,6 +459,7 @@ pub(super) mod tests {
             samples_per_dir: 1,
             appearance: &[],
             footprints: &[],
+            variances: &[],
         };
         let out = field.forward(&params, input, &mut ws);
         let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());

@@ -61,10 +61,12 @@ pub fn open(
 ) -> Result<Box<dyn Engine>> {
     // Appearance codes, camera refinement and anti-aliasing have no GPU kernels yet:
     // `auto` picks the CPU.
-    let cpu_only = matches!(model, ModelConfig::Fast(c)
-        if c.field.appearance_dims > 0
-            || c.refine_cameras.is_some()
-            || c.field.antialias.is_some());
+    let cpu_only = match model {
+        ModelConfig::Fast(c) => {
+            c.field.appearance_dims > 0 || c.refine_cameras.is_some() || c.field.antialias.is_some()
+        }
+        ModelConfig::Vanilla(c) => c.integrated || c.shared_network,
+    };
     if cpu_only && device == Device::Auto {
         return Ok(super::open(model, options, seed));
     }
@@ -78,6 +80,11 @@ pub fn open(
         },
     };
     match model {
+        ModelConfig::Vanilla(_) if cpu_only => Err(NerfError::Device(
+            "mip-NeRF's frustums and shared network (--preset mip) run on the CPU engine \
+             only so far; use --device cpu"
+                .into(),
+        )),
         ModelConfig::Fast(_) if cpu_only => Err(NerfError::Device(
             "per-photo appearance codes (--appearance), camera refinement \
              (--refine-cameras) and anti-aliasing (--antialias; trained without it: \

@@ -585,6 +585,7 @@ mod tests {
                 samples_per_dir: spr,
                 appearance: &[],
                 footprints: &[],
+                variances: &[],
             };
             let out = net.forward(&params, input, &mut ws);
             let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());
