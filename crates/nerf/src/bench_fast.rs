@@ -32,6 +32,8 @@ pub struct FastBenchOptions {
     /// Size of the rendered view (square) when the scene has no test camera of its own.
     pub render_size: usize,
     pub model: FastModelConfig,
+    /// Anti-alias (the reference footprint from the training cameras).
+    pub antialias: bool,
     pub device: crate::engine::Device,
 }
 
@@ -41,6 +43,7 @@ pub struct FastBenchReport {
     /// The engine and its device (`cpu, 2 threads`, `wgpu/vulkan: ...`).
     pub engine: String,
     pub scene: String,
+    pub antialias: bool,
     pub warmup_steps: u64,
     pub samples_per_step: usize,
     pub rays_per_step_median: f64,
@@ -106,6 +109,10 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
             crate::camera::look_at([0.0, -4.0, 1.5], [0.0; 3], [0.0, 0.0, 1.0]),
         )
     });
+    if opts.antialias {
+        let cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
+        model.antialias_for(&cameras, &data.space);
+    }
     let mut config = TrainConfig::fast("(in memory)".into());
     config.model = ModelConfig::Fast(model);
     config.steps = opts.warmup_steps + opts.steps as u64;
@@ -152,6 +159,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     Ok(FastBenchReport {
         threads,
         scene,
+        antialias: opts.antialias,
         warmup_steps: opts.warmup_steps,
         samples_per_step: opts.model.samples_per_step,
         rays_per_step_median: rays_median,

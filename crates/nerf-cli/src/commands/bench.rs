@@ -33,6 +33,12 @@ pub struct BenchArgs {
     /// Fast: log2 of the hash-table entries per level.
     #[arg(long)]
     table_log2: Option<u32>,
+    /// Fast: anti-aliased (the default on the CPU engine, as `nerf train`).
+    #[arg(long, conflicts_with = "no_antialias")]
+    antialias: bool,
+    /// Fast: point samples (the default on a GPU).
+    #[arg(long)]
+    no_antialias: bool,
     /// Vanilla: rays per training step.
     #[arg(long, default_value_t = 1024)]
     rays: usize,
@@ -95,12 +101,15 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
     let mut model = nerf::model::FastModelConfig::default();
     model.samples_per_step = a.samples.unwrap_or(model.samples_per_step);
     model.field.grid.log2_table_size = a.table_log2.unwrap_or(model.field.grid.log2_table_size);
+    let antialias =
+        nerf::engine::antialias_by_default(a.antialias, a.no_antialias, a.device.device);
     let opts = nerf::bench_fast::FastBenchOptions {
         data: a.data,
         warmup_steps: a.warmup_steps,
         steps: a.steps.unwrap_or(32).max(1),
         render_size: a.render_size,
         model,
+        antialias,
         device: a.device.device,
     };
     let r = nerf::bench_fast::run(&opts, &mut |line| eprintln!("{line}"))?;
@@ -109,8 +118,9 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     println!(
-        "\n{}, fast model on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        "\n{}, fast model{} on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
         r.engine,
+        if r.antialias { " (anti-aliased)" } else { "" },
         r.scene,
         r.warmup_steps,
         100.0 * r.occupied_fraction

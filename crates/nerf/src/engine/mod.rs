@@ -202,6 +202,16 @@ pub fn runs_on_cpu(device: Device) -> bool {
     }
 }
 
+/// Whether the fast model anti-aliases given `--antialias` / `--no-antialias`: as asked,
+/// else when the run will be on the CPU engine (the GPU kernels do not anti-alias yet).
+pub fn antialias_by_default(on: bool, off: bool, device: Device) -> bool {
+    match (on, off) {
+        (true, _) => true,
+        (_, true) => false,
+        _ => runs_on_cpu(device),
+    }
+}
+
 /// Renders `rays` into `out` in chunks of `chunk` rays, in parallel, `render_chunk` doing
 /// one chunk; `on_progress` hears how many rays are done after each chunk. Every engine's
 /// `render_rays` is this loop around its own chunk renderer.

@@ -18,6 +18,7 @@ use serde::{Deserialize, Serialize};
 
 use super::camera_refine::{self, CameraRefinement, CameraStep};
 use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
+use crate::camera::ray_space::RaySpace;
 use crate::data::pixels::{PixelSampling, TrainingRays};
 use crate::data::Dataset;
 use crate::field::{FastField, FastFieldConfig, FastWorkspace as FieldContext};
@@ -75,6 +76,16 @@ impl Default for FastModelConfig {
 }
 
 impl FastModelConfig {
+    /// Turns anti-aliasing on for a scene seen by `cameras` in `space`, with their typical
+    /// footprint as the reference (see [`crate::field::fast::Antialias`]).
+    pub fn antialias_for(&mut self, cameras: &[crate::camera::Camera], space: &RaySpace) {
+        let reference =
+            crate::camera::footprint::reference_footprint(cameras, space, 0.5 * self.field.bound);
+        self.field.antialias = Some(crate::field::fast::Antialias {
+            reference_footprint: reference,
+        });
+    }
+
     /// The marching step (metric).
     pub fn step_length(&self) -> f32 {
         3f32.sqrt() * 2.0 * self.field.bound / self.steps_per_diagonal

@@ -180,16 +180,6 @@ impl TrainOptions {
         }
     }
 
-    /// Whether the fast model anti-aliases: as asked, else when the run will be on the
-    /// CPU engine (the GPU kernels do not anti-alias yet).
-    pub fn antialias(&self) -> Result<bool> {
-        Ok(match (self.antialias, self.no_antialias) {
-            (true, _) => true,
-            (_, true) => false,
-            _ => crate::engine::runs_on_cpu(self.device.device),
-        })
-    }
-
     /// Name for the default run folder: `fast`, or the vanilla preset.
     pub fn label(&self) -> Result<String> {
         Ok(match self.model()? {
@@ -269,16 +259,12 @@ impl TrainOptions {
             ModelConfig::Fast(m) => {
                 m.field.bound = self.bound.unwrap_or(scene.bound);
                 m.contract = scene.contract && !self.no_contract;
-                if self.antialias()? {
-                    let cameras = scene.cameras(crate::data::Split::Train);
-                    let reference = crate::camera::footprint::reference_footprint(
-                        &cameras,
-                        &scene.space,
-                        0.5 * m.field.bound,
-                    );
-                    m.field.antialias = Some(crate::field::fast::Antialias {
-                        reference_footprint: reference,
-                    });
+                if crate::engine::antialias_by_default(
+                    self.antialias,
+                    self.no_antialias,
+                    self.device.device,
+                ) {
+                    m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
                 }
                 if c.multiscale > 1 && (self.appearance.is_some() || self.refine_cameras) {
                     return refuse(
