@@ -105,9 +105,17 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         "training the fast model (hash grid + occupancy grid, after Instant-NGP) for {} steps",
         opts.steps
     ));
+    let mut config = train_config(scene.clone(), opts.steps);
+    // Anti-aliased where `nerf train` would be (the CPU engine).
+    if crate::engine::antialias_by_default(false, false, opts.device.device) {
+        let opened = config.open_scene(1)?;
+        if let crate::model::ModelConfig::Fast(m) = &mut config.model {
+            m.antialias_for(&opened.cameras(Split::Train), &opened.space);
+        }
+    }
     let run_options = RunOptions {
         out: run_dir.clone(),
-        config: train_config(scene.clone(), opts.steps),
+        config,
         minutes: None,
         resume: false,
         pause_at: None,

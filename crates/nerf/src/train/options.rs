@@ -550,4 +550,43 @@ mod tests {
         let err = config(&["--camera-lr", "1e-3"], dir.path()).expect_err("alone");
         assert!(err.to_string().contains("--refine-cameras"), "{err}");
     }
+
+    /// Issue 15: `--multiscale` and `--antialias` reach the config (anti-aliasing with the
+    /// training cameras' footprint as its reference); `--no-antialias` leaves point
+    /// samples; a multi-scale run refuses per-photo codes and poses.
+    #[test]
+    fn multiscale_and_antialias_options_reach_the_config() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let opts = crate::data::synth::SynthOptions {
+            size: 16,
+            supersample: 1,
+            train_views: 3,
+            val_views: 1,
+            test_views: 1,
+            ..Default::default()
+        };
+        crate::data::synth::generate(&opts, dir.path(), &mut |_, _| {}).expect("synth");
+        let c = config(&["--multiscale", "3", "--antialias"], dir.path()).expect("ok");
+        let ModelConfig::Fast(m) = &c.model else {
+            panic!("fast model expected")
+        };
+        assert_eq!(c.multiscale, 3);
+        let reference = m.field.antialias.expect("anti-aliased").reference_footprint;
+        // The built-in cameras sit 4 units away with a 16-pixel image: about 0.5 units
+        // per pixel there.
+        assert!(reference > 0.02 && reference < 0.5, "{reference}");
+        assert_eq!(c.training_data().expect("data").views.len(), 9);
+        let c = config(&["--no-antialias"], dir.path()).expect("ok");
+        let ModelConfig::Fast(m) = &c.model else {
+            panic!("fast model expected")
+        };
+        assert!(m.field.antialias.is_none() && c.multiscale == 1);
+        let err = config(&["--multiscale", "2", "--appearance"], dir.path()).expect_err("codes");
+        assert!(
+            err.to_string().contains("--multiscale cannot be combined"),
+            "{err}"
+        );
+        let err = config(&["--preset", "demo", "--antialias"], dir.path()).expect_err("vanilla");
+        assert!(err.to_string().contains("--model fast only"), "{err}");
+    }
 }
