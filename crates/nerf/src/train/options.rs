@@ -112,7 +112,8 @@ pub struct TrainOptions {
     pub multiscale: Option<usize>,
     /// Fast: anti-alias (after Zip-NeRF): each sample reads no hash-grid detail finer
     /// than its pixel's footprint, so views from far away or at low resolution do not
-    /// alias, nor close ones blur. The default on the CPU engine.
+    /// alias, nor close ones blur. The default on the CPU engine, but for forward-facing
+    /// (NDC) captures.
     #[arg(long, conflicts_with = "no_antialias")]
     pub antialias: bool,
     /// Fast: point samples, as Instant-NGP (the default on a GPU, whose kernels do not
@@ -161,6 +162,10 @@ pub fn default_run(data: &Path, label: &str) -> PathBuf {
         .map(|s| s.to_string_lossy().into_owned())
         .unwrap_or_else(|| "scene".into());
     PathBuf::from("runs").join(format!("{scene}-{label}"))
+}
+
+fn world_space(scene: &crate::data::scene::Scene) -> bool {
+    scene.space == crate::camera::ray_space::RaySpace::World
 }
 
 fn refuse<T>(message: String) -> Result<T> {
@@ -259,9 +264,13 @@ impl TrainOptions {
             ModelConfig::Fast(m) => {
                 m.field.bound = self.bound.unwrap_or(scene.bound);
                 m.contract = scene.contract && !self.no_contract;
+                // Forward-facing NDC captures see everything from about one distance;
+                // there anti-aliasing measured 0.26 dB worse on the built-in rug, so it is
+                // on there only when asked for.
+                let ndc = !world_space(&scene);
                 if crate::engine::antialias_by_default(
                     self.antialias,
-                    self.no_antialias,
+                    self.no_antialias || ndc,
                     self.device.device,
                 ) {
                     m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
@@ -278,7 +287,7 @@ impl TrainOptions {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
                 }
-                let world = scene.space == crate::camera::ray_space::RaySpace::World;
+                let world = world_space(&scene);
                 let refine = self.refine_cameras && !self.no_refine_cameras;
                 match refine {
                     true if !world => {
