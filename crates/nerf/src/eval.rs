@@ -28,16 +28,11 @@ pub struct ViewMetrics {
     pub image: PathBuf,
     pub depth: PathBuf,
     /// The view's downscale factor (1, 2, 4, 8: `--multiscale`).
-    #[serde(default = "one", skip_serializing_if = "is_one")]
+    #[serde(
+        default = "crate::train::one",
+        skip_serializing_if = "crate::train::is_one"
+    )]
     pub scale: usize,
-}
-
-fn one() -> usize {
-    1
-}
-
-fn is_one(v: &usize) -> bool {
-    *v == 1
 }
 
 /// Means over the views of one scale (`--multiscale`).
@@ -233,6 +228,7 @@ pub fn evaluate(
             })
             .collect(),
     };
+    let overall_lpips = mean_lpips(&views);
     let report = EvalReport {
         split,
         step: run.step,
@@ -241,8 +237,8 @@ pub fn evaluate(
         height,
         mean_psnr: views.iter().map(|v| v.psnr).sum::<f32>() / n,
         mean_ssim: views.iter().map(|v| v.ssim).sum::<f32>() / n,
-        mean_lpips: mean_lpips(&views),
-        lpips_skipped: match (&options.lpips, mean_lpips(&views)) {
+        mean_lpips: overall_lpips,
+        lpips_skipped: match (&options.lpips, overall_lpips) {
             (None, _) => Some(LPIPS_WITHOUT_WEIGHTS.to_string()),
             (Some(_), None) => {
                 Some("some views are smaller than the 32x32 pixels LPIPS needs".to_string())

@@ -253,26 +253,26 @@ mod tests {
                     .map(|(a, b)| (*a as f64) * (*b as f64))
                     .sum()
             };
+            // Central differences of `loss` along coordinate `c` of the mean or the
+            // variance, against the backward's `grad`.
+            let check = |what: &str, c: usize, h: f32, grad: f32| {
+                let shifted = |s: f32| {
+                    let (mut m, mut v) = (mean, var);
+                    match what {
+                        "mean" => m[c] += s,
+                        _ => v[c] += s,
+                    }
+                    loss(&m, &v)
+                };
+                let fd = (shifted(h) - shifted(-h)) / (2.0 * h as f64);
+                assert!(
+                    (fd - grad as f64).abs() < 2e-2 * (1.0 + fd.abs()),
+                    "{what} {c}: {fd} vs {grad}"
+                );
+            };
             for c in 0..3 {
-                let (h, hv) = (1e-3, 1e-4);
-                let (mut a, mut b) = (mean, mean);
-                a[c] += h;
-                b[c] -= h;
-                let fd = (loss(&a, &var) - loss(&b, &var)) / (2.0 * h as f64);
-                assert!(
-                    (fd - dm[c] as f64).abs() < 2e-2 * (1.0 + fd.abs()),
-                    "mean {c}: {fd} vs {}",
-                    dm[c]
-                );
-                let (mut a, mut b) = (var, var);
-                a[c] += hv;
-                b[c] -= hv;
-                let fd = (loss(&mean, &a) - loss(&mean, &b)) / (2.0 * hv as f64);
-                assert!(
-                    (fd - dv[c] as f64).abs() < 2e-2 * (1.0 + fd.abs()),
-                    "var {c}: {fd} vs {}",
-                    dv[c]
-                );
+                check("mean", c, 1e-3, dm[c]);
+                check("var", c, 1e-4, dv[c]);
             }
         }
     }

@@ -83,14 +83,6 @@ impl VanillaModel {
         self.layout.init_glorot(&mut Rng::new(seed ^ 0x5eed))
     }
 
-    /// Splits a flat vector (parameters or gradients) into its coarse and fine parts.
-    pub fn split<'a>(&self, v: &'a [f32]) -> (&'a [f32], &'a [f32]) {
-        v.split_at(self.coarse.num_params())
-    }
-    pub fn split_mut<'a>(&self, v: &'a mut [f32]) -> (&'a mut [f32], &'a mut [f32]) {
-        v.split_at_mut(self.coarse.num_params())
-    }
-
     /// Forward multiply-adds per ray.
     pub fn macs_per_ray(&self) -> usize {
         self.coarse.macs_per_sample() * self.config.evals_per_ray()

@@ -250,6 +250,7 @@ pub fn render_marched<F: Field>(
             }
         }
     }
+    let footprints = !rays.radii.is_empty();
     while !ws.live.is_empty() {
         let per_ray = (samples_per_round / ws.live.len()).clamp(1, 64);
         ws.round.clear();
@@ -283,7 +284,7 @@ pub fn render_marched<F: Field>(
                     let p = [o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]];
                     ws.round.positions.push(marcher.field_point(p));
                     ws.round.dirs.push(view_dir);
-                    if !rays.radii.is_empty() {
+                    if footprints {
                         ws.round.footprints.push(marcher.footprint(rays, k, tt, p));
                     }
                 }

@@ -88,11 +88,13 @@ pub struct TrainConfig {
 /// The most scales of `--multiscale` (down to 1/32 of the resolution).
 pub const MAX_SCALES: usize = 6;
 
-fn one() -> usize {
+/// Serde default of counts that are 1 unless set (`multiscale`, an eval view's scale).
+pub(crate) fn one() -> usize {
     1
 }
 
-fn is_one(v: &usize) -> bool {
+/// Leaves such counts out of the JSON when they are 1, so older readers see no change.
+pub(crate) fn is_one(v: &usize) -> bool {
     *v == 1
 }
 

@@ -530,13 +530,11 @@ mod tests {
         cli.train.config(&mut |_| {})
     }
 
-    /// `--camera-lr` sets the corrections' schedule (to a hundredth of it), needs
-    /// `--refine-cameras`, and refuses a learning rate that is not positive.
-    #[test]
-    fn the_camera_learning_rate_is_set_and_checked() {
+    /// The built-in chair at `size` pixels, 3 training views, in a fresh folder.
+    fn tiny_scene(size: usize) -> tempfile::TempDir {
         let dir = tempfile::tempdir().expect("tempdir");
         let opts = crate::data::synth::SynthOptions {
-            size: 8,
+            size,
             supersample: 1,
             train_views: 3,
             val_views: 1,
@@ -544,6 +542,14 @@ mod tests {
             ..Default::default()
         };
         crate::data::synth::generate(&opts, dir.path(), &mut |_, _| {}).expect("synth");
+        dir
+    }
+
+    /// `--camera-lr` sets the corrections' schedule (to a hundredth of it), needs
+    /// `--refine-cameras`, and refuses a learning rate that is not positive.
+    #[test]
+    fn the_camera_learning_rate_is_set_and_checked() {
+        let dir = tiny_scene(8);
         let c = config(&["--refine-cameras", "--camera-lr", "6e-4"], dir.path()).expect("ok");
         let ModelConfig::Fast(m) = &c.model else {
             panic!("fast model expected")
@@ -565,16 +571,7 @@ mod tests {
     /// samples; a multi-scale run refuses per-photo codes and poses.
     #[test]
     fn multiscale_and_antialias_options_reach_the_config() {
-        let dir = tempfile::tempdir().expect("tempdir");
-        let opts = crate::data::synth::SynthOptions {
-            size: 16,
-            supersample: 1,
-            train_views: 3,
-            val_views: 1,
-            test_views: 1,
-            ..Default::default()
-        };
-        crate::data::synth::generate(&opts, dir.path(), &mut |_, _| {}).expect("synth");
+        let dir = tiny_scene(16);
         let c = config(&["--multiscale", "3", "--antialias"], dir.path()).expect("ok");
         let ModelConfig::Fast(m) = &c.model else {
             panic!("fast model expected")
