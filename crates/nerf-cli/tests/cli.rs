@@ -344,6 +344,43 @@ fn fast_model_through_the_same_commands() {
     .expect("json");
     assert_eq!(metrics["cameras"], "refined");
     assert_eq!(metrics["test_pose_refinement"]["steps"], 4);
+    // A run that refined its cameras is evaluated with its test cameras fitted unless
+    // told otherwise.
+    let mut refined = fast.to_vec();
+    refined[4] = "rf";
+    refined.push("--refine-cameras");
+    ok(&nerf(&refined, d));
+    let text = ok(&nerf(&["eval", "--run", "rf", "--every", "2"], d));
+    assert!(
+        text.contains("fitted to the model first (200 steps; --no-refine-test-poses skips"),
+        "{text}"
+    );
+    let metrics: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("rf/eval_test/metrics.json")).expect("metrics"),
+    )
+    .expect("json");
+    assert_eq!(metrics["cameras"], "aligned+refined");
+    assert_eq!(metrics["test_pose_refinement"]["steps"], 200);
+    let text = ok(&nerf(
+        &[
+            "eval",
+            "--run",
+            "rf",
+            "--every",
+            "2",
+            "--no-refine-test-poses",
+            "--out",
+            "as_given",
+        ],
+        d,
+    ));
+    assert!(!text.contains("fitted"), "{text}");
+    let metrics: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(d.join("as_given/metrics.json")).expect("metrics"),
+    )
+    .expect("json");
+    assert_eq!(metrics["cameras"], "aligned");
+    assert!(metrics.get("test_pose_refinement").is_none(), "{metrics}");
     ok(&nerf(
         &[
             "render", "--run", "run", "--path", "orbit", "--frames", "2", "--size", "12",
@@ -528,6 +565,37 @@ fn llff_scene_through_the_same_commands() {
         d,
     ));
     assert!(mesh.contains("NDC space"), "{mesh}");
+    // Issue 14: forward-facing cameras refine too (corrected in the world, warped again),
+    // and their test cameras are fitted at evaluation.
+    let text = ok(&nerf(
+        &[
+            "train",
+            "--data",
+            "ff",
+            "--out",
+            "refined",
+            "--steps",
+            "30",
+            "--samples",
+            "4096",
+            "--table-log2",
+            "12",
+            "--val-every",
+            "0",
+            "--refine-cameras",
+        ],
+        d,
+    ));
+    assert!(text.contains("stopped after step 30"), "{text}");
+    let text = ok(&nerf(
+        &["eval", "--run", "refined", "--refine-test-poses", "5"],
+        d,
+    ));
+    assert!(
+        text.contains("test cameras fitted to the frozen model in 5 steps")
+            && text.contains("training cameras against the given poses"),
+        "{text}"
+    );
 }
 
 /// `--device`: `wgpu` trains both models on any adapter and says which; its checkpoint

@@ -25,7 +25,8 @@ use crate::error::{NerfError, Result};
 /// How images are matched against each other.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum Matching {
-    /// Exhaustive for up to [`EXHAUSTIVE_LIMIT`] images, sequential above (and for video).
+    /// Exhaustive for up to 150 images (`EXHAUSTIVE_LIMIT`), sequential above (and for
+    /// video).
     Auto,
     Exhaustive,
     Sequential,

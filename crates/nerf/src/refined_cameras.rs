@@ -23,9 +23,16 @@ use crate::train::folder::LoadedRun;
 /// How far a run's training cameras are from the given ones, after alignment.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
 pub struct PoseError {
+    /// Mean over the cameras.
     pub rotation_deg: f32,
     pub translation: f32,
     pub translation_percent_of_radius: f32,
+    /// The median and the worst camera's rotation error: a mean can hide a few cameras
+    /// stuck far off while the rest have converged.
+    #[serde(default)]
+    pub rotation_deg_median: f32,
+    #[serde(default)]
+    pub rotation_deg_max: f32,
 }
 
 /// The training cameras as the run trained them, and as the scene gives them.
@@ -78,12 +85,19 @@ impl RunCameras {
     pub fn error(&self) -> PoseError {
         let align = self.alignment();
         let n = self.given.len().max(1) as f32;
-        let (mut rot, mut trans) = (0.0, 0.0);
+        let (mut rotations, mut trans) = (Vec::with_capacity(self.given.len()), 0.0);
         for (g, r) in self.given.iter().zip(&self.refined) {
             let a = align.apply_pose(r);
-            rot += rotation_error_degrees(&a, g);
+            rotations.push(rotation_error_degrees(&a, g));
             trans += length(sub(origin(&a), origin(g)));
         }
+        let rot: f32 = rotations.iter().sum();
+        rotations.sort_by(f32::total_cmp);
+        let median = match rotations.len() {
+            0 => 0.0,
+            k if k % 2 == 1 => rotations[k / 2],
+            k => 0.5 * (rotations[k / 2 - 1] + rotations[k / 2]),
+        };
         let centres: Vec<_> = self.given.iter().map(origin).collect();
         let mean = centres.iter().fold([0.0f32; 3], |m, c| {
             [m[0] + c[0] / n, m[1] + c[1] / n, m[2] + c[2] / n]
@@ -99,6 +113,8 @@ impl RunCameras {
             rotation_deg: rot / n,
             translation: trans / n,
             translation_percent_of_radius: 100.0 * trans / n / radius,
+            rotation_deg_median: median,
+            rotation_deg_max: rotations.last().copied().unwrap_or(0.0),
         }
     }
 

@@ -9,7 +9,6 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::camera::ray_space::RaySpace;
 use crate::data::pixels::PixelSampling;
 use crate::data::Dataset;
 use crate::engine::{EngineState, StepSpec};
@@ -70,13 +69,6 @@ pub fn refine_test_poses(
                 .into(),
         ));
     };
-    if !matches!(data.space, RaySpace::World) {
-        return Err(NerfError::Config(
-            "--refine-test-poses cannot refine cameras of a scene trained in NDC (train with \
-             --no-ndc)"
-                .into(),
-        ));
-    }
     if data.views.is_empty() || fit.steps == 0 {
         return Ok(TestPoseReport {
             steps: 0,

@@ -27,10 +27,17 @@ pub struct EvalArgs {
     #[arg(long)]
     out: Option<PathBuf>,
     /// Fit each evaluated camera's pose to the frozen model first, in STEPS optimisation
-    /// steps on its own photo (BARF's protocol for runs trained with --refine-cameras;
-    /// fast model, CPU; metrics.json says "cameras": "...refined" and what moved)
-    #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = "200")]
+    /// steps on its own photo (BARF's protocol; fast model, CPU; metrics.json says
+    /// "cameras": "...refined" and what moved). The default, with 200 steps, for runs that
+    /// refined their training cameras: their model's frame has moved a little from the
+    /// given poses', so the test photos' poses must follow it.
+    #[arg(long, value_name = "STEPS", num_args = 0..=1, default_missing_value = "200",
+          conflicts_with = "no_refine_test_poses")]
     refine_test_poses: Option<u64>,
+    /// Render the test cameras where the scene puts them (after the alignment of a
+    /// refined run), without fitting them first.
+    #[arg(long)]
+    no_refine_test_poses: bool,
     /// Also evaluate every view at 1/2, 1/4, ... of its resolution, N scales in all
     /// (mip-NeRF's multi-scale benchmark: 4 goes down to 1/8); metrics.json gets the means
     /// of each scale under "scales".
@@ -42,6 +49,10 @@ pub struct EvalArgs {
     #[arg(long, value_name = "FILE")]
     lpips_weights: Option<PathBuf>,
 }
+
+/// Test-pose fitting steps of a refined run's evaluation (and of a bare
+/// `--refine-test-poses`).
+const DEFAULT_FIT_STEPS: u64 = 200;
 
 pub fn run(a: EvalArgs) -> Result<()> {
     // Read first: a wrong file fails before minutes of rendering.
@@ -55,8 +66,22 @@ pub fn run(a: EvalArgs) -> Result<()> {
     let out = a
         .out
         .unwrap_or_else(|| a.run.join(format!("eval_{}", a.split.name())));
+    let refined = matches!(&run.config.model,
+        nerf::model::ModelConfig::Fast(m) if m.refine_cameras.is_some());
+    let fit_steps = match a.refine_test_poses {
+        Some(steps) => Some(steps),
+        None if refined && !a.no_refine_test_poses => {
+            println!(
+                "the run refined its training cameras, so each {} camera is fitted to the \
+                 model first ({DEFAULT_FIT_STEPS} steps; --no-refine-test-poses skips this)",
+                a.split.name()
+            );
+            Some(DEFAULT_FIT_STEPS)
+        }
+        None => None,
+    };
     let options = EvalOptions {
-        refine_poses: a.refine_test_poses.map(TestPoseFit::new),
+        refine_poses: fit_steps.map(TestPoseFit::new),
         multiscale: a.multiscale,
         lpips,
         ..EvalOptions::new(a.split, a.every)
@@ -129,9 +154,11 @@ pub fn print_report(report: &EvalReport, out: &std::path::Path) {
     if let Some(e) = &report.pose_error {
         println!(
             "training cameras against the given poses, after a similarity alignment: {:.3} \
-             degrees, {:.4} units ({:.2}% of the camera radius); the {} cameras were mapped \
-             through it",
+             degrees (median {:.3}, worst {:.3}), {:.4} units ({:.2}% of the camera radius); \
+             the {} cameras were mapped through it",
             e.rotation_deg,
+            e.rotation_deg_median,
+            e.rotation_deg_max,
             e.translation,
             e.translation_percent_of_radius,
             report.split.name()

@@ -46,19 +46,27 @@ pub fn run(a: ExportCamerasArgs) -> Result<()> {
     let doc = nerf::data::transforms::placed_document(entries, &placed);
     nerf::io::write_json(&a.out, &doc).with_context(|| format!("writing {}", a.out.display()))?;
     match &cameras {
-        Some(c) if c.refined_by_model => {
+        Some(c) => {
             let e = c.error();
+            let kind = if c.refined_by_model {
+                "refined"
+            } else {
+                "perturbed (not refined)"
+            };
             println!(
-                "wrote {} refined training cameras to {}; against the given poses (after a \
-                 similarity alignment): {:.3} degrees, {:.4} units ({:.2}% of the camera radius)",
+                "wrote {} {kind} training cameras to {}; against the given poses (after a \
+                 similarity alignment): {:.3} degrees (median {:.3}, worst {:.3}), {:.4} units \
+                 ({:.2}% of the camera radius)",
                 scene.cameras(Split::Train).len(),
                 a.out.display(),
                 e.rotation_deg,
+                e.rotation_deg_median,
+                e.rotation_deg_max,
                 e.translation,
                 e.translation_percent_of_radius
             );
         }
-        _ => println!(
+        None => println!(
             "wrote {} training cameras (the run did not refine them) to {}",
             scene.train.len(),
             a.out.display()

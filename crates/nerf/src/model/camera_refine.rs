@@ -21,6 +21,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::camera::ray_space::RaySpace;
 use crate::camera::Pose;
 use crate::math::V3;
 
@@ -210,9 +211,13 @@ fn mat_t_vec(m: &[[f32; 3]; 3], v: V3) -> V3 {
 #[derive(Clone, Copy, Debug)]
 pub struct CameraStep {
     c: [[f32; 3]; 3],
+    /// The camera's centre (where its world rays start).
+    centre: V3,
     r: [[f32; 3]; 3],
     tau: V3,
     jacobian: [[[f32; 3]; 3]; 3],
+    /// The space its training rays are marched in.
+    space: RaySpace,
 }
 
 impl CameraStep {
@@ -221,9 +226,64 @@ impl CameraStep {
         let w = [correction[0], correction[1], correction[2]];
         CameraStep {
             c: std::array::from_fn(|i| [pose[i][0], pose[i][1], pose[i][2]]),
+            centre: [pose[0][3], pose[1][3], pose[2][3]],
             r: rotation(w),
             tau: [correction[3], correction[4], correction[5]],
             jacobian: rotation_jacobian(w),
+            space: RaySpace::World,
+        }
+    }
+
+    /// The same step for rays marched in `space`: NDC rays are corrected in the world,
+    /// then warped again.
+    pub fn in_space(self, space: RaySpace) -> Self {
+        CameraStep { space, ..self }
+    }
+
+    /// The corrected form of a drawn training ray: `(origin, dir)` in ray space and
+    /// `view`, its direction in the world. Returns the three corrected.
+    pub fn correct_drawn(&self, origin: V3, dir: V3, view: V3) -> (V3, V3, V3) {
+        match self.space {
+            RaySpace::World => {
+                let (o, d) = self.correct(origin, dir);
+                (o, d, self.correct(o, view).1)
+            }
+            RaySpace::Ndc(_) => {
+                let (o, d) = self.correct(self.centre, view);
+                let (o2, d2) = self.space.warp(o, d);
+                (o2, d2, d)
+            }
+        }
+    }
+
+    /// Adds to `grad` the gradient of a ray corrected by
+    /// [`correct_drawn`](Self::correct_drawn), marched along `dir` (ray space, any length)
+    /// with world direction `view` (both as corrected), given `dL/d origin` and
+    /// `dL/d unit(dir)` in ray space and `dL/d unit(view)`.
+    pub fn accumulate_drawn(
+        &self,
+        dir: V3,
+        view: V3,
+        d_o: V3,
+        d_dir: V3,
+        d_view: V3,
+        grad: &mut [f32],
+    ) {
+        let add = |a: V3, b: V3| -> V3 { std::array::from_fn(|i| a[i] + b[i]) };
+        match self.space {
+            RaySpace::World => {
+                let unit = crate::math::scale(dir, 1.0 / crate::math::length(dir));
+                self.accumulate(unit, d_o, add(d_dir, d_view), grad);
+            }
+            RaySpace::Ndc(_) => {
+                let origin = self.correct(self.centre, view).0;
+                let (g_o, g_d) = self.space.warp_backward(origin, view, d_o, d_dir);
+                // The warp ignores the direction's length: its gradient with respect to
+                // the unit direction is |view| times that with respect to `view`.
+                let norm = crate::math::length(view);
+                let unit = crate::math::scale(view, 1.0 / norm);
+                self.accumulate(unit, g_o, add(crate::math::scale(g_d, norm), d_view), grad);
+            }
         }
     }
 
@@ -343,6 +403,63 @@ mod tests {
                 grad[k]
             );
         }
+    }
+
+    /// Forward-facing scenes: a drawn NDC ray is corrected in the world and warped again,
+    /// and the gradient of `L = a . o' + b . unit(d') + c . unit(view')` (the NDC ray and
+    /// the world view direction) matches central differences; in world space
+    /// `correct_drawn` is `correct`.
+    #[test]
+    fn drawn_rays_are_corrected_and_differentiated_in_either_space() {
+        use crate::camera::ray_space::Ndc;
+        let mut rng = Rng::new(5);
+        let pose = crate::camera::look_at([0.1, -0.05, 0.0], [0.2, 0.1, -4.0], [0.0, 1.0, 0.0]);
+        let corr: Vec<f32> = (0..6).map(|_| rng.range(-0.05, 0.05)).collect();
+        let c: [[f32; 3]; 3] = std::array::from_fn(|i| [pose[i][0], pose[i][1], pose[i][2]]);
+        // Not of unit length, as drawn rays are not.
+        let view = crate::math::scale(mat_vec(&c, [0.1, -0.15, -1.0]), 2.5);
+        let centre = [pose[0][3], pose[1][3], pose[2][3]];
+        let world = CameraStep::new(&pose, &corr);
+        let (o, d, v) = world.correct_drawn(centre, view, view);
+        let (o2, d2) = world.correct(centre, view);
+        assert_eq!((o, d, v), (o2, d2, d2));
+        let space = RaySpace::Ndc(Ndc {
+            ax: 1.2,
+            ay: 1.6,
+            near: 1.0,
+        });
+        let (o_n, d_n) = space.warp(centre, view);
+        let (a, b, cv) = (
+            [0.3f32, -0.7, 0.2],
+            [0.5f32, 0.4, -0.9],
+            [-0.2f32, 0.6, 0.3],
+        );
+        let unit = |x: V3| crate::math::scale(x, 1.0 / crate::math::length(x));
+        let loss = |corr: &[f32]| -> f64 {
+            let step = CameraStep::new(&pose, corr).in_space(space);
+            let (o, d, v) = step.correct_drawn(o_n, d_n, view);
+            let (d, v) = (unit(d), unit(v));
+            (0..3)
+                .map(|i| f64::from(a[i] * o[i] + b[i] * d[i] + cv[i] * v[i]))
+                .sum()
+        };
+        let step = CameraStep::new(&pose, &corr).in_space(space);
+        let (_, d, v) = step.correct_drawn(o_n, d_n, view);
+        let mut grad = [0.0f32; 6];
+        step.accumulate_drawn(d, v, a, b, cv, &mut grad);
+        for k in 0..6 {
+            let h = 1e-3;
+            let (mut lo, mut hi) = (corr.clone(), corr.clone());
+            lo[k] -= h;
+            hi[k] += h;
+            let fd = (loss(&hi) - loss(&lo)) / (2.0 * h as f64);
+            assert!(
+                (fd - grad[k] as f64).abs() < 2e-2 * (1.0 + fd.abs()),
+                "param {k}: {fd} vs {}",
+                grad[k]
+            );
+        }
+        assert!(grad.iter().any(|g| g.abs() > 0.1), "{grad:?}");
     }
 
     #[test]

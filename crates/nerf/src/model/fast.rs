@@ -144,7 +144,7 @@ impl FastModel {
         data.views
             .iter()
             .zip(corrections.chunks_exact(camera_refine::PER_CAMERA))
-            .map(|(v, c)| CameraStep::new(&v.camera.c2w, c))
+            .map(|(v, c)| CameraStep::new(&v.camera.c2w, c).in_space(data.space))
             .collect()
     }
 
@@ -222,9 +222,8 @@ impl FastModel {
         let rays = &mut block.rays.rays;
         for r in 0..rays.len() {
             if let Some(camera) = input.cameras.get((rays.pixels[r] >> 32) as usize) {
-                let (o, d) = camera.correct(rays.origins[r], rays.dirs[r]);
-                (rays.origins[r], rays.dirs[r]) = (o, d);
-                rays.view_dirs[r] = camera.correct(o, rays.view_dirs[r]).1;
+                (rays.origins[r], rays.dirs[r], rays.view_dirs[r]) =
+                    camera.correct_drawn(rays.origins[r], rays.dirs[r], rays.view_dirs[r]);
             }
         }
         block.samples.clear();
@@ -411,7 +410,7 @@ impl FastModel {
             let view = (rays.pixels[r] >> 32) as usize;
             let (o, dir) = (rays.origins[r], rays.dirs[r]);
             let d = crate::math::scale(dir, 1.0 / crate::math::length(dir));
-            let (mut d_o, mut d_d) = ([0.0f32; 3], [0.0f32; 3]);
+            let (mut d_o, mut d_d, mut d_view) = ([0.0f32; 3], [0.0f32; 3], [0.0f32; 3]);
             for s in ws.samples.ray(i) {
                 let t = ws.samples.t[s];
                 let q = &ws.d_positions[s * 3..][..3];
@@ -420,15 +419,16 @@ impl FastModel {
                     let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
                     d_p = crate::render::contraction::contract_bwd(p, radius, d_p);
                 }
-                let d_view = &ws.d_dirs[s * 3..][..3];
+                let g_view = &ws.d_dirs[s * 3..][..3];
                 for a in 0..3 {
                     d_o[a] += d_p[a];
-                    // The ray's unit direction places the sample and is its view direction.
-                    d_d[a] += t * d_p[a] + d_view[a];
+                    // The ray's unit direction places the sample.
+                    d_d[a] += t * d_p[a];
+                    d_view[a] += g_view[a];
                 }
             }
             let slot = &mut values[at + view * per..][..per];
-            cameras[view].accumulate(d, d_o, d_d, slot);
+            cameras[view].accumulate_drawn(dir, rays.view_dirs[r], d_o, d_d, d_view, slot);
             touched = (touched.0.min(view), touched.1.max(view + 1));
         }
         if touched.0 < touched.1 {

@@ -69,17 +69,19 @@ pub struct TrainOptions {
           value_parser = clap::value_parser!(u32).range(1..=256))]
     pub appearance: Option<u32>,
     /// Fast: learn a correction of every training camera's pose with the field (after
-    /// BARF), for poses that are a little off. Off by default: on llff_beer and ngp_fox
-    /// (with --appearance) it is level with the plain run once the test cameras are fitted
-    /// too (`nerf eval --refine-test-poses`), not better (see the README).
+    /// BARF), for poses that are a little off. The default for real captures
+    /// (instant-ngp / nerfstudio transforms.json, COLMAP, LLFF with --spherify) trained on
+    /// the CPU engine; not for Blender scenes, forward-facing (NDC) scenes or on a GPU
+    /// unless asked for (the GPU engine refuses it).
+    /// `nerf eval` then fits each test camera to the model first, as BARF evaluates.
     #[arg(long, conflicts_with = "no_refine_cameras")]
     pub refine_cameras: bool,
-    /// With --refine-cameras: the corrections' learning rate, decaying to a hundredth of
-    /// it over the schedule (default 6e-4, for poses a fraction of a degree off; 3e-3
-    /// for errors of degrees, as from --perturb-poses).
-    #[arg(long, requires = "refine_cameras", value_name = "LR")]
+    /// The pose corrections' learning rate, decaying to a hundredth of it over the
+    /// schedule (default 6e-4, for poses a fraction of a degree off; 3e-3 for errors of
+    /// degrees, as from --perturb-poses). Implies --refine-cameras.
+    #[arg(long, conflicts_with = "no_refine_cameras", value_name = "LR")]
     pub camera_lr: Option<f32>,
-    /// Fast: trust the given poses as they are (the default).
+    /// Fast: trust the given poses as they are (the default for Blender scenes).
     #[arg(long)]
     pub no_refine_cameras: bool,
     /// Move every training pose by random rigid noise of this standard deviation
@@ -166,6 +168,17 @@ pub fn default_run(data: &Path, label: &str) -> PathBuf {
 
 fn world_space(scene: &crate::data::scene::Scene) -> bool {
     scene.space == crate::camera::ray_space::RaySpace::World
+}
+
+/// Whether the fast model refines the training cameras when neither `--refine-cameras`
+/// nor `--no-refine-cameras` is given: for real captures, whose poses come from structure
+/// from motion and are never exact, but not for Blender scenes (rendered, exact poses),
+/// forward-facing NDC scenes (not measured there yet) or on a GPU (the kernels do not
+/// refine).
+fn refines_by_default(scene: &crate::data::scene::Scene, device: crate::engine::Device) -> bool {
+    scene.format != crate::data::scene::Format::Blender
+        && world_space(scene)
+        && crate::engine::runs_on_cpu(device)
 }
 
 fn refuse<T>(message: String) -> Result<T> {
@@ -275,7 +288,11 @@ impl TrainOptions {
                 ) {
                     m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
                 }
-                if c.multiscale > 1 && (self.appearance.is_some() || self.refine_cameras) {
+                if c.multiscale > 1
+                    && (self.appearance.is_some()
+                        || self.refine_cameras
+                        || self.camera_lr.is_some())
+                {
                     return refuse(
                         "--multiscale cannot be combined with --appearance or \
                          --refine-cameras yet (each scale of a photo would get its own code \
@@ -287,19 +304,11 @@ impl TrainOptions {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
                 }
-                let world = world_space(&scene);
-                let refine = self.refine_cameras && !self.no_refine_cameras;
-                match refine {
-                    true if !world => {
-                        return refuse(
-                            "--refine-cameras needs a scene in world space; NDC scenes \
-                             (forward-facing LLFF) cannot refine their cameras yet: add \
-                             --no-ndc"
-                                .into(),
-                        )
-                    }
-                    _ => {}
-                }
+                let asked = self.refine_cameras || self.camera_lr.is_some();
+                let refine = asked
+                    || (!self.no_refine_cameras
+                        && c.multiscale == 1
+                        && refines_by_default(&scene, self.device.device));
                 if refine {
                     let mut r =
                         crate::model::camera_refine::CameraRefinement::new(scene.train.len());
@@ -312,7 +321,12 @@ impl TrainOptions {
                         r = r.with_learning_rate(lr);
                     }
                     m.refine_cameras = Some(r);
-                    on_notice("note: refining the training cameras' poses with the field");
+                    on_notice(if asked {
+                        "note: refining the training cameras' poses with the field"
+                    } else {
+                        "note: refining the training cameras' poses with the field (the default \
+                         for real captures; --no-refine-cameras trusts them as given)"
+                    });
                 }
             }
             ModelConfig::Vanilla(_) if self.bound.is_some() || self.no_contract => {
@@ -321,7 +335,9 @@ impl TrainOptions {
             ModelConfig::Vanilla(_) if self.antialias => {
                 return refuse("--antialias applies to --model fast only".into());
             }
-            ModelConfig::Vanilla(_) if self.appearance.is_some() || self.refine_cameras => {
+            ModelConfig::Vanilla(_)
+                if self.appearance.is_some() || self.refine_cameras || self.camera_lr.is_some() =>
+            {
                 return refuse(
                     "--appearance and --refine-cameras apply to --model fast only".into(),
                 );
@@ -545,25 +561,71 @@ mod tests {
         dir
     }
 
-    /// `--camera-lr` sets the corrections' schedule (to a hundredth of it), needs
+    /// `--camera-lr` sets the corrections' schedule (to a hundredth of it), implies
     /// `--refine-cameras`, and refuses a learning rate that is not positive.
     #[test]
     fn the_camera_learning_rate_is_set_and_checked() {
         let dir = tiny_scene(8);
         let c = config(&["--refine-cameras", "--camera-lr", "6e-4"], dir.path()).expect("ok");
-        let ModelConfig::Fast(m) = &c.model else {
-            panic!("fast model expected")
-        };
-        let r = m.refine_cameras.expect("refined");
-        assert_eq!((r.lr_init, r.lr_final, r.cameras), (6e-4, 6e-6, 3));
+        assert_eq!(
+            refinement(&c).map(|r| (r.lr_init, r.lr_final, r.cameras)),
+            Some((6e-4, 6e-6, 3))
+        );
         let err =
             config(&["--refine-cameras", "--camera-lr=-1"], dir.path()).expect_err("negative");
         assert!(
             err.to_string().contains("must be a positive number"),
             "{err}"
         );
-        let err = config(&["--camera-lr", "1e-3"], dir.path()).expect_err("alone");
-        assert!(err.to_string().contains("--refine-cameras"), "{err}");
+        let c = config(&["--camera-lr", "1e-3"], dir.path()).expect("alone");
+        assert_eq!(refinement(&c).map(|r| r.lr_init), Some(1e-3));
+        config(&["--camera-lr", "1e-3", "--no-refine-cameras"], dir.path()).expect_err("both");
+    }
+
+    fn refinement(c: &TrainConfig) -> Option<crate::model::camera_refine::CameraRefinement> {
+        match &c.model {
+            ModelConfig::Fast(m) => m.refine_cameras,
+            ModelConfig::Vanilla(_) => None,
+        }
+    }
+
+    /// Issue 14 #1: a real capture (here the tiny chair's photos and poses as an
+    /// instant-ngp `transforms.json`) refines its cameras by default on the CPU engine; a
+    /// Blender scene does not; `--no-refine-cameras` and `--multiscale` turn the default
+    /// off.
+    #[test]
+    fn real_captures_refine_their_cameras_by_default() {
+        let blender = tiny_scene(8);
+        let cpu = ["--device", "cpu"];
+        assert!(refinement(&config(&cpu, blender.path()).expect("blender")).is_none());
+        let real = tempfile::tempdir().expect("tempdir");
+        let mut frames = Vec::new();
+        let mut angle = serde_json::Value::Null;
+        for split in ["train", "val", "test"] {
+            let text =
+                std::fs::read_to_string(blender.path().join(format!("transforms_{split}.json")))
+                    .expect("read");
+            let doc: serde_json::Value = serde_json::from_str(&text).expect("json");
+            angle = doc["camera_angle_x"].clone();
+            for f in doc["frames"].as_array().expect("frames") {
+                let name = format!("{}.png", f["file_path"].as_str().expect("path"));
+                let to = format!("{split}_{}", name.rsplit('/').next().expect("name"));
+                std::fs::copy(blender.path().join(&name), real.path().join(&to)).expect("copy");
+                frames.push(serde_json::json!({
+                    "file_path": to,
+                    "transform_matrix": f["transform_matrix"],
+                }));
+            }
+        }
+        let doc = serde_json::json!({"camera_angle_x": angle, "aabb_scale": 4, "frames": frames});
+        std::fs::write(real.path().join("transforms.json"), doc.to_string()).expect("write");
+        let c = config(&cpu, real.path()).expect("real");
+        let r = refinement(&c).expect("refined by default");
+        assert_eq!(r.lr_init, crate::model::camera_refine::DEFAULT_LR);
+        let off = config(&["--device", "cpu", "--no-refine-cameras"], real.path()).expect("off");
+        assert!(refinement(&off).is_none());
+        let ms = config(&["--device", "cpu", "--multiscale", "2"], real.path()).expect("ms");
+        assert!(refinement(&ms).is_none());
     }
 
     /// Issue 15: `--multiscale` and `--antialias` reach the config (anti-aliasing with the
