@@ -64,15 +64,20 @@ pub struct TrainOptions {
     /// Fast: learn a code of N values (16 when N is left out) per training photo for
     /// its exposure and white balance, fed to the colour network only (after NeRF in the
     /// Wild); eval and render use the mean code, or one photo's with --appearance-of.
-    /// For captures whose photos change look from shot to shot.
-    #[arg(long, num_args = 0..=1, default_missing_value = "16",
+    /// For captures whose photos change look from shot to shot: the default for real
+    /// captures, with --refine-cameras (see there).
+    #[arg(long, num_args = 0..=1, default_missing_value = "16", conflicts_with = "no_appearance",
           value_parser = clap::value_parser!(u32).range(1..=256))]
     pub appearance: Option<u32>,
+    /// Fast: no per-photo appearance codes (the default for Blender scenes).
+    #[arg(long)]
+    pub no_appearance: bool,
     /// Fast: learn a correction of every training camera's pose with the field (after
-    /// BARF), for poses that are a little off. The default for real captures
-    /// (instant-ngp / nerfstudio transforms.json, COLMAP, LLFF with --spherify) trained on
-    /// the CPU engine; not for Blender scenes, forward-facing (NDC) scenes or on a GPU
-    /// unless asked for (the GPU engine refuses it).
+    /// BARF), for poses that are a little off. With 16 appearance codes per photo, the
+    /// default for real captures (instant-ngp / nerfstudio transforms.json, COLMAP, LLFF
+    /// with --spherify) trained on the CPU engine: without codes, the poses soak up the
+    /// photos' changes of exposure. Not for Blender scenes, forward-facing (NDC) scenes or
+    /// on a GPU unless asked for (the GPU engine refuses it).
     /// `nerf eval` then fits each test camera to the model first, as BARF evaluates.
     #[arg(long, conflicts_with = "no_refine_cameras")]
     pub refine_cameras: bool,
@@ -170,12 +175,19 @@ fn world_space(scene: &crate::data::scene::Scene) -> bool {
     scene.space == crate::camera::ray_space::RaySpace::World
 }
 
-/// Whether the fast model refines the training cameras when neither `--refine-cameras`
-/// nor `--no-refine-cameras` is given: for real captures, whose poses come from structure
-/// from motion and are never exact, but not for Blender scenes (rendered, exact poses),
-/// forward-facing NDC scenes (not measured there yet) or on a GPU (the kernels do not
-/// refine).
-fn refines_by_default(scene: &crate::data::scene::Scene, device: crate::engine::Device) -> bool {
+/// Appearance codes per photo when real captures get them by default.
+const DEFAULT_APPEARANCE_DIMS: u32 = 16;
+
+/// Whether the fast model learns per-photo corrections (a pose correction and an
+/// appearance code) unless told otherwise: for real captures, whose poses come from
+/// structure from motion and are never exact and whose photos drift in exposure, but not
+/// for Blender scenes (rendered: exact poses, one look), forward-facing NDC scenes (not
+/// measured there yet) or on a GPU (its kernels do neither yet). Both come together:
+/// refinement alone let the poses absorb ngp_fox's exposure changes (1.5 dB worse).
+fn learns_photo_corrections(
+    scene: &crate::data::scene::Scene,
+    device: crate::engine::Device,
+) -> bool {
     scene.format != crate::data::scene::Format::Blender
         && world_space(scene)
         && crate::engine::runs_on_cpu(device)
@@ -300,15 +312,25 @@ impl TrainOptions {
                             .into(),
                     );
                 }
-                if let Some(dims) = self.appearance {
+                let real_capture =
+                    c.multiscale == 1 && learns_photo_corrections(&scene, self.device.device);
+                let appearance = match self.appearance {
+                    Some(dims) => Some(dims),
+                    None if real_capture && !self.no_appearance => {
+                        on_notice(
+                            "note: learning a look per photo (the default for real captures; \
+                             --no-appearance turns it off)",
+                        );
+                        Some(DEFAULT_APPEARANCE_DIMS)
+                    }
+                    None => None,
+                };
+                if let Some(dims) = appearance {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
                 }
                 let asked = self.refine_cameras || self.camera_lr.is_some();
-                let refine = asked
-                    || (!self.no_refine_cameras
-                        && c.multiscale == 1
-                        && refines_by_default(&scene, self.device.device));
+                let refine = asked || (real_capture && !self.no_refine_cameras);
                 if refine {
                     let mut r =
                         crate::model::camera_refine::CameraRefinement::new(scene.train.len());
@@ -509,6 +531,7 @@ impl TrainOptions {
         if self.paper_pe
             || self.no_contract
             || self.appearance.is_some()
+            || self.no_appearance
             || self.refine_cameras
             || self.no_refine_cameras
             || self.camera_lr.is_some()
@@ -517,9 +540,9 @@ impl TrainOptions {
             || self.no_antialias
         {
             out.push(
-                "--paper-pe / --no-contract / --appearance / --refine-cameras / \
-                 --no-refine-cameras / --camera-lr / --perturb-poses / --antialias / \
-                 --no-antialias (set when the run was made)"
+                "--paper-pe / --no-contract / --appearance / --no-appearance / \
+                 --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
+                 --antialias / --no-antialias (set when the run was made)"
                     .into(),
             );
         }
@@ -590,9 +613,9 @@ mod tests {
     }
 
     /// Issue 14 #1: a real capture (here the tiny chair's photos and poses as an
-    /// instant-ngp `transforms.json`) refines its cameras by default on the CPU engine; a
-    /// Blender scene does not; `--no-refine-cameras` and `--multiscale` turn the default
-    /// off.
+    /// instant-ngp `transforms.json`) refines its cameras and learns a look per photo by
+    /// default on the CPU engine; a Blender scene does neither; `--no-refine-cameras`,
+    /// `--no-appearance` and `--multiscale` turn the defaults off.
     #[test]
     fn real_captures_refine_their_cameras_by_default() {
         let blender = tiny_scene(8);
@@ -619,13 +642,25 @@ mod tests {
         }
         let doc = serde_json::json!({"camera_angle_x": angle, "aabb_scale": 4, "frames": frames});
         std::fs::write(real.path().join("transforms.json"), doc.to_string()).expect("write");
+        let codes = |c: &TrainConfig| match &c.model {
+            ModelConfig::Fast(m) => (m.field.appearance_dims, m.field.appearance_images),
+            ModelConfig::Vanilla(_) => (0, 0),
+        };
         let c = config(&cpu, real.path()).expect("real");
         let r = refinement(&c).expect("refined by default");
         assert_eq!(r.lr_init, crate::model::camera_refine::DEFAULT_LR);
+        let train = c.open_scene(1).expect("scene").train.len();
+        assert_eq!(codes(&c), (DEFAULT_APPEARANCE_DIMS as usize, train));
+        assert_eq!(codes(&config(&cpu, blender.path()).expect("blender")).0, 0);
         let off = config(&["--device", "cpu", "--no-refine-cameras"], real.path()).expect("off");
         assert!(refinement(&off).is_none());
+        assert_eq!(codes(&off).0, 16, "the codes stay");
+        let plain = config(&["--device", "cpu", "--no-appearance"], real.path()).expect("plain");
+        assert!(refinement(&plain).is_some() && codes(&plain).0 == 0);
+        let eight = config(&["--device", "cpu", "--appearance", "8"], real.path()).expect("8");
+        assert_eq!(codes(&eight).0, 8);
         let ms = config(&["--device", "cpu", "--multiscale", "2"], real.path()).expect("ms");
-        assert!(refinement(&ms).is_none());
+        assert!(refinement(&ms).is_none() && codes(&ms).0 == 0);
     }
 
     /// Issue 15: `--multiscale` and `--antialias` reach the config (anti-aliasing with the
