@@ -15,6 +15,10 @@
 //! camera's rays; the view direction (the same unit `d'`) adds its own `dL/dd^` from the
 //! colour network's spherical harmonics.
 //!
+//! Forward-facing scenes march in NDC: there the camera's world ray is corrected, then
+//! warped into NDC again, and the gradient goes back through the warp
+//! (`RaySpace::warp_backward`) before reaching the pose.
+//!
 //! Coarse to fine: early on, the fine hash-grid levels are switched off and weighted in
 //! smoothly as training goes (BARF's schedule, on levels instead of frequencies), so the
 //! first pose gradients come from a smooth field.

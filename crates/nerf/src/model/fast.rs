@@ -385,7 +385,8 @@ impl FastModel {
 impl FastModel {
     /// Carries the chunk's position gradients (in `ws.d_positions`, for the rays from
     /// `first_ray` on, packed in `ws.samples`) back through contraction to each ray's
-    /// origin and direction, and from there into its camera's correction in `grads`.
+    /// origin and direction, and from there (through the NDC warp for forward-facing
+    /// scenes) into its camera's correction in `grads`.
     fn camera_gradients(
         &self,
         blocks: &[MarchedBlock],
