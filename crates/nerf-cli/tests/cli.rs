@@ -21,6 +21,12 @@ fn ok(out: &Output) -> String {
     text
 }
 
+/// The JSON file at `path` (a run's `metrics.json`, say), parsed.
+fn read_json(path: &Path) -> serde_json::Value {
+    let text = std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+    serde_json::from_str(&text).unwrap_or_else(|e| panic!("{}: {e}", path.display()))
+}
+
 /// `nerf points` on the run in `d/run`, using every `every`-th of its training views, which
 /// must make two views.
 fn points_from_two_views(d: &Path, every: &str, min_opacity: &str) {
@@ -123,10 +129,7 @@ fn synth_train_eval_render() {
         !out.status.success() && err.contains("needs a fast-model run"),
         "{err}"
     );
-    let metrics: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(d.join("run/eval_test/metrics.json")).expect("metrics"),
-    )
-    .expect("json");
+    let metrics = read_json(&d.join("run/eval_test/metrics.json"));
     assert_eq!(metrics["views"].as_array().map(|v| v.len()), Some(2));
     assert!(metrics["mean_ssim"]
         .as_f64()
@@ -299,10 +302,7 @@ fn fast_model_through_the_same_commands() {
         text.contains("scale 1/1 (16x16)") && text.contains("scale 1/2 (8x8)"),
         "{text}"
     );
-    let metrics: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(d.join("ms/eval_test/metrics.json")).expect("metrics"),
-    )
-    .expect("json");
+    let metrics = read_json(&d.join("ms/eval_test/metrics.json"));
     let scales = metrics["scales"].as_array().expect("scales");
     assert_eq!(scales.len(), 2);
     assert_eq!(
@@ -338,10 +338,7 @@ fn fast_model_through_the_same_commands() {
         text.contains("test cameras fitted to the frozen model in 4 steps"),
         "{text}"
     );
-    let metrics: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(d.join("fitted/metrics.json")).expect("metrics"),
-    )
-    .expect("json");
+    let metrics = read_json(&d.join("fitted/metrics.json"));
     assert_eq!(metrics["cameras"], "refined");
     assert_eq!(metrics["test_pose_refinement"]["steps"], 4);
     // A run that refined its cameras is evaluated with its test cameras fitted unless
@@ -355,10 +352,7 @@ fn fast_model_through_the_same_commands() {
         text.contains("fitted to the model first (200 steps; --no-refine-test-poses skips"),
         "{text}"
     );
-    let metrics: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(d.join("rf/eval_test/metrics.json")).expect("metrics"),
-    )
-    .expect("json");
+    let metrics = read_json(&d.join("rf/eval_test/metrics.json"));
     assert_eq!(metrics["cameras"], "aligned+refined");
     assert_eq!(metrics["test_pose_refinement"]["steps"], 200);
     let text = ok(&nerf(
@@ -375,10 +369,7 @@ fn fast_model_through_the_same_commands() {
         d,
     ));
     assert!(!text.contains("fitted"), "{text}");
-    let metrics: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(d.join("as_given/metrics.json")).expect("metrics"),
-    )
-    .expect("json");
+    let metrics = read_json(&d.join("as_given/metrics.json"));
     assert_eq!(metrics["cameras"], "aligned");
     assert!(metrics.get("test_pose_refinement").is_none(), "{metrics}");
     ok(&nerf(

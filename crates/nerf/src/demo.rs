@@ -107,7 +107,11 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
     ));
     let mut config = train_config(scene.clone(), opts.steps);
     // Anti-aliased where `nerf train` would be (the CPU engine).
-    if crate::engine::antialias_by_default(false, false, opts.device.device) {
+    if crate::engine::antialias_by_default(
+        false,
+        false,
+        crate::engine::runs_on_cpu(opts.device.device),
+    ) {
         let opened = config.open_scene(1)?;
         if let crate::model::ModelConfig::Fast(m) = &mut config.model {
             m.antialias_for(&opened.cameras(Split::Train), &opened.space);

@@ -62,9 +62,13 @@ impl RunCameras {
             let mut poses: Vec<&mut Pose> = refined.iter_mut().collect();
             p.apply(&mut poses);
         }
-        if let Some(c) = learned {
+        let frame = match &config.model {
+            crate::model::ModelConfig::Fast(m) => m.refine_cameras.map(|r| r.frame),
+            crate::model::ModelConfig::Vanilla(_) => None,
+        };
+        if let (Some(c), Some(frame)) = (learned, frame) {
             for (pose, corr) in refined.iter_mut().zip(c.chunks_exact(PER_CAMERA)) {
-                *pose = corrected(pose, corr);
+                *pose = corrected(pose, corr, frame);
             }
         }
         Ok(Some(RunCameras {

@@ -13,7 +13,7 @@ use crate::data::pixels::PixelSampling;
 use crate::data::Dataset;
 use crate::engine::{EngineState, StepSpec};
 use crate::error::{NerfError, Result};
-use crate::model::camera_refine::{self, corrected, CameraRefinement, PER_CAMERA};
+use crate::model::camera_refine::{self, corrected, CameraRefinement, Frame, PER_CAMERA};
 use crate::model::ModelConfig;
 use crate::stage::Appearance;
 use crate::train::folder::LoadedRun;
@@ -85,6 +85,7 @@ pub fn refine_test_poses(
         lr_final: fit.lr_final,
         anneal: [0.0, 0.0],
         start_levels: levels as f32,
+        frame: Frame::World,
     };
     let mut fit_model = model.clone();
     fit_model.refine_cameras = Some(refinement);
@@ -136,9 +137,12 @@ pub fn refine_test_poses(
         .ok_or_else(|| NerfError::Config("the fitted model lost its camera corrections".into()))?;
     let (mut rot, mut trans) = (0.0f32, 0.0f32);
     for (view, c) in data.views.iter_mut().zip(learned.chunks_exact(PER_CAMERA)) {
-        view.camera.c2w = corrected(&view.camera.c2w, c);
+        let moved = corrected(&view.camera.c2w, c, refinement.frame);
+        // The turn's angle is |w| in either frame; the centre's move is not |tau| in the
+        // world frame (the turn about the origin moves it too).
         rot += crate::math::length([c[0], c[1], c[2]]).to_degrees();
-        trans += crate::math::length([c[3], c[4], c[5]]);
+        trans += crate::math::length(std::array::from_fn(|i| moved[i][3] - view.camera.c2w[i][3]));
+        view.camera.c2w = moved;
     }
     let k = data.views.len() as f32;
     let mean = |v: &[f32]| v.iter().sum::<f32>() / v.len().max(1) as f32;

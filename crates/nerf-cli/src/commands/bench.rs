@@ -101,8 +101,11 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
     let mut model = nerf::model::FastModelConfig::default();
     model.samples_per_step = a.samples.unwrap_or(model.samples_per_step);
     model.field.grid.log2_table_size = a.table_log2.unwrap_or(model.field.grid.log2_table_size);
-    let antialias =
-        nerf::engine::antialias_by_default(a.antialias, a.no_antialias, a.device.device);
+    let antialias = nerf::engine::antialias_by_default(
+        a.antialias,
+        a.no_antialias,
+        nerf::engine::runs_on_cpu(a.device.device),
+    );
     let opts = nerf::bench_fast::FastBenchOptions {
         data: a.data,
         warmup_steps: a.warmup_steps,

@@ -203,12 +203,13 @@ pub fn runs_on_cpu(device: Device) -> bool {
 }
 
 /// Whether the fast model anti-aliases given `--antialias` / `--no-antialias`: as asked,
-/// else when the run will be on the CPU engine (the GPU kernels do not anti-alias yet).
-pub fn antialias_by_default(on: bool, off: bool, device: Device) -> bool {
+/// else when the run will be on the CPU engine (`on_cpu`, from [`runs_on_cpu`]: the GPU
+/// kernels do not anti-alias yet).
+pub fn antialias_by_default(on: bool, off: bool, on_cpu: bool) -> bool {
     match (on, off) {
         (true, _) => true,
         (_, true) => false,
-        _ => runs_on_cpu(device),
+        _ => on_cpu,
     }
 }
 

@@ -137,14 +137,14 @@ impl FastModel {
 
     /// This step's correction of every training camera of `data` (none without refinement).
     fn camera_steps(&self, params: &[f32], data: &Dataset) -> Vec<CameraStep> {
-        let Some(at) = self.cameras_at else {
+        let (Some(at), Some(refinement)) = (self.cameras_at, self.config.refine_cameras) else {
             return Vec::new();
         };
         let corrections = &params[at..];
         data.views
             .iter()
             .zip(corrections.chunks_exact(camera_refine::PER_CAMERA))
-            .map(|(v, c)| CameraStep::new(&v.camera.c2w, c).in_space(data.space))
+            .map(|(v, c)| CameraStep::new(&v.camera.c2w, c, refinement.frame).in_space(data.space))
             .collect()
     }
 

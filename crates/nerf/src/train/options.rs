@@ -82,16 +82,16 @@ pub struct TrainOptions {
     #[arg(long, conflicts_with = "no_refine_cameras")]
     pub refine_cameras: bool,
     /// The pose corrections' learning rate, decaying to a hundredth of it over the
-    /// schedule (default 6e-4, for poses a fraction of a degree off; 3e-3 for errors of
-    /// degrees, as from --perturb-poses). Implies --refine-cameras.
+    /// schedule (default 6e-4, for poses a fraction of a degree off; 1e-2 with
+    /// --perturb-poses, for errors of degrees). Implies --refine-cameras.
     #[arg(long, conflicts_with = "no_refine_cameras", value_name = "LR")]
     pub camera_lr: Option<f32>,
     /// Fast: trust the given poses as they are (the default for Blender scenes).
     #[arg(long)]
     pub no_refine_cameras: bool,
     /// Move every training pose by random rigid noise of this standard deviation
-    /// (rotation in radians, translation in scene units) before training: BARF's test of
-    /// camera refinement. `SIGMA[,SEED]`.
+    /// (rotation in radians about the scene's centre, translation in scene units) before
+    /// training: BARF's test of camera refinement. `SIGMA[,SEED]`.
     #[arg(long, value_parser = crate::model::camera_refine::parse_perturbation)]
     pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
@@ -182,15 +182,11 @@ const DEFAULT_APPEARANCE_DIMS: u32 = 16;
 /// appearance code) unless told otherwise: for real captures, whose poses come from
 /// structure from motion and are never exact and whose photos drift in exposure, but not
 /// for Blender scenes (rendered: exact poses, one look), forward-facing NDC scenes (not
-/// measured there yet) or on a GPU (its kernels do neither yet). Both come together:
-/// refinement alone let the poses absorb ngp_fox's exposure changes (1.5 dB worse).
-fn learns_photo_corrections(
-    scene: &crate::data::scene::Scene,
-    device: crate::engine::Device,
-) -> bool {
-    scene.format != crate::data::scene::Format::Blender
-        && world_space(scene)
-        && crate::engine::runs_on_cpu(device)
+/// measured there yet) or on a GPU (`on_cpu` false: its kernels do neither yet). Both come
+/// together: refinement alone let the poses absorb ngp_fox's exposure changes (1.5 dB
+/// worse).
+fn learns_photo_corrections(scene: &crate::data::scene::Scene, on_cpu: bool) -> bool {
+    scene.format != crate::data::scene::Format::Blender && world_space(scene) && on_cpu
 }
 
 fn refuse<T>(message: String) -> Result<T> {
@@ -293,10 +289,12 @@ impl TrainOptions {
                 // there anti-aliasing measured 0.26 dB worse on the built-in rug, so it is
                 // on there only when asked for.
                 let ndc = !world_space(&scene);
+                // Probing the adapters takes a moment: once for both defaults below.
+                let on_cpu = crate::engine::runs_on_cpu(self.device.device);
                 if crate::engine::antialias_by_default(
                     self.antialias,
                     self.no_antialias || ndc,
-                    self.device.device,
+                    on_cpu,
                 ) {
                     m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
                 }
@@ -312,8 +310,7 @@ impl TrainOptions {
                             .into(),
                     );
                 }
-                let real_capture =
-                    c.multiscale == 1 && learns_photo_corrections(&scene, self.device.device);
+                let real_capture = c.multiscale == 1 && learns_photo_corrections(&scene, on_cpu);
                 let appearance = match self.appearance {
                     Some(dims) => Some(dims),
                     None if real_capture && !self.no_appearance => {
@@ -341,6 +338,8 @@ impl TrainOptions {
                             ));
                         }
                         r = r.with_learning_rate(lr);
+                    } else if self.perturb_poses.is_some() {
+                        r = r.with_learning_rate(crate::model::camera_refine::LARGE_ERROR_LR);
                     }
                     m.refine_cameras = Some(r);
                     on_notice(if asked {
@@ -601,6 +600,19 @@ mod tests {
             "{err}"
         );
         let c = config(&["--camera-lr", "1e-3"], dir.path()).expect("alone");
+        assert_eq!(refinement(&c).map(|r| r.lr_init), Some(1e-3));
+        // Perturbed poses are degrees off: the large-error rate unless one is given.
+        let perturbed = ["--refine-cameras", "--perturb-poses", "0.1"];
+        let c = config(&perturbed, dir.path()).expect("perturbed");
+        assert_eq!(
+            refinement(&c).map(|r| r.lr_init),
+            Some(crate::model::camera_refine::LARGE_ERROR_LR)
+        );
+        let c = config(
+            &["--perturb-poses", "0.1", "--camera-lr", "1e-3"],
+            dir.path(),
+        )
+        .expect("given");
         assert_eq!(refinement(&c).map(|r| r.lr_init), Some(1e-3));
         config(&["--camera-lr", "1e-3", "--no-refine-cameras"], dir.path()).expect_err("both");
     }
