@@ -85,12 +85,8 @@ pub fn refine_test_poses(
         lr_final: fit.lr_final,
         anneal: [0.0, 0.0],
         start_levels: levels as f32,
-        // As training corrects: about the scene's centre, or about each camera's own
-        // centre in a forward-facing capture (its origin is the mean camera).
-        frame: match data.space {
-            crate::camera::ray_space::RaySpace::World => Frame::World,
-            crate::camera::ray_space::RaySpace::Ndc(_) => Frame::Camera,
-        },
+        // As training corrects.
+        frame: Frame::for_space(data.space),
     };
     let mut fit_model = model.clone();
     fit_model.refine_cameras = Some(refinement);

@@ -82,6 +82,20 @@ pub enum Frame {
     World,
 }
 
+impl Frame {
+    /// The frame new corrections of cameras marching in `space` act in: the world where
+    /// its origin is the scene's centre, each camera's own in a forward-facing NDC capture,
+    /// whose origin is its mean camera, not what the cameras look at (on the rug, LLFF,
+    /// sigma 0.02, 3e-3, the world frame ended 23.3 dB held out against the camera
+    /// frame's 25.4).
+    pub fn for_space(space: RaySpace) -> Frame {
+        match space {
+            RaySpace::World => Frame::World,
+            RaySpace::Ndc(_) => Frame::Camera,
+        }
+    }
+}
+
 /// How the training cameras are refined.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct CameraRefinement {

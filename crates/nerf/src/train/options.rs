@@ -332,13 +332,7 @@ impl TrainOptions {
                 if refine {
                     let mut r =
                         crate::model::camera_refine::CameraRefinement::new(scene.train.len());
-                    if ndc {
-                        // A forward-facing scene's origin is its mean camera, not what the
-                        // cameras look at: turning about it gains nothing, and on the rug
-                        // (LLFF, sigma 0.02, 3e-3) the world frame ended 23.3 dB held out
-                        // against the camera frame's 30.9.
-                        r.frame = crate::model::camera_refine::Frame::Camera;
-                    }
+                    r.frame = crate::model::camera_refine::Frame::for_space(scene.space);
                     if let Some(lr) = self.camera_lr {
                         if !(lr.is_finite() && lr > 0.0) {
                             return refuse(format!(
