@@ -202,21 +202,35 @@ impl TrainProgress {
                 }
             }
             Event::Validation { step, psnr, image } => {
-                let line = format!(
+                self.say(format!(
                     "step {step}: validation PSNR {psnr:.2} dB ({})",
                     image.display()
-                );
-                match &self.pb {
-                    // A hidden bar (no terminal: logs, CI) prints nothing, so say it plainly.
-                    Some(p) if !p.is_hidden() => p.println(line),
-                    _ => println!("{line}"),
-                }
+                ));
+            }
+            Event::PoseError { step, error } => {
+                self.say(format!(
+                    "step {step}: training cameras {:.3} degrees from the true poses (median \
+                     {:.3}, worst {:.2}), centres {:.2}% of the radius",
+                    error.rotation_deg,
+                    error.rotation_deg_median,
+                    error.rotation_deg_max,
+                    error.translation_percent_of_radius
+                ));
             }
             Event::Note(note) => match &self.pb {
                 Some(p) if !p.is_hidden() => p.println(format!("note: {note}")),
                 _ => eprintln!("note: {note}"),
             },
             Event::Checkpoint { .. } | Event::Model { .. } => {}
+        }
+    }
+
+    /// Prints a line above the bar, or plainly when the bar is hidden (no terminal: logs,
+    /// CI), where it would print nothing.
+    fn say(&self, line: String) {
+        match &self.pb {
+            Some(p) if !p.is_hidden() => p.println(line),
+            _ => println!("{line}"),
         }
     }
 

@@ -14,11 +14,13 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::Pose;
 use crate::data::poses::{fit_similarity, origin, rotation_error_degrees, Similarity};
-use crate::data::Split;
+use crate::data::{evenly_kept, Split};
 use crate::error::Result;
 use crate::math::{length, sub};
-use crate::model::camera_refine::{corrected, corrections, PER_CAMERA};
+use crate::model::camera_refine::{corrected, corrections, Frame, PER_CAMERA};
+use crate::nn::ParamLayout;
 use crate::train::folder::LoadedRun;
+use crate::train::TrainConfig;
 
 /// How far a run's training cameras are from the given ones, after alignment.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
@@ -49,33 +51,14 @@ pub struct RunCameras {
 impl RunCameras {
     /// The cameras of `run`; `None` when the run neither perturbed nor refined them.
     pub fn of(run: &LoadedRun) -> Result<Option<RunCameras>> {
-        let config = &run.config;
         let state = run.engine.state();
-        let learned = corrections(run.engine.param_layout(), &state.params);
-        if learned.is_none() && config.perturb_poses.is_none() {
+        let layout = run.engine.param_layout();
+        if corrections(layout, &state.params).is_none() && run.config.perturb_poses.is_none() {
             return Ok(None);
         }
-        let scene = config.open_scene(1)?;
-        let given: Vec<Pose> = scene.cameras(Split::Train).iter().map(|c| c.c2w).collect();
-        let mut refined = given.clone();
-        if let Some(p) = &config.perturb_poses {
-            let mut poses: Vec<&mut Pose> = refined.iter_mut().collect();
-            p.apply(&mut poses);
-        }
-        let frame = match &config.model {
-            crate::model::ModelConfig::Fast(m) => m.refine_cameras.map(|r| r.frame),
-            crate::model::ModelConfig::Vanilla(_) => None,
-        };
-        if let (Some(c), Some(frame)) = (learned, frame) {
-            for (pose, corr) in refined.iter_mut().zip(c.chunks_exact(PER_CAMERA)) {
-                *pose = corrected(pose, corr, frame);
-            }
-        }
-        Ok(Some(RunCameras {
-            given,
-            refined,
-            refined_by_model: learned.is_some(),
-        }))
+        Ok(Some(
+            StartingCameras::of(&run.config)?.corrected_by(layout, &state.params),
+        ))
     }
 
     /// The similarity that best maps the refined centres onto the given ones.
@@ -126,5 +109,54 @@ impl RunCameras {
     /// model learned (the alignment's inverse): fit once, applied to every camera.
     pub fn to_model_frame(&self) -> Similarity {
         self.alignment().inverse()
+    }
+}
+
+/// The training cameras of a run before any correction: as the scene gives them, and as
+/// the run starts from (moved by `--perturb-poses`). Read once, then corrected by any
+/// state of the run's parameters (training tracks the pose error as it goes).
+#[derive(Clone, Debug)]
+pub struct StartingCameras {
+    given: Vec<Pose>,
+    start: Vec<Pose>,
+    frame: Option<Frame>,
+}
+
+impl StartingCameras {
+    pub fn of(config: &TrainConfig) -> Result<StartingCameras> {
+        let scene = config.open_scene(1)?;
+        let all = scene.cameras(Split::Train);
+        // The views the run trained on (`--train-views`): correction k belongs to the k-th.
+        let kept = evenly_kept(all.len(), config.train_views.unwrap_or(0));
+        let given: Vec<Pose> = kept.iter().map(|&i| all[i].c2w).collect();
+        let mut start = given.clone();
+        if let Some(p) = &config.perturb_poses {
+            p.apply(&mut start.iter_mut().collect::<Vec<_>>());
+        }
+        let frame = match &config.model {
+            crate::model::ModelConfig::Fast(m) => m.refine_cameras.map(|r| r.frame),
+            crate::model::ModelConfig::Vanilla(_) => None,
+        };
+        Ok(StartingCameras {
+            given,
+            start,
+            frame,
+        })
+    }
+
+    /// The cameras with the corrections held in `params` (laid out by `layout`) applied.
+    pub fn corrected_by(&self, layout: &ParamLayout, params: &[f32]) -> RunCameras {
+        let learned = corrections(layout, params);
+        let mut refined = self.start.clone();
+        if let (Some(c), Some(frame)) = (learned, self.frame) {
+            for (pose, corr) in refined.iter_mut().zip(c.chunks_exact(PER_CAMERA)) {
+                *pose = corrected(pose, corr, frame);
+            }
+        }
+        RunCameras {
+            given: self.given.clone(),
+            refined,
+            refined_by_model: learned.is_some(),
+        }
     }
 }

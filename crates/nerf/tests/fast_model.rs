@@ -194,6 +194,39 @@ fn appearance_codes_absorb_exposure_changes() {
     );
 }
 
+/// Pose errors are measured on the cameras a run trained from: with `--train-views`, the
+/// views it kept (correction k belongs to the k-th of them), moved by the same noise.
+#[test]
+fn pose_errors_are_measured_on_the_views_trained() {
+    use nerf::model::camera_refine::{Frame, PosePerturbation};
+    use nerf::refined_cameras::StartingCameras;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 16);
+    let mut config = fast_config(&data, 1);
+    config.train_views = Some(7);
+    config.perturb_poses = Some(PosePerturbation {
+        sigma: 0.05,
+        seed: 3,
+        frame: Frame::World,
+    });
+    let trained: Vec<_> = config
+        .training_data()
+        .expect("training data")
+        .views
+        .iter()
+        .map(|v| v.camera.c2w)
+        .collect();
+    // No corrections in the parameters: the cameras are where training starts.
+    let cameras = StartingCameras::of(&config)
+        .expect("cameras")
+        .corrected_by(&Default::default(), &[]);
+    assert!(!cameras.refined_by_model);
+    assert_eq!(cameras.refined, trained);
+    assert_eq!(cameras.given.len(), 7);
+    assert!(cameras.error().rotation_deg > 0.5, "{:?}", cameras.error());
+}
+
 /// Issue 14 #1: the chair's training poses moved by BARF's se(3) noise (sigma 0.03, in the
 /// world frame: about 2.5 degrees and 4.3% of the camera radius on average) are pulled
 /// back toward the given ones by refinement in a CI-sized run (2000 steps at 48 pixels):
@@ -204,7 +237,7 @@ fn appearance_codes_absorb_exposure_changes() {
 #[test]
 fn refinement_recovers_perturbed_cameras() {
     use nerf::model::camera_refine::{CameraRefinement, Frame, PosePerturbation};
-    use nerf::refined_cameras::RunCameras;
+    use nerf::refined_cameras::{PoseError, RunCameras};
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("chair");
     small_scene(&data, 48);
@@ -247,6 +280,30 @@ fn refinement_recovers_perturbed_cameras() {
             && after.translation_percent_of_radius < 0.67 * before.translation_percent_of_radius,
         "{before:?} -> {after:?}"
     );
+    // Training tracked the error as it went (the truth is known): it fell, and its last
+    // figure is the one the finished run reports.
+    let tracked: Vec<(u64, PoseError)> = std::fs::read_to_string(out.join(run::METRICS_FILE))
+        .expect("metrics")
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| {
+            let error = serde_json::from_value(v.get("pose_error")?.clone()).ok()?;
+            Some((v.get("step")?.as_u64()?, error))
+        })
+        .collect();
+    let steps: Vec<u64> = tracked.iter().map(|(s, _)| *s).collect();
+    assert_eq!(
+        steps,
+        (1..=8)
+            .map(|k| k * run::POSE_ERROR_EVERY)
+            .collect::<Vec<_>>()
+    );
+    assert!(
+        tracked[0].1.rotation_deg > after.rotation_deg,
+        "{tracked:?}"
+    );
+    assert_eq!(tracked.last().map(|(_, e)| *e), Some(after));
+
     let report = common::eval_test(&loaded, 2, &out.join("eval"));
     assert_eq!(report.pose_error, Some(after));
     assert_eq!(report.cameras.as_deref(), Some("aligned"));

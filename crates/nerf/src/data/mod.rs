@@ -43,22 +43,24 @@ pub struct Dataset {
     pub space: crate::camera::ray_space::RaySpace,
 }
 
+/// The indices `Dataset::keep_evenly` keeps of `total` views (`--train-views n`), in
+/// order: all of them when `n` is 0 or at least `total`.
+pub fn evenly_kept(total: usize, n: usize) -> Vec<usize> {
+    if n == 0 || n >= total {
+        return (0..total).collect();
+    }
+    (0..n).map(|k| k * total / n).collect()
+}
+
 impl Dataset {
     /// Keeps `n` views spread evenly over the split (the paper's 25 / 50 image ablations).
     pub fn keep_evenly(&mut self, n: usize) {
-        let total = self.views.len();
-        if n == 0 || n >= total {
-            return;
-        }
-        let mut keep = vec![false; total];
-        for k in 0..n {
-            keep[k * total / n] = true;
-        }
+        let kept = evenly_kept(self.views.len(), n);
         let views = std::mem::take(&mut self.views);
         self.views = views
             .into_iter()
-            .zip(keep)
-            .filter_map(|(v, k)| k.then_some(v))
+            .enumerate()
+            .filter_map(|(i, v)| kept.binary_search(&i).is_ok().then_some(v))
             .collect();
     }
 

@@ -14,6 +14,7 @@ pub use super::folder::{LoadedRun, CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE};
 use super::{StepStats, TrainConfig, Trainer};
 use crate::data::{image::save_rgb_png, Split, View};
 use crate::error::{NerfError, Result};
+use crate::refined_cameras::{PoseError, StartingCameras};
 use crate::views::RenderSettings;
 
 /// The shortest time between two periodic checkpoints. On a GPU 500 fast-model steps take
@@ -21,6 +22,12 @@ use crate::views::RenderSettings;
 /// as much as the steps; a killed run loses at most this much work beyond the interval.
 /// The first periodic checkpoint and the final one are never held back.
 const MIN_CHECKPOINT_INTERVAL: Duration = Duration::from_secs(30);
+
+/// How often a run that perturbed its poses (`--perturb-poses`, so the true ones are
+/// known) measures how far its refined cameras are from them, as BARF's training reports.
+/// The measure reads the parameters once (a copy, or a download from a GPU) and aligns 100
+/// cameras: far below the cost of this many steps.
+pub const POSE_ERROR_EVERY: u64 = 250;
 
 /// How to run (beyond the config that defines the run).
 #[derive(Clone, Debug)]
@@ -77,6 +84,12 @@ pub enum Event<'a> {
     Checkpoint {
         step: u64,
     },
+    /// How far the refined training cameras are from the true poses (runs that perturbed
+    /// them), every [`POSE_ERROR_EVERY`] steps and at the end.
+    PoseError {
+        step: u64,
+        error: &'a PoseError,
+    },
     /// The model after a step, for a live view (`nerf train --view`): a listener that
     /// wants its weights takes `engine.state()`; one that does not pays nothing.
     Model {
@@ -108,6 +121,12 @@ struct MetricLine {
     rays: usize,
     samples: usize,
     elapsed_s: f64,
+}
+
+#[derive(Serialize)]
+struct PoseLine<'a> {
+    step: u64,
+    pose_error: &'a PoseError,
 }
 
 #[derive(Serialize)]
@@ -179,6 +198,11 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let (width, height) = data.image_size();
     let views = data.views.len();
     let mut trainer = Trainer::on(opts.device, config.clone(), data)?;
+    // The truth is known only for poses the run moved itself.
+    let true_cameras = match config.perturb_poses {
+        Some(_) => Some(StartingCameras::of(&config)?),
+        None => None,
+    };
     on_event(Event::Note(&format!(
         "training on {}",
         trainer.engine.describe()
@@ -254,6 +278,20 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         };
         append_line(&mut metrics, &metrics_path, &line)?;
         on_event(Event::Step(&stats));
+        if let Some(cameras) = &true_cameras {
+            if stats.step % POSE_ERROR_EVERY == 0 || stats.step == config.steps {
+                let error = pose_error(cameras, &trainer);
+                let line = PoseLine {
+                    step: stats.step,
+                    pose_error: &error,
+                };
+                append_line(&mut metrics, &metrics_path, &line)?;
+                on_event(Event::PoseError {
+                    step: stats.step,
+                    error: &error,
+                });
+            }
+        }
         on_event(Event::Model {
             step: stats.step,
             engine: trainer.engine.as_ref(),
@@ -303,6 +341,13 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         last_psnr,
         val_psnr,
     })
+}
+
+fn pose_error(cameras: &StartingCameras, trainer: &Trainer) -> PoseError {
+    let state = trainer.engine.state();
+    cameras
+        .corrected_by(trainer.engine.param_layout(), &state.params)
+        .error()
 }
 
 /// The latest `val_psnr` line of a metrics file, if any.
