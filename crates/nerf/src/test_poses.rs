@@ -87,6 +87,8 @@ pub fn refine_test_poses(
         start_levels: levels as f32,
         // As training corrects.
         frame: Frame::for_space(data.space),
+        // All levels from the start either way.
+        pose_gradient_only: false,
     };
     let mut fit_model = model.clone();
     fit_model.refine_cameras = Some(refinement);

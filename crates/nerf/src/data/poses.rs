@@ -261,21 +261,102 @@ pub fn inward_frame(poses: &[Pose], radius: f32) -> Similarity {
 /// Horn's closed form with quaternions), and the RMS distance left.
 pub fn fit_similarity(from: &[V3], to: &[V3]) -> (Similarity, f32) {
     let n = from.len().min(to.len());
-    let ca = mean(from[..n].iter().copied());
-    let cb = mean(to[..n].iter().copied());
-    let mut s = [[0.0f64; 3]; 3];
-    let (mut var_a, mut var_b) = (0.0f64, 0.0f64);
-    for k in 0..n {
-        let a = sub(from[k], ca).map(f64::from);
-        let b = sub(to[k], cb).map(f64::from);
-        for r in 0..3 {
-            for c in 0..3 {
-                s[r][c] += a[r] * b[c];
+    let fit = CentredPairs::of(&from[..n], &to[..n]);
+    let sim = fit.similarity(horn_rotation(fit.cross));
+    let rms = (from[..n]
+        .iter()
+        .zip(&to[..n])
+        .map(|(&a, &b)| {
+            let d = sub(sim.apply_point(a), b);
+            dot(d, d)
+        })
+        .sum::<f32>()
+        / n.max(1) as f32)
+        .sqrt();
+    (sim, rms)
+}
+
+/// The similarity that best maps the cameras `from` onto `to`: its rotation the one that
+/// best turns their orientations onto each other (Horn's least squares over every
+/// camera's three axes: the chordal mean of the cameras' relative rotations), its scale
+/// and translation those of the centres. Centres alone leave the rotation poorly
+/// determined when they lie near a plane or a line against their own errors (a
+/// forward-facing grid, whose centre errors can be a tenth of its spread); orientations
+/// determine it for any layout.
+pub fn fit_similarity_of_poses(from: &[Pose], to: &[Pose]) -> Similarity {
+    let n = from.len().min(to.len());
+    let centres = |poses: &[Pose]| poses[..n].iter().map(origin).collect::<Vec<_>>();
+    let fit = CentredPairs::of(&centres(from), &centres(to));
+    let mut axes = [[0.0f64; 3]; 3];
+    for (a, b) in from[..n].iter().zip(&to[..n]) {
+        for axis in 0..3 {
+            let (u, v) = (column(a, axis), column(b, axis));
+            for r in 0..3 {
+                for c in 0..3 {
+                    axes[r][c] += f64::from(u[r]) * f64::from(v[c]);
+                }
             }
         }
-        var_a += a.iter().map(|v| v * v).sum::<f64>();
-        var_b += b.iter().map(|v| v * v).sum::<f64>();
     }
+    fit.similarity(horn_rotation(axes))
+}
+
+/// Paired point sets about their centroids: the cross-covariance `sum a b^T` and the
+/// spreads that Horn's method needs.
+struct CentredPairs {
+    centroid_from: V3,
+    centroid_to: V3,
+    cross: [[f64; 3]; 3],
+    var_from: f64,
+    var_to: f64,
+}
+
+impl CentredPairs {
+    fn of(from: &[V3], to: &[V3]) -> CentredPairs {
+        let centroid_from = mean(from.iter().copied());
+        let centroid_to = mean(to.iter().copied());
+        let mut cross = [[0.0f64; 3]; 3];
+        let (mut var_from, mut var_to) = (0.0f64, 0.0f64);
+        for (&a, &b) in from.iter().zip(to) {
+            let a = sub(a, centroid_from).map(f64::from);
+            let b = sub(b, centroid_to).map(f64::from);
+            for r in 0..3 {
+                for c in 0..3 {
+                    cross[r][c] += a[r] * b[c];
+                }
+            }
+            var_from += a.iter().map(|v| v * v).sum::<f64>();
+            var_to += b.iter().map(|v| v * v).sum::<f64>();
+        }
+        CentredPairs {
+            centroid_from,
+            centroid_to,
+            cross,
+            var_from,
+            var_to,
+        }
+    }
+
+    /// With `rotation` found: Horn's symmetric scale, and the translation that maps the
+    /// centroids onto each other.
+    fn similarity(&self, rotation: [[f32; 3]; 3]) -> Similarity {
+        let scale_ab = if self.var_from > 0.0 {
+            (self.var_to / self.var_from).sqrt() as f32
+        } else {
+            1.0
+        };
+        let rotated = mat_vec(&rotation, self.centroid_from);
+        Similarity {
+            rotation,
+            translation: sub(self.centroid_to, scale(rotated, scale_ab)),
+            scale: scale_ab,
+        }
+    }
+}
+
+/// The rotation `R` that maximises `sum b . R a` for the cross-covariance `s = sum a b^T`
+/// (Horn's quaternion method).
+fn horn_rotation(s: [[f64; 3]; 3]) -> [[f32; 3]; 3] {
     let [[sxx, sxy, sxz], [syx, syy, syz], [szx, szy, szz]] = s;
     let m = [
         [sxx + syy + szz, syz - szy, szx - sxz, sxy - syx],
@@ -284,7 +365,7 @@ pub fn fit_similarity(from: &[V3], to: &[V3]) -> (Similarity, f32) {
         [sxy - syx, szx + sxz, syz + szy, -sxx - syy + szz],
     ];
     let [w, x, y, z] = top_eigenvector(m);
-    let rotation = [
+    [
         [
             w * w + x * x - y * y - z * z,
             2.0 * (x * y - w * z),
@@ -301,29 +382,7 @@ pub fn fit_similarity(from: &[V3], to: &[V3]) -> (Similarity, f32) {
             w * w - x * x - y * y + z * z,
         ],
     ]
-    .map(|row| row.map(|v| v as f32));
-    let scale_ab = if var_a > 0.0 {
-        (var_b / var_a).sqrt() as f32
-    } else {
-        1.0
-    };
-    let rotated = mat_vec(&rotation, ca);
-    let sim = Similarity {
-        rotation,
-        translation: sub(cb, scale(rotated, scale_ab)),
-        scale: scale_ab,
-    };
-    let rms = (from[..n]
-        .iter()
-        .zip(&to[..n])
-        .map(|(&a, &b)| {
-            let d = sub(sim.apply_point(a), b);
-            dot(d, d)
-        })
-        .sum::<f32>()
-        / n.max(1) as f32)
-        .sqrt();
-    (sim, rms)
+    .map(|row| row.map(|v| v as f32))
 }
 
 /// Unit eigenvector of the largest eigenvalue of a symmetric 4x4 matrix (cyclic Jacobi).

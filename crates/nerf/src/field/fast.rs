@@ -104,6 +104,10 @@ pub struct FastField {
     /// Weight of each hash-grid level's features (empty: all 1): camera refinement's
     /// coarse-to-fine schedule sets it during training.
     pub level_weights: Vec<f32>,
+    /// Weight of each level in `dL/d position` only (empty: all 1), on top of
+    /// `level_weights`: the straight-through coarse-to-fine schedule smooths the cameras'
+    /// gradient without holding the field's own fit back.
+    pub position_level_weights: Vec<f32>,
 }
 
 /// Reused buffers of one thread (activations and their gradients).
@@ -171,6 +175,7 @@ impl FastField {
             weights,
             codes,
             level_weights: Vec::new(),
+            position_level_weights: Vec::new(),
         }
     }
 
@@ -585,6 +590,15 @@ impl FastField {
             d_dirs[s * 3..][..3].copy_from_slice(&sh4_bwd([d[0], d[1], d[2]], g));
         }
         let e = self.grid.dims();
+        // The tables have their gradient: what remains of `d_enc` is the positions'.
+        if !self.position_level_weights.is_empty() {
+            let f = crate::encoding::hash_grid::FEATURES;
+            for row in ws.d_enc[..n * e].chunks_exact_mut(e) {
+                for (level, w) in row.chunks_exact_mut(f).zip(&self.position_level_weights) {
+                    level.iter_mut().for_each(|v| *v *= w);
+                }
+            }
+        }
         self.grid
             .encode_input_bwd(params, &ws.unit[..n * 3], &ws.d_enc[..n * e], d_positions);
         let to_world = 0.5 / self.config.bound;
@@ -784,6 +798,76 @@ mod tests {
         );
         assert_eq!(before.1[3..], after.1[3..], "photo 1's does not");
         assert_eq!(field.codes(&params).len(), 12);
+    }
+
+    /// The straight-through schedule: weighting the levels of the position gradient
+    /// leaves the forward and the tables' gradient as they are, and the position gradient
+    /// is the weighted sum of each level's share (which add up to the full gradient).
+    #[test]
+    fn position_level_weights_act_on_the_position_gradient_only() {
+        let mut rng = Rng::new(5);
+        let base = tiny();
+        let params: Vec<f32> = (0..base.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let n = 5;
+        let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+        let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
+        let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+        let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+        let run = |weights: &[f32]| {
+            let mut field = base.clone();
+            field.position_level_weights = weights.to_vec();
+            let mut ws = FastWorkspace::default();
+            let out = field.forward(&params, input(&pos, &dirs), &mut ws);
+            let out = (out.sigma.to_vec(), out.rgb.to_vec());
+            let mut grads = GradBuffer::new(field.num_params());
+            let (mut d_pos, mut d_dirs) = (Vec::new(), Vec::new());
+            let d = FieldGrad {
+                d_sigma: &a,
+                d_rgb: &b,
+            };
+            field.backward_with_positions(
+                &params,
+                &mut ws,
+                d,
+                &mut grads.all(),
+                &dirs,
+                &mut d_pos,
+                &mut d_dirs,
+            );
+            (out, grads.values, d_pos, d_dirs)
+        };
+        let full = run(&[]);
+        let weights = [1.0, 0.5, 0.0];
+        let weighted = run(&weights);
+        assert_eq!(weighted.0, full.0, "the forward is unchanged");
+        assert_eq!(
+            weighted.1, full.1,
+            "the tables' and MLPs' gradients are unchanged"
+        );
+        assert_eq!(weighted.3, full.3, "the direction gradient is unchanged");
+        let shares: Vec<Vec<f32>> = (0..3)
+            .map(|l| {
+                let mut one = [0.0; 3];
+                one[l] = 1.0;
+                run(&one).2
+            })
+            .collect();
+        let sum_of = |w: &[f32]| -> Vec<f32> {
+            (0..n * 3)
+                .map(|i| (0..3).map(|l| w[l] * shares[l][i]).sum())
+                .collect()
+        };
+        let close = |x: &[f32], y: &[f32]| {
+            x.iter()
+                .zip(y)
+                .all(|(p, q)| (p - q).abs() <= 1e-5 * (1.0 + q.abs()))
+        };
+        assert!(full.2.iter().any(|&g| g.abs() > 1e-3), "{:?}", full.2);
+        assert!(close(&full.2, &sum_of(&[1.0; 3])), "the shares add up");
+        assert!(close(&weighted.2, &sum_of(&weights)), "{:?}", weighted.2);
+        assert!(!close(&weighted.2, &full.2), "the weights change it");
     }
 
     fn backward_matches_finite_differences_of(

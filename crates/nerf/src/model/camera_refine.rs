@@ -41,7 +41,8 @@
 //!
 //! Coarse to fine: early on, the fine hash-grid levels are switched off and weighted in
 //! smoothly as training goes (BARF's schedule, on levels instead of frequencies), so the
-//! first pose gradients come from a smooth field.
+//! first pose gradients come from a smooth field. New runs weight only the cameras'
+//! gradient (`pose_gradient_only`): the field learns every level from the first step.
 
 use serde::{Deserialize, Serialize};
 
@@ -112,6 +113,13 @@ pub struct CameraRefinement {
     /// Where the corrections act.
     #[serde(default)]
     pub frame: Frame,
+    /// The coarse-to-fine weights act on the pose gradient only: the field renders and
+    /// learns every level from the first step, and the cameras are moved by the gradient
+    /// of its coarse levels (a straight-through schedule, after Heo et al., ICML 2023).
+    /// Off: BARF's schedule, which also holds the field's fine levels back (runs saved
+    /// before this existed).
+    #[serde(default)]
+    pub pose_gradient_only: bool,
 }
 
 impl CameraRefinement {
@@ -123,6 +131,7 @@ impl CameraRefinement {
             anneal: [0.05, 0.4],
             start_levels: 4.0,
             frame: Frame::World,
+            pose_gradient_only: true,
         }
         .with_learning_rate(DEFAULT_LR)
     }

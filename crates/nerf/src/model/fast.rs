@@ -558,7 +558,12 @@ impl Model for FastModel {
     /// Camera refinement's coarse-to-fine weighting of the hash-grid levels.
     fn set_progress(&mut self, progress: f32) {
         if let Some(r) = &self.config.refine_cameras {
-            self.field.level_weights = r.level_weights(self.field.grid.levels.len(), progress);
+            let weights = r.level_weights(self.field.grid.levels.len(), progress);
+            if r.pose_gradient_only {
+                self.field.position_level_weights = weights;
+            } else {
+                self.field.level_weights = weights;
+            }
         }
     }
 
@@ -712,6 +717,30 @@ mod tests {
 
     /// Rendering (in rounds, stopping opaque rays) and training (all samples, composited at
     /// once) see the same colour for the same lattice, and rendering stops early.
+    /// BARF's coarse-to-fine schedule weighs the field's levels; the straight-through
+    /// one weighs only the cameras' gradient, and the field renders every level.
+    #[test]
+    fn the_schedule_weighs_the_field_or_only_the_pose_gradient() {
+        for straight_through in [false, true] {
+            let mut refinement = CameraRefinement::new(2);
+            refinement.pose_gradient_only = straight_through;
+            let mut model = FastModel::new(FastModelConfig {
+                refine_cameras: Some(refinement),
+                ..FastModelConfig::default()
+            });
+            model.set_progress(0.1);
+            let field = &model.field;
+            let (weighted, untouched) = match straight_through {
+                true => (&field.position_level_weights, &field.level_weights),
+                false => (&field.level_weights, &field.position_level_weights),
+            };
+            assert!(untouched.is_empty(), "{untouched:?}");
+            assert_eq!(weighted.len(), field.grid.levels.len());
+            assert_eq!(weighted[0], 1.0);
+            assert_eq!(weighted.last(), Some(&0.0));
+        }
+    }
+
     #[test]
     fn rendering_agrees_with_training_and_terminates_early() {
         let (model, params) = dense_model();
