@@ -715,8 +715,6 @@ mod tests {
         }
     }
 
-    /// Rendering (in rounds, stopping opaque rays) and training (all samples, composited at
-    /// once) see the same colour for the same lattice, and rendering stops early.
     /// BARF's coarse-to-fine schedule weighs the field's levels; the straight-through
     /// one weighs only the cameras' gradient, and the field renders every level.
     #[test]
@@ -741,6 +739,8 @@ mod tests {
         }
     }
 
+    /// Rendering (in rounds, stopping opaque rays) and training (all samples, composited at
+    /// once) see the same colour for the same lattice, and rendering stops early.
     #[test]
     fn rendering_agrees_with_training_and_terminates_early() {
         let (model, params) = dense_model();
