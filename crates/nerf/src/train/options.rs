@@ -348,6 +348,8 @@ impl TrainOptions {
                             LARGE_ERROR_LR
                         });
                     }
+                    // Poses degrees off: the field learns every level from the start.
+                    r.pose_gradient_only = self.perturb_poses.is_some();
                     m.refine_cameras = Some(r);
                     on_notice(if asked {
                         "note: refining the training cameras' poses with the field"
@@ -646,15 +648,21 @@ mod tests {
         let perturbed = ["--refine-cameras", "--perturb-poses", "0.1"];
         let c = config(&perturbed, dir.path()).expect("perturbed");
         assert_eq!(
-            refinement(&c).map(|r| r.lr_init),
-            Some(crate::model::camera_refine::LARGE_ERROR_LR)
+            refinement(&c).map(|r| (r.lr_init, r.pose_gradient_only)),
+            Some((crate::model::camera_refine::LARGE_ERROR_LR, true))
         );
+        // Small errors (real captures): BARF's schedule.
+        let c = config(&["--refine-cameras"], dir.path()).expect("plain");
+        assert_eq!(refinement(&c).map(|r| r.pose_gradient_only), Some(false));
         let c = config(
             &["--perturb-poses", "0.1", "--camera-lr", "1e-3"],
             dir.path(),
         )
         .expect("given");
-        assert_eq!(refinement(&c).map(|r| r.lr_init), Some(1e-3));
+        assert_eq!(
+            refinement(&c).map(|r| (r.lr_init, r.pose_gradient_only)),
+            Some((1e-3, true))
+        );
         config(&["--camera-lr", "1e-3", "--no-refine-cameras"], dir.path()).expect_err("both");
     }
 
