@@ -42,8 +42,8 @@
 //! Coarse to fine: early on, the fine hash-grid levels are switched off and weighted in
 //! smoothly as training goes (BARF's schedule, on levels instead of frequencies), so the
 //! first pose gradients come from a smooth field. Runs with errors of degrees (outside
-//! NDC) weight only the cameras' gradient (`pose_gradient_only`): the field learns every level from the
-//! first step.
+//! NDC) weight only the cameras' gradient (`pose_gradient_only`): the field learns every
+//! level from the first step.
 
 use serde::{Deserialize, Serialize};
 
@@ -119,9 +119,9 @@ pub struct CameraRefinement {
     /// of its coarse levels (a straight-through schedule, after Heo et al., ICML 2023).
     /// On for errors of degrees (`--perturb-poses`) outside NDC: perturbed lego ended
     /// 30.44 dB held out against BARF's schedule's 30.31 (the forward-facing rug, sigma
-    /// 0.02: 31.68 against 31.96). Off: BARF's schedule, which also holds the
-    /// field's fine levels back, and regularises it: on real captures, whose poses are
-    /// a fraction of a degree off, ngp_fox ended 26.42 dB with it against 26.09 without
+    /// 0.02: 31.68 against 31.96). Off: BARF's schedule, which also holds the field's
+    /// fine levels back, and so regularises it: on real captures, whose poses are a
+    /// fraction of a degree off, ngp_fox ended 26.42 dB with it against 26.09 without
     /// (llff_beer 24.56 and 24.66). Runs saved before this existed used BARF's.
     #[serde(default)]
     pub pose_gradient_only: bool,
