@@ -9,9 +9,9 @@ use crate::data::{image::save_rgb_png, Split};
 use crate::error::Result;
 use crate::metrics::lpips::Lpips;
 use crate::metrics::{psnr, ssim};
-use crate::refined_cameras::{PoseError, RunCameras};
 use crate::test_poses::{refine_test_poses, TestPoseFit, TestPoseReport};
 use crate::train::folder::LoadedRun;
+use crate::train::refined_cameras::{PoseError, RunCameras};
 use crate::views::RenderSettings;
 
 /// Metrics of one view.

@@ -265,7 +265,7 @@ pub fn render_frames(
     let mut cameras = cameras(&scene, opts)?;
     // A run that refined its cameras learned the scene in a frame of its own: the path,
     // given in the scene's frame, moves into it (see `refined_cameras`).
-    if let Some(run_cameras) = crate::refined_cameras::RunCameras::of(run)? {
+    if let Some(run_cameras) = crate::train::refined_cameras::RunCameras::of(run)? {
         let to_model = run_cameras.to_model_frame();
         for c in &mut cameras {
             c.c2w = to_model.apply_pose(&c.c2w);

@@ -31,7 +31,7 @@ pub mod metrics;
 pub mod model;
 pub mod nn;
 pub mod presets;
-pub mod refined_cameras;
+pub use train::refined_cameras;
 pub mod render;
 pub mod rng;
 pub mod stage;

@@ -12,6 +12,7 @@
 pub mod folder;
 pub mod lock;
 pub mod options;
+pub mod refined_cameras;
 pub mod run;
 
 use std::path::PathBuf;

@@ -11,10 +11,10 @@ use serde::{Deserialize, Serialize};
 
 use super::folder::{load_checkpoint, save_checkpoint};
 pub use super::folder::{LoadedRun, CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE};
+use super::refined_cameras::{PoseError, StartingCameras};
 use super::{StepStats, TrainConfig, Trainer};
 use crate::data::{image::save_rgb_png, Split, View};
 use crate::error::{NerfError, Result};
-use crate::refined_cameras::{PoseError, StartingCameras};
 use crate::views::RenderSettings;
 
 /// The shortest time between two periodic checkpoints. On a GPU 500 fast-model steps take

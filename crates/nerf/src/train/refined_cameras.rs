@@ -14,6 +14,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::folder::LoadedRun;
+use super::TrainConfig;
 use crate::camera::Pose;
 use crate::data::poses::{fit_similarity_of_poses, origin, rotation_error_degrees, Similarity};
 use crate::data::{evenly_kept, Split};
@@ -21,8 +23,6 @@ use crate::error::Result;
 use crate::math::{length, sub};
 use crate::model::camera_refine::{corrected, corrections, Frame, PER_CAMERA};
 use crate::nn::ParamLayout;
-use crate::train::folder::LoadedRun;
-use crate::train::TrainConfig;
 
 /// How far a run's training cameras are from the given ones, after alignment.
 #[derive(Clone, Copy, Debug, Serialize, Deserialize, PartialEq)]
