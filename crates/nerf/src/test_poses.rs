@@ -89,6 +89,8 @@ pub fn refine_test_poses(
         frame: Frame::for_space(data.space),
         // All levels from the start either way.
         pose_gradient_only: false,
+        // The field is frozen.
+        field_restart: None,
     };
     let mut fit_model = model.clone();
     fit_model.refine_cameras = Some(refinement);

@@ -125,6 +125,14 @@ pub struct CameraRefinement {
     /// (llff_beer 24.56 and 24.66). Runs saved before this existed used BARF's.
     #[serde(default)]
     pub pose_gradient_only: bool,
+    /// Where (a fraction of the schedule) the field's learning-rate decay starts over from
+    /// its initial rate, or `None`. Set at the coarse-to-fine window's end for runs with
+    /// errors of degrees: by then the cameras are within a fraction of a degree, and the
+    /// field relearns at full rate what it had learned through cameras degrees off.
+    /// Perturbed lego ended 30.79 dB held out with the restart at 0.4, against 30.44
+    /// without (exact poses 31.69). Runs saved before this existed had none.
+    #[serde(default)]
+    pub field_restart: Option<f32>,
 }
 
 impl CameraRefinement {
@@ -137,6 +145,7 @@ impl CameraRefinement {
             start_levels: 4.0,
             frame: Frame::World,
             pose_gradient_only: false,
+            field_restart: None,
         }
         .with_learning_rate(DEFAULT_LR)
     }
@@ -155,6 +164,19 @@ impl CameraRefinement {
     pub fn learning_rate(&self, progress: f32) -> f32 {
         let p = progress.clamp(0.0, 1.0);
         self.lr_init * (self.lr_final / self.lr_init).powf(p)
+    }
+
+    /// Where the field's learning-rate schedule stands at `progress`: `progress` itself,
+    /// or, past a [`field_restart`](Self::field_restart) at `r`, `(progress - r) / (1 - r)`
+    /// (the decay starts over and still ends with the schedule).
+    pub fn field_progress(&self, progress: f64) -> f64 {
+        match self.field_restart {
+            // Compared in f32, as `r` was written: 0.4f32 is a hair above 0.4f64.
+            Some(r) if progress as f32 >= r && r < 1.0 => {
+                ((progress - r as f64) / (1.0 - r as f64)).max(0.0)
+            }
+            _ => progress,
+        }
     }
 
     /// Weight of each of `levels` hash-grid levels at `progress`: 1 for the first

@@ -335,7 +335,12 @@ impl TrainConfig {
                 background: self.background,
                 appearance: crate::stage::Appearance::PerView,
             },
-            lr: self.learning_rate_at(progress),
+            lr: self.learning_rate_at(match &self.model {
+                ModelConfig::Fast(m) => m
+                    .refine_cameras
+                    .map_or(progress, |r| r.field_progress(progress)),
+                ModelConfig::Vanilla(_) => progress,
+            }),
             batch_rays: self.batch_rays,
             progress: progress as f32,
             camera_lr: match &self.model {
@@ -413,5 +418,40 @@ mod tests {
         assert!((start - 1e-2).abs() < 1e-7 && (end - 1e-3).abs() < 1e-8);
         c.time_budget_s = Some(-1.0);
         assert!(c.validate().is_err());
+    }
+
+    /// A field restart at 0.4 leaves the first 40% of the schedule as it was, returns the
+    /// field to its initial rate there, and still decays it to the final rate by the end;
+    /// the cameras' own schedule does not restart.
+    #[test]
+    fn the_field_rate_starts_over_where_the_refinement_says() {
+        use crate::model::camera_refine::CameraRefinement;
+        let mut c = TrainConfig::fast(PathBuf::from("scene"));
+        c.steps = 1000;
+        let plain = c.clone();
+        let ModelConfig::Fast(m) = &mut c.model else {
+            panic!("fast")
+        };
+        let mut r = CameraRefinement::new(3).with_learning_rate(1e-2);
+        r.field_restart = Some(0.4);
+        m.refine_cameras = Some(r);
+        let (init, last) = (c.learning_rate_at(0.0), c.learning_rate_at(1.0));
+        for step in [0, 200, 399] {
+            assert_eq!(
+                c.step_spec(step).lr,
+                plain.step_spec(step).lr,
+                "step {step}"
+            );
+        }
+        assert!(c.step_spec(399).lr < 0.45 * init);
+        assert_eq!(c.step_spec(400).lr, init);
+        assert_eq!(c.step_spec(700).lr, c.learning_rate_at(0.5));
+        assert!((c.step_spec(1000).lr - last).abs() < 1e-9);
+        assert_eq!(c.step_spec(700).camera_lr, r.learning_rate(0.7));
+        // No restart: one decay.
+        if let ModelConfig::Fast(m) = &mut c.model {
+            m.refine_cameras = Some(CameraRefinement::new(3));
+        }
+        assert_eq!(c.step_spec(700).lr, plain.step_spec(700).lr);
     }
 }

@@ -352,6 +352,11 @@ impl TrainOptions {
                     // level from the start (lego +0.13 dB; the forward-facing rug measured
                     // 0.28 dB better with BARF's schedule, as real captures do).
                     r.pose_gradient_only = self.perturb_poses.is_some() && !ndc;
+                    // ... and the field's learning rate starts over when the cameras have
+                    // settled, at the coarse-to-fine window's end (lego +0.35 dB).
+                    if r.pose_gradient_only {
+                        r.field_restart = Some(r.anneal[1]);
+                    }
                     m.refine_cameras = Some(r);
                     on_notice(if asked {
                         "note: refining the training cameras' poses with the field"
@@ -623,8 +628,8 @@ mod tests {
         )
         .expect("p");
         assert_eq!(
-            refinement(&c).map(|r| (r.lr_init, r.pose_gradient_only)),
-            Some((crate::model::camera_refine::LARGE_ERROR_LR_NDC, false))
+            refinement(&c).map(|r| (r.lr_init, r.pose_gradient_only, r.field_restart)),
+            Some((crate::model::camera_refine::LARGE_ERROR_LR_NDC, false, None))
         );
     }
 
@@ -649,13 +654,28 @@ mod tests {
         // Perturbed poses are degrees off: the large-error rate unless one is given.
         let perturbed = ["--refine-cameras", "--perturb-poses", "0.1"];
         let c = config(&perturbed, dir.path()).expect("perturbed");
+        // ... the straight-through schedule, and the field's rate starts over at the
+        // window's end.
         assert_eq!(
-            refinement(&c).map(|r| (r.lr_init, r.pose_gradient_only)),
-            Some((crate::model::camera_refine::LARGE_ERROR_LR, true))
+            refinement(&c).map(|r| (
+                r.lr_init,
+                r.pose_gradient_only,
+                r.field_restart,
+                r.anneal[1]
+            )),
+            Some((
+                crate::model::camera_refine::LARGE_ERROR_LR,
+                true,
+                Some(0.4),
+                0.4
+            ))
         );
-        // Small errors (real captures): BARF's schedule.
+        // Small errors (real captures): BARF's schedule, one field decay.
         let c = config(&["--refine-cameras"], dir.path()).expect("plain");
-        assert_eq!(refinement(&c).map(|r| r.pose_gradient_only), Some(false));
+        assert_eq!(
+            refinement(&c).map(|r| (r.pose_gradient_only, r.field_restart)),
+            Some((false, None))
+        );
         let c = config(
             &["--perturb-poses", "0.1", "--camera-lr", "1e-3"],
             dir.path(),
