@@ -19,8 +19,7 @@ use nerf_view::protocol::ViewCamera;
 use nerf_view::render::camera_at;
 use serde_json::{json, Value};
 
-mod common;
-use common::{trained_run, LOUD_PHOTO};
+use crate::common::{trained_run, LOUD_PHOTO};
 
 const CHROMIUM: &str = "/usr/bin/chromium";
 const CHROMEDRIVER: &str = "/usr/bin/chromedriver";

@@ -4,8 +4,7 @@
 
 use std::path::Path;
 
-mod common;
-use common::{cpu_run, fast_config, small_scene};
+use crate::common::{cpu_run, fast_config, small_scene};
 
 use nerf::data::Split;
 use nerf::train::run::{self, LoadedRun, RunOptions, StopReason};
@@ -42,7 +41,7 @@ fn fast_model_trains_a_small_scene_past_a_psnr_floor() {
         "{:.1}% of the grid still occupied",
         100.0 * occupied
     );
-    let report = common::eval_test(&loaded, 1, &out.join("eval"));
+    let report = crate::common::eval_test(&loaded, 1, &out.join("eval"));
     eprintln!(
         "fast model test PSNR {:.2} dB, SSIM {:.3}",
         report.mean_psnr, report.mean_ssim
@@ -179,7 +178,7 @@ fn appearance_codes_absorb_exposure_changes() {
         let out = dir.path().join(name);
         run::train(&options(&out, config, false, None), &mut |_| {}).expect("train");
         let loaded = LoadedRun::open(&out).expect("open");
-        let report = common::eval_test(&loaded, 1, &out.join("eval"));
+        let report = crate::common::eval_test(&loaded, 1, &out.join("eval"));
         report.mean_psnr
     };
     let plain = psnr("plain", 0);
@@ -306,7 +305,7 @@ fn refinement_recovers_perturbed_cameras() {
     );
     assert_eq!(tracked.last().map(|(_, e)| *e), Some(after));
 
-    let report = common::eval_test(&loaded, 2, &out.join("eval"));
+    let report = crate::common::eval_test(&loaded, 2, &out.join("eval"));
     assert_eq!(report.pose_error, Some(after));
     assert_eq!(report.cameras.as_deref(), Some("aligned"));
 

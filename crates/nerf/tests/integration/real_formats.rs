@@ -2,8 +2,6 @@
 //! cameras are known: LLFF (`poses_bounds.npy`), COLMAP text models and `transforms.json`
 //! must give back the true cameras up to the similarity each format's placement applies.
 
-mod common;
-
 use std::path::Path;
 
 use nerf::camera::ray_space::RaySpace;
@@ -131,7 +129,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
     assert_eq!(half.load(Split::Test, 1).expect("load").views.len(), 4);
 
     // The fast model learns the scene in NDC space: held-out PSNR well above a blank guess.
-    let mut config = common::fast_config(dir.path(), 600);
+    let mut config = crate::common::fast_config(dir.path(), 600);
     if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
         m.field.bound = scene.bound;
         m.samples_per_step = 1 << 14;
@@ -151,7 +149,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
     )
     .expect("train");
     let run = nerf::train::run::LoadedRun::open(&out).expect("open run");
-    let report = common::eval_test(&run, 1, &out.join("eval"));
+    let report = crate::common::eval_test(&run, 1, &out.join("eval"));
     // The best constant image (each view's own mean colour) scores far lower (measured:
     // 26.3 dB against 17.7 dB).
     let test = scene.load(Split::Test, 1).expect("test views");

@@ -6,8 +6,7 @@
 //! and losses agree closely, and the fast model's sample counts agree exactly until an
 //! occupancy refresh thresholds densities that differ in their last bits.
 
-mod common;
-use common::{fast_config, small_scene};
+use crate::common::{fast_config, small_scene};
 
 use nerf::data::Split;
 use nerf::train::{TrainConfig, Trainer};

@@ -3,8 +3,7 @@
 
 use std::path::Path;
 
-mod common;
-use common::{cpu_run, small_scene};
+use crate::common::{cpu_run, small_scene};
 
 use nerf::data::synth::{self, SynthOptions};
 use nerf::data::Split;
@@ -41,7 +40,7 @@ fn trains_a_small_scene_past_a_psnr_floor() {
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!((summary.steps, summary.reason), (400, StopReason::Steps));
     let loaded = LoadedRun::open(&out).expect("open run");
-    let report = common::eval_test(&loaded, 1, &out.join("eval"));
+    let report = crate::common::eval_test(&loaded, 1, &out.join("eval"));
     // An all-white prediction scores about 11 dB on these views; an untrained net about 8.
     assert!(
         report.mean_psnr > 18.0,

@@ -1,5 +1,5 @@
 //! Scenes and configurations the integration tests share.
-#![allow(dead_code)] // each test crate uses its own subset
+#![allow(dead_code)] // builds without the GPU engine use a subset
 
 use std::path::Path;
 

@@ -1,8 +1,6 @@
 //! Meshes users take away: files other tools can read, and a trained chair whose mesh has
 //! the chair's real size.
 
-mod common;
-
 use nerf::data::synth::{self, SceneKind};
 use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
@@ -115,8 +113,8 @@ fn written_meshes_read_back_with_independent_readers() {
 fn mesh_of_a_trained_chair_has_the_chairs_size() {
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("chair");
-    common::chair_scene(&data, 64, 60, 1, 3);
-    let config = common::fast_config(&data, 600);
+    crate::common::chair_scene(&data, 64, 60, 1, 3);
+    let config = crate::common::fast_config(&data, 600);
     let out = dir.path().join("run");
     let opts = RunOptions {
         out: out.clone(),

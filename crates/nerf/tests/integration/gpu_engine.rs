@@ -1,12 +1,10 @@
 //! The GPU engine against the CPU engine on whole training steps, and checkpoints moving
 //! between them. Runs on any wgpu adapter (Mesa's lavapipe in CI); skips with a message
 //! where there is none.
-#![cfg(feature = "wgpu")]
 
 use std::path::Path;
 
-mod common;
-use common::{fast_config, small_scene};
+use crate::common::{fast_config, small_scene};
 
 use nerf::data::Split;
 use nerf::engine::Device;
@@ -168,8 +166,8 @@ fn checkpoints_move_between_devices() {
         on_gpu.engine.state(),
         "the same checkpoint"
     );
-    let a = common::eval_test(&on_cpu, 2, &dir.path().join("ea"));
-    let b = common::eval_test(&on_gpu, 2, &dir.path().join("eb"));
+    let a = crate::common::eval_test(&on_cpu, 2, &dir.path().join("ea"));
+    let b = crate::common::eval_test(&on_gpu, 2, &dir.path().join("eb"));
     eprintln!(
         "eval after 30 steps: cpu {:.3} dB, gpu {:.3} dB",
         a.mean_psnr, b.mean_psnr
@@ -255,7 +253,7 @@ fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
     )
     .expect("train");
     let loaded = LoadedRun::open_on(&out, Device::Wgpu).expect("open");
-    let report = common::eval_test(&loaded, 1, &out.join("eval"));
+    let report = crate::common::eval_test(&loaded, 1, &out.join("eval"));
     eprintln!(
         "GPU engine: test PSNR {:.2} dB, SSIM {:.3} after 400 steps ({:.0} s with eval)",
         report.mean_psnr,

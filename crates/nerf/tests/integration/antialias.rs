@@ -2,8 +2,7 @@
 //! multi-scale variant) must render its low-resolution views better when every sample
 //! reads only the detail its pixel's footprint can hold than with point samples.
 
-mod common;
-use common::{chair_scene, cpu_run, fast_config};
+use crate::common::{chair_scene, cpu_run, fast_config};
 
 use nerf::camera::footprint::reference_footprint;
 use nerf::data::Split;

@@ -15,8 +15,7 @@ use nerf_view::protocol::{FrameHeader, ServerMessage, HEADER_BYTES};
 use nerf_view::{start, Running, Viewer};
 use tokio_tungstenite::tungstenite::Message;
 
-mod common;
-use common::{trained_run, LOUD_PHOTO};
+use crate::common::{trained_run, LOUD_PHOTO};
 
 const LOCAL: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
 

@@ -1,6 +1,6 @@
 //! Issue 10: the `nerf` binary under bad input, kills, full disks and concurrent runs, as a
 //! new user met them. Each test names the defects it covers (#N); the scene-file defects
-//! are tested in the library (`crates/nerf/tests/scene_checks.rs`).
+//! are tested in the library (`crates/nerf/tests/integration/scene_checks.rs`).
 
 use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};

@@ -1,0 +1,16 @@
+//! The library's integration tests, one module per subject. They are one test binary, so
+//! `cargo test` links the library into it once and runs the slow tests of every subject
+//! side by side instead of one subject after another.
+
+mod common;
+
+mod antialias;
+mod end_to_end;
+mod fast_model;
+#[cfg(feature = "wgpu")]
+mod gpu_engine;
+mod layers;
+mod mesh;
+mod real_formats;
+mod scene_checks;
+mod thread_count;
