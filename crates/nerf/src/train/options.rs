@@ -92,7 +92,9 @@ pub struct TrainOptions {
     pub no_refine_cameras: bool,
     /// Move every training pose by random rigid noise of this standard deviation
     /// (rotation in radians about the scene's centre, translation in scene units) before
-    /// training: BARF's test of camera refinement. `SIGMA[,SEED]`.
+    /// training: BARF's test of camera refinement. `SIGMA[,SEED]`. Refinement then expects
+    /// errors of degrees: outside NDC, the coarse-to-fine schedule weighs only the cameras'
+    /// gradient, and the field's learning rate starts over where it ends.
     #[arg(long, value_parser = crate::model::camera_refine::parse_perturbation)]
     pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
