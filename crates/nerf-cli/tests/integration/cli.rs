@@ -3,22 +3,14 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
+use crate::common::ok;
+
 fn nerf(args: &[&str], cwd: &Path) -> Output {
     Command::new(env!("CARGO_BIN_EXE_nerf"))
         .args(args)
         .current_dir(cwd)
         .output()
         .expect("run nerf")
-}
-
-fn ok(out: &Output) -> String {
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(out.status.success(), "nerf failed:\n{text}");
-    text
 }
 
 /// The JSON file at `path` (a run's `metrics.json`, say), parsed.

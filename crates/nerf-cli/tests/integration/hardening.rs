@@ -6,6 +6,8 @@ use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
+use crate::common::{ok, text};
+
 fn cmd(args: &[&str], cwd: &Path) -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_nerf"));
     c.args(args)
@@ -34,20 +36,6 @@ fn finish(mut child: Child, limit: Duration, args: &[&str]) -> Output {
         std::thread::sleep(Duration::from_millis(50));
     }
     child.wait_with_output().expect("output")
-}
-
-fn text(out: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    )
-}
-
-fn ok(out: &Output) -> String {
-    let t = text(out);
-    assert!(out.status.success(), "nerf failed:\n{t}");
-    t
 }
 
 /// Fails with exit status 1 (an error, not a panic's 101 or an abort's 134) and says all

@@ -28,15 +28,7 @@ fn trains_a_small_scene_past_a_psnr_floor() {
     let data = dir.path().join("chair");
     small_scene(&data, 32);
     let out = dir.path().join("run");
-    let opts = RunOptions {
-        out: out.clone(),
-        config: demo_config(&data, 400),
-        minutes: None,
-        resume: false,
-        pause_at: None,
-        stop: None,
-        device: nerf::engine::Device::Cpu,
-    };
+    let opts = cpu_run(&out, demo_config(&data, 400));
     let summary = run::train(&opts, &mut |_| {}).expect("train");
     assert_eq!((summary.steps, summary.reason), (400, StopReason::Steps));
     let loaded = LoadedRun::open(&out).expect("open run");
@@ -59,31 +51,14 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
     let straight = dir.path().join("straight");
     let mut config = demo_config(&data, 12);
     config.checkpoint_every = 5;
-    run::train(
-        &RunOptions {
-            out: straight.clone(),
-            config: config.clone(),
-            minutes: None,
-            resume: false,
-            pause_at: None,
-            stop: None,
-            device: nerf::engine::Device::Cpu,
-        },
-        &mut |_| {},
-    )
-    .expect("train");
+    run::train(&cpu_run(&straight, config.clone()), &mut |_| {}).expect("train");
 
     // Stopped at step 7 (as a kill right after that step's checkpoint would leave it), with
     // a metrics line from a step past the checkpoint that the resume must drop.
     let split = dir.path().join("split");
     let first = RunOptions {
-        out: split.clone(),
-        config: config.clone(),
-        minutes: None,
-        resume: false,
         pause_at: Some(7),
-        stop: None,
-        device: nerf::engine::Device::Cpu,
+        ..cpu_run(&split, config.clone())
     };
     assert_eq!(
         run::train(&first, &mut |_| {}).expect("first half").reason,
@@ -95,13 +70,8 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
     std::fs::write(&metrics, text).expect("metrics");
     let summary = run::train(
         &RunOptions {
-            out: split.clone(),
-            config: config.clone(),
-            minutes: None,
             resume: true,
-            pause_at: None,
-            stop: None,
-            device: nerf::engine::Device::Cpu,
+            ..cpu_run(&split, config.clone())
         },
         &mut |_| {},
     )
@@ -123,19 +93,7 @@ fn resumed_run_matches_an_uninterrupted_one_exactly() {
     );
 
     // A second fresh run into the same folder is refused rather than overwriting it.
-    let err = run::train(
-        &RunOptions {
-            out: split,
-            config,
-            minutes: None,
-            resume: false,
-            pause_at: None,
-            stop: None,
-            device: nerf::engine::Device::Cpu,
-        },
-        &mut |_| {},
-    )
-    .expect_err("refuse");
+    let err = run::train(&cpu_run(&split, config), &mut |_| {}).expect_err("refuse");
     assert!(err.to_string().contains("--resume"), "{err}");
 }
 

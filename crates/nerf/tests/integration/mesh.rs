@@ -6,7 +6,7 @@ use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
 use nerf::mesh::marching_cubes::{marching_cubes, Grid};
 use nerf::mesh::Mesh;
-use nerf::train::run::{self, LoadedRun, RunOptions};
+use nerf::train::run::{self, LoadedRun};
 
 fn sphere_mesh() -> Mesh {
     let n = 24;
@@ -116,15 +116,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
     crate::common::chair_scene(&data, 64, 60, 1, 3);
     let config = crate::common::fast_config(&data, 600);
     let out = dir.path().join("run");
-    let opts = RunOptions {
-        out: out.clone(),
-        config,
-        minutes: None,
-        resume: false,
-        pause_at: None,
-        stop: None,
-        device: nerf::engine::Device::Cpu,
-    };
+    let opts = crate::common::cpu_run(&out, config);
     run::train(&opts, &mut |_| {}).expect("train");
     let run = LoadedRun::open(&out).expect("run");
     let options = ExtractOptions {

@@ -135,19 +135,7 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
         m.samples_per_step = 1 << 14;
     }
     let out = dir.path().join("run");
-    nerf::train::run::train(
-        &nerf::train::run::RunOptions {
-            out: out.clone(),
-            config,
-            minutes: None,
-            resume: false,
-            pause_at: None,
-            stop: None,
-            device: nerf::engine::Device::Cpu,
-        },
-        &mut |_| {},
-    )
-    .expect("train");
+    nerf::train::run::train(&crate::common::cpu_run(&out, config), &mut |_| {}).expect("train");
     let run = nerf::train::run::LoadedRun::open(&out).expect("open run");
     let report = crate::common::eval_test(&run, 1, &out.join("eval"));
     // The best constant image (each view's own mean colour) scores far lower (measured:
