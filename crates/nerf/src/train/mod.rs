@@ -323,6 +323,10 @@ impl TrainConfig {
     /// What step `step` (0-based) does at `progress` (see [`progress`](Self::progress))
     /// through the schedule.
     pub fn step_spec_at(&self, step: u64, progress: f64) -> StepSpec {
+        let refinement = match &self.model {
+            ModelConfig::Fast(m) => m.refine_cameras,
+            ModelConfig::Vanilla(_) => None,
+        };
         StepSpec {
             sampling: PixelSampling {
                 seed: self.seed,
@@ -335,20 +339,10 @@ impl TrainConfig {
                 background: self.background,
                 appearance: crate::stage::Appearance::PerView,
             },
-            lr: self.learning_rate_at(match &self.model {
-                ModelConfig::Fast(m) => m
-                    .refine_cameras
-                    .map_or(progress, |r| r.field_progress(progress)),
-                ModelConfig::Vanilla(_) => progress,
-            }),
+            lr: self.learning_rate_at(refinement.map_or(progress, |r| r.field_progress(progress))),
             batch_rays: self.batch_rays,
             progress: progress as f32,
-            camera_lr: match &self.model {
-                ModelConfig::Fast(m) => m
-                    .refine_cameras
-                    .map_or(0.0, |r| r.learning_rate(progress as f32)),
-                ModelConfig::Vanilla(_) => 0.0,
-            },
+            camera_lr: refinement.map_or(0.0, |r| r.learning_rate(progress as f32)),
             frozen_field: false,
         }
     }
