@@ -91,6 +91,8 @@ pub fn refine_test_poses(
         pose_gradient_only: false,
         // The field is frozen.
         field_restart: None,
+        // Moving from the first step: the field is trained.
+        delay: 0.0,
     };
     let mut fit_model = model.clone();
     fit_model.refine_cameras = Some(refinement);

@@ -448,4 +448,36 @@ mod tests {
         }
         assert_eq!(c.step_spec(700).lr, plain.step_spec(700).lr);
     }
+
+    /// A delay of 0.2 keeps the cameras still for the first fifth of the schedule, starts
+    /// them at the initial rate there and still ends at the final rate; the field's rate
+    /// does not notice.
+    #[test]
+    fn the_cameras_wait_for_the_delay() {
+        use crate::model::camera_refine::CameraRefinement;
+        let mut c = TrainConfig::fast(PathBuf::from("scene"));
+        c.steps = 1000;
+        let plain = c.clone();
+        let mut r = CameraRefinement::new(3);
+        r.delay = 0.2;
+        if let ModelConfig::Fast(m) = &mut c.model {
+            m.refine_cameras = Some(r);
+        }
+        for step in [0, 100, 199] {
+            assert_eq!(c.step_spec(step).camera_lr, 0.0, "step {step}");
+        }
+        assert_eq!(c.step_spec(200).camera_lr, r.lr_init);
+        let mid = c.step_spec(600).camera_lr;
+        let geometric_mean = (r.lr_init * r.lr_final).sqrt();
+        assert!(
+            (mid - geometric_mean).abs() < 1e-3 * geometric_mean,
+            "{mid}"
+        );
+        assert!((c.step_spec(1000).camera_lr - r.lr_final).abs() < 1e-9);
+        for step in [0, 199, 200, 600] {
+            assert_eq!(c.step_spec(step).lr, plain.step_spec(step).lr);
+        }
+        // Without a delay the cameras move from the first step.
+        assert_eq!(CameraRefinement::new(3).learning_rate(0.0), r.lr_init);
+    }
 }

@@ -82,9 +82,10 @@ pub struct TrainOptions {
     #[arg(long, conflicts_with = "no_refine_cameras")]
     pub refine_cameras: bool,
     /// The pose corrections' learning rate, decaying to a hundredth of it over the
-    /// schedule (default 6e-4, for poses a fraction of a degree off; with --perturb-poses,
-    /// for errors of degrees, 1e-2, or 3e-3 on forward-facing NDC captures). Implies
-    /// --refine-cameras.
+    /// schedule (default 6e-4, for poses a fraction of a degree off, which start to move
+    /// a fifth of the way in, once the field has taken shape; with --perturb-poses, for
+    /// errors of degrees, 1e-2 from the first step, or 3e-3 on forward-facing NDC
+    /// captures). Implies --refine-cameras.
     #[arg(long, conflicts_with = "no_refine_cameras", value_name = "LR")]
     pub camera_lr: Option<f32>,
     /// Fast: trust the given poses as they are (the default for Blender scenes).
@@ -93,8 +94,9 @@ pub struct TrainOptions {
     /// Move every training pose by random rigid noise of this standard deviation
     /// (rotation in radians about the scene's centre, translation in scene units) before
     /// training: BARF's test of camera refinement. `SIGMA[,SEED]`. Refinement then expects
-    /// errors of degrees: outside NDC, the coarse-to-fine schedule weighs only the cameras'
-    /// gradient, and the field's learning rate starts over where it ends.
+    /// errors of degrees: the cameras move from the first step; outside NDC, the
+    /// coarse-to-fine schedule weighs only the cameras' gradient, and the field's learning
+    /// rate starts over where it ends.
     #[arg(long, value_parser = crate::model::camera_refine::parse_perturbation)]
     pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
@@ -358,6 +360,10 @@ impl TrainOptions {
                     // settled, at the coarse-to-fine window's end (lego +0.35 dB).
                     if r.pose_gradient_only {
                         r.field_restart = Some(r.anneal[1]);
+                    }
+                    // Poses a fraction of a degree off move once the field has taken shape.
+                    if self.perturb_poses.is_none() {
+                        r.delay = crate::model::camera_refine::SMALL_ERROR_DELAY;
                     }
                     m.refine_cameras = Some(r);
                     on_notice(if asked {
@@ -663,20 +669,23 @@ mod tests {
                 r.lr_init,
                 r.pose_gradient_only,
                 r.field_restart,
-                r.anneal[1]
+                r.anneal[1],
+                r.delay
             )),
             Some((
                 crate::model::camera_refine::LARGE_ERROR_LR,
                 true,
                 Some(0.4),
-                0.4
+                0.4,
+                0.0
             ))
         );
-        // Small errors (real captures): BARF's schedule, one field decay.
+        // Small errors (real captures): BARF's schedule, one field decay, and the
+        // cameras wait for the field to take shape.
         let c = config(&["--refine-cameras"], dir.path()).expect("plain");
         assert_eq!(
-            refinement(&c).map(|r| (r.pose_gradient_only, r.field_restart)),
-            Some((false, None))
+            refinement(&c).map(|r| (r.pose_gradient_only, r.field_restart, r.delay)),
+            Some((false, None, crate::model::camera_refine::SMALL_ERROR_DELAY))
         );
         let c = config(
             &["--perturb-poses", "0.1", "--camera-lr", "1e-3"],
@@ -734,6 +743,7 @@ mod tests {
         let c = config(&cpu, real.path()).expect("real");
         let r = refinement(&c).expect("refined by default");
         assert_eq!(r.lr_init, crate::model::camera_refine::DEFAULT_LR);
+        assert_eq!(r.delay, crate::model::camera_refine::SMALL_ERROR_DELAY);
         let train = c.open_scene(1).expect("scene").train.len();
         assert_eq!(codes(&c), (DEFAULT_APPEARANCE_DIMS as usize, train));
         assert_eq!(codes(&config(&cpu, blender.path()).expect("blender")).0, 0);
