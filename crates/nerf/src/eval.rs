@@ -7,8 +7,10 @@ use serde::{Deserialize, Serialize};
 
 use crate::data::{image::save_rgb_png, Split};
 use crate::error::Result;
+use crate::looks::{looks_of, EvalLook};
 use crate::metrics::lpips::Lpips;
 use crate::metrics::{psnr, ssim};
+use crate::stage::Appearance;
 use crate::test_poses::{refine_test_poses, TestPoseFit, TestPoseReport};
 use crate::train::folder::LoadedRun;
 use crate::train::refined_cameras::{PoseError, RunCameras};
@@ -27,6 +29,10 @@ pub struct ViewMetrics {
     pub lpips: Option<f32>,
     pub image: PathBuf,
     pub depth: PathBuf,
+    /// The training photo whose look (appearance code) the view was rendered with
+    /// (models with codes, `EvalLook::Nearest`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub look: Option<String>,
     /// The view's downscale factor (1, 2, 4, 8: `--multiscale`).
     #[serde(
         default = "crate::train::one",
@@ -88,6 +94,9 @@ pub struct EvalReport {
     /// What fitting the split's cameras did (`--refine-test-poses`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub test_pose_refinement: Option<TestPoseReport>,
+    /// Models with appearance codes: which look the views were rendered with.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub looks: Option<EvalLook>,
     pub views: Vec<ViewMetrics>,
 }
 
@@ -105,6 +114,8 @@ pub struct EvalOptions {
     /// The LPIPS network (`--lpips-weights`); `None`: LPIPS is skipped, and the report
     /// says why.
     pub lpips: Option<std::sync::Arc<Lpips>>,
+    /// Models with appearance codes: the look each view is rendered with.
+    pub looks: EvalLook,
 }
 
 /// Why LPIPS is missing without weights.
@@ -120,6 +131,7 @@ impl EvalOptions {
             refine_poses: None,
             multiscale: 1,
             lpips: None,
+            looks: EvalLook::default(),
         }
     }
 }
@@ -144,6 +156,11 @@ pub fn evaluate(
     let cfg = &run.config;
     let (split, every) = (options.split, options.every.max(1));
     let mut data = cfg.open_scene(1)?.load(split, every)?;
+    // Picked where the scene puts the cameras, before any alignment, as the training
+    // photos' are.
+    let given: Vec<_> = data.views.iter().map(|v| v.camera.c2w).collect();
+    let looks = looks_of(cfg, &given, options.looks)?;
+    let appearance: Vec<Appearance> = looks.iter().flatten().map(|l| l.appearance).collect();
     let run_cameras = RunCameras::of(run)?;
     if let Some(c) = &run_cameras {
         let to_model = c.to_model_frame();
@@ -152,9 +169,13 @@ pub fn evaluate(
         }
     }
     let test_pose_refinement = match options.refine_poses {
-        Some(fit) => Some(refine_test_poses(run, &mut data, fit, &|step, steps| {
-            on_progress(EvalProgress::FittingCameras { step, steps })
-        })?),
+        Some(fit) => Some(refine_test_poses(
+            run,
+            &mut data,
+            fit,
+            &appearance,
+            &|step, steps| on_progress(EvalProgress::FittingCameras { step, steps }),
+        )?),
         None => None,
     };
     let cameras = match (run_cameras.is_some(), test_pose_refinement.is_some()) {
@@ -165,7 +186,7 @@ pub fn evaluate(
     };
     crate::io::create_dir(out_dir)?;
     let bg = cfg.background.eval_colour();
-    let settings = RenderSettings::of_dataset(&data, bg);
+    let mut settings = RenderSettings::of_dataset(&data, bg);
     let (width, height) = data.image_size();
     let originals = data.views.len();
     data.add_scales(options.multiscale.max(1))?;
@@ -180,6 +201,8 @@ pub fn evaluate(
             1 => String::new(),
             s => format!("_d{s}"),
         };
+        let look = looks.as_ref().map(|l| &l[k % originals]);
+        settings.appearance = look.map_or(Appearance::Mean, |l| l.appearance);
         let r = crate::views::render_view(run.engine.as_ref(), &view.camera, &settings, &|n| {
             on_progress(EvalProgress::Rendering {
                 rays: done_before + n,
@@ -209,6 +232,7 @@ pub fn evaluate(
             lpips,
             image,
             depth,
+            look: look.and_then(|l| l.photo.clone()),
             scale,
         });
     }
@@ -249,6 +273,7 @@ pub fn evaluate(
         pose_error: run_cameras.as_ref().map(RunCameras::error),
         cameras: cameras.map(str::to_string),
         test_pose_refinement,
+        looks: looks.is_some().then_some(options.looks),
         views,
     };
     crate::io::write_json(&out_dir.join("metrics.json"), &report)?;

@@ -25,6 +25,7 @@ pub mod eval;
 pub mod field;
 pub mod frames;
 pub mod io;
+pub mod looks;
 pub mod math;
 pub mod mesh;
 pub mod metrics;

@@ -5,7 +5,10 @@
 //!
 //! It is the training step with a different dataset and nothing but the cameras free: a
 //! fast model whose corrections are the test cameras' (`camera_refine`), every hash-grid
-//! level on, the mean appearance code, on the CPU engine, `StepSpec::frozen_field` set.
+//! level on, on the CPU engine, `StepSpec::frozen_field` set. A model with appearance
+//! codes renders each photo with the look it is evaluated with (`looks`): the fit's code
+//! table holds one row per test photo, copied from the trained codes, so a camera is not
+//! moved to make up for a look.
 
 use serde::{Deserialize, Serialize};
 
@@ -53,12 +56,14 @@ pub struct TestPoseReport {
     pub batch_psnr_after: f32,
 }
 
-/// Moves every camera of `data` to where `run`'s frozen field explains its photo best.
+/// Moves every camera of `data` to where `run`'s frozen field explains its photo best,
+/// photo `k` seen with look `looks[k]` (the mean code where `looks` is shorter).
 /// `on_step(done, total)` reports progress.
 pub fn refine_test_poses(
     run: &LoadedRun,
     data: &mut Dataset,
     fit: TestPoseFit,
+    looks: &[Appearance],
     on_step: &dyn Fn(u64, u64),
 ) -> Result<TestPoseReport> {
     let cfg = &run.config;
@@ -96,13 +101,28 @@ pub fn refine_test_poses(
     };
     let mut fit_model = model.clone();
     fit_model.refine_cameras = Some(refinement);
-    let config = ModelConfig::Fast(fit_model);
-    let mut engine = crate::engine::cpu::open(&config, cfg.engine_options(), cfg.seed);
     let trained = run.engine.state();
     // The field's parameters: all of them, less the run's own camera corrections.
     let field_len =
         camera_refine::corrections_start(run.engine.param_layout()).unwrap_or(trained.params.len());
     let mut params = trained.params[..field_len].to_vec();
+    // Codes last in the field: one row per test photo, its look's.
+    let codes = run
+        .engine
+        .param_layout()
+        .tensors
+        .iter()
+        .find(|t| t.name == crate::field::fast::APPEARANCE_CODES)
+        .map(|t| t.range());
+    if let Some(codes) = codes.filter(|r| r.end == field_len) {
+        let trained_codes = params.split_off(codes.start);
+        let dims = model.field.appearance_dims;
+        let rows = looks_as_rows(&trained_codes, dims, looks, data.views.len());
+        params.extend(rows);
+        fit_model.field.appearance_images = data.views.len();
+    }
+    let config = ModelConfig::Fast(fit_model);
+    let mut engine = crate::engine::cpu::open(&config, cfg.engine_options(), cfg.seed);
     params.resize(engine.param_layout().total, 0.0);
     let n = params.len();
     engine.set_state(EngineState {
@@ -122,7 +142,8 @@ pub fn refine_test_poses(
                 step,
                 crop: 1.0,
                 background: cfg.background,
-                appearance: Appearance::Mean,
+                // Each photo its row of the fit's code table (ignored without codes).
+                appearance: Appearance::PerView,
             },
             lr: 0.0,
             batch_rays: cfg.batch_rays,
@@ -160,4 +181,39 @@ pub fn refine_test_poses(
         batch_psnr_before: mean(&before),
         batch_psnr_after: mean(&after),
     })
+}
+
+/// One code row of `dims` values per photo: `codes`' row `i` for `Appearance::Of(i)`, their
+/// mean for `Appearance::Mean` (and photos past the end of `looks`).
+fn looks_as_rows(codes: &[f32], dims: usize, looks: &[Appearance], photos: usize) -> Vec<f32> {
+    let images = codes.len() / dims.max(1);
+    let mut mean = vec![0.0f32; dims];
+    for row in codes.chunks_exact(dims.max(1)) {
+        for (m, v) in mean.iter_mut().zip(row) {
+            *m += v / images.max(1) as f32;
+        }
+    }
+    (0..photos)
+        .flat_map(|k| match looks.get(k) {
+            Some(Appearance::Of(i)) if (*i as usize) < images => {
+                codes[*i as usize * dims..][..dims].to_vec()
+            }
+            _ => mean.clone(),
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_photo_gets_the_row_of_its_look() {
+        let codes = [1.0, 2.0, 3.0, 6.0];
+        let looks = [Appearance::Of(1), Appearance::Mean, Appearance::Of(0)];
+        assert_eq!(
+            looks_as_rows(&codes, 2, &looks, 4),
+            vec![3.0, 6.0, 2.0, 4.0, 1.0, 2.0, 2.0, 4.0]
+        );
+    }
 }

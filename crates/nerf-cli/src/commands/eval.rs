@@ -44,6 +44,12 @@ pub struct EvalArgs {
     #[arg(long, value_name = "N", default_value_t = 1,
           value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=6))]
     multiscale: usize,
+    /// Runs with per-photo appearance codes: render each view with the look of the
+    /// training photo taken nearest to it (a phone's auto-exposure follows where it
+    /// points; no pixel of the evaluated photo is read) or with the mean code (the look
+    /// of render and the viewer). metrics.json names each view's photo under "look".
+    #[arg(long, value_enum, default_value = "nearest")]
+    look: nerf::looks::EvalLook,
     /// Also report LPIPS (AlexNet, lower is better) with these weights: a safetensors file
     /// made by scripts/lpips_weights.py (the weights cannot ship with nerf).
     #[arg(long, value_name = "FILE")]
@@ -84,6 +90,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         refine_poses: fit_steps.map(TestPoseFit::new),
         multiscale: a.multiscale,
         lpips,
+        looks: a.look,
         ..EvalOptions::new(a.split, a.every)
     };
     let fit = bar(0, &format!("fit {} cameras, steps", a.split.name()));
@@ -150,6 +157,16 @@ pub fn print_report(report: &EvalReport, out: &std::path::Path) {
     );
     if let Some(why) = &report.lpips_skipped {
         println!("LPIPS skipped: {why}");
+    }
+    match report.looks {
+        Some(nerf::looks::EvalLook::Nearest) => println!(
+            "each view rendered with the look (appearance code) of the training photo taken \
+             nearest to it (--look mean: the mean code)"
+        ),
+        Some(nerf::looks::EvalLook::Mean) => {
+            println!("views rendered with the mean of the photos' looks (appearance codes)")
+        }
+        None => {}
     }
     if let Some(e) = &report.pose_error {
         println!(

@@ -151,6 +151,9 @@ fn relu_bwd(dh: &mut [f32], h: &[f32]) {
     }
 }
 
+/// The name of the per-photo appearance codes (`images x dims`) among the parameters.
+pub const APPEARANCE_CODES: &str = "appearance.codes";
+
 impl FastField {
     pub fn new(config: FastFieldConfig) -> Self {
         let mut layout = ParamLayout::default();
@@ -167,7 +170,7 @@ impl FastField {
             layout.push("colour.2.weight", &[w, 3]),
         ];
         // Last, so a model without codes has the same layout as before they existed.
-        let codes = (dims > 0).then(|| layout.push("appearance.codes", &[images, dims]));
+        let codes = (dims > 0).then(|| layout.push(APPEARANCE_CODES, &[images, dims]));
         FastField {
             config,
             grid,
