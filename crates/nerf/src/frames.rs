@@ -275,7 +275,7 @@ pub fn render_frames(
     crate::io::create_dir(out)?;
     let mut settings = RenderSettings::of_scene(&scene, cfg.background.eval_colour());
     if let Some(which) = &opts.appearance_of {
-        settings.appearance = crate::views::appearance_of(&scene, which)?;
+        settings.appearance = crate::looks::appearance_of(cfg, &scene, which)?;
     }
     let rays_total: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let t0 = Instant::now();

@@ -12,7 +12,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::camera::Pose;
-use crate::error::Result;
+use crate::data::scene::Scene;
+use crate::error::{NerfError, Result};
 use crate::math::{length, sub};
 use crate::stage::Appearance;
 use crate::train::TrainConfig;
@@ -60,12 +61,7 @@ pub fn looks_of(
         return Ok(Some(vec![mean; poses.len()]));
     }
     let scene = config.open_scene(1)?;
-    let train = scene.indices(crate::data::Split::Train);
-    // The photos the run trained on (`--train-views`): code k belongs to the k-th.
-    let kept: Vec<usize> = crate::data::evenly_kept(train.len(), config.train_views.unwrap_or(0))
-        .into_iter()
-        .map(|i| train[i])
-        .collect();
+    let kept = trained_photos(config, &scene);
     let centres: Vec<_> = kept
         .iter()
         .map(|&f| centre(&scene.frames[f].camera.c2w))
@@ -85,6 +81,56 @@ pub fn looks_of(
             })
             .collect(),
     ))
+}
+
+/// The frames of `scene` the run trained on, in the order of their codes: the training
+/// split, or the views `--train-views` kept of it.
+fn trained_photos(config: &TrainConfig, scene: &Scene) -> Vec<usize> {
+    let train = scene.indices(crate::data::Split::Train);
+    crate::data::evenly_kept(train.len(), config.train_views.unwrap_or(0))
+        .into_iter()
+        .map(|i| train[i])
+        .collect()
+}
+
+/// The look of one training photo (`--appearance-of`): `which` is its index among the
+/// photos the run trained on, or its file name.
+pub fn appearance_of(config: &TrainConfig, scene: &Scene, which: &str) -> Result<Appearance> {
+    let names = |frames: &[usize]| -> Vec<String> {
+        frames
+            .iter()
+            .map(|&f| scene.frames[f].name.clone())
+            .collect()
+    };
+    let trained = names(&trained_photos(config, scene));
+    match photo_index(&trained, which) {
+        Some(i) => Ok(Appearance::Of(i as u32)),
+        None => {
+            let split = names(scene.indices(crate::data::Split::Train));
+            let why = if photo_index(&split, which).is_some() {
+                "that photo is in the training split, but --train-views left it out of training"
+                    .to_string()
+            } else {
+                format!(
+                    "no training photo has that index (0..{}) or name",
+                    trained.len()
+                )
+            };
+            Err(NerfError::Config(format!("--appearance-of {which}: {why}")))
+        }
+    }
+}
+
+/// Where `which` (an index, a name, or a name's last component) is in `names`.
+fn photo_index(names: &[String], which: &str) -> Option<usize> {
+    let named = |name: &String| {
+        name == which || std::path::Path::new(name).file_name() == Some(which.as_ref())
+    };
+    which
+        .parse::<usize>()
+        .ok()
+        .filter(|&i| i < names.len())
+        .or_else(|| names.iter().position(named))
 }
 
 fn centre(pose: &Pose) -> [f32; 3] {
@@ -112,5 +158,15 @@ mod tests {
         assert_eq!(nearest(&points, [0.2, 0.1, 3.0]), Some(0));
         assert_eq!(nearest(&points, [0.0, 4.0, 0.0]), Some(2));
         assert_eq!(nearest(&[], [0.0; 3]), None);
+    }
+
+    #[test]
+    fn a_photo_is_found_by_index_name_or_file_name() {
+        let names = ["train/r_0.png", "train/r_5.png", "train/r_9.png"].map(String::from);
+        assert_eq!(photo_index(&names, "1"), Some(1));
+        assert_eq!(photo_index(&names, "train/r_9.png"), Some(2));
+        assert_eq!(photo_index(&names, "r_5.png"), Some(1));
+        assert_eq!(photo_index(&names, "3"), None, "past the end");
+        assert_eq!(photo_index(&names, "r_4.png"), None);
     }
 }

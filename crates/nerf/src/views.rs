@@ -82,29 +82,6 @@ impl RenderSettings {
     }
 }
 
-/// The appearance of training photo `which` of `scene` (`--appearance-of`): its index in
-/// the training split, or its file name.
-pub fn appearance_of(scene: &Scene, which: &str) -> crate::error::Result<Appearance> {
-    let train = &scene.train;
-    let index = which
-        .parse::<usize>()
-        .ok()
-        .filter(|&i| i < train.len())
-        .or_else(|| {
-            train.iter().position(|&f| {
-                let name = &scene.frames[f].name;
-                name == which || std::path::Path::new(name).file_name() == Some(which.as_ref())
-            })
-        });
-    match index {
-        Some(i) => Ok(Appearance::Of(i as u32)),
-        None => Err(crate::error::NerfError::Config(format!(
-            "--appearance-of {which}: no training photo has that index (0..{}) or name",
-            train.len()
-        ))),
-    }
-}
-
 /// Per-pixel results of one view.
 #[derive(Clone, Debug)]
 pub struct RenderedView {

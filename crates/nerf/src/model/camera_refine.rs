@@ -64,8 +64,9 @@ pub const DEFAULT_LR: f32 = 6e-4;
 
 /// The [`CameraRefinement::delay`] of runs whose poses are a fraction of a degree off
 /// (real captures). ngp_fox (2000 steps, seed 1, test cameras fitted): without it the
-/// cameras moved 0.31 degrees from COLMAP's and the run ended 26.18 dB held out, 0.50 dB
-/// below trusting the poses; starting at 0.2 they moved 0.11 degrees, 26.83 dB.
+/// cameras moved 0.31 degrees from COLMAP's and the run ended 26.18 dB held out (mean
+/// appearance code), 0.50 dB below trusting the poses; starting at 0.2 they moved 0.11
+/// degrees, 26.84 dB.
 pub const SMALL_ERROR_DELAY: f32 = 0.2;
 
 /// The learning rate for errors of degrees, the default of runs that `--perturb-poses`:

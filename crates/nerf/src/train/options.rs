@@ -63,7 +63,8 @@ pub struct TrainOptions {
     pub minutes: Option<f64>,
     /// Fast: learn a code of N values (16 when N is left out) per training photo for
     /// its exposure and white balance, fed to the colour network only (after NeRF in the
-    /// Wild); eval and render use the mean code, or one photo's with --appearance-of.
+    /// Wild); render uses the mean code, or one photo's with --appearance-of; eval gives
+    /// each view the look of the training photo taken nearest to it (--look).
     /// For captures whose photos change look from shot to shot: the default for real
     /// captures, with --refine-cameras (see there).
     #[arg(long, num_args = 0..=1, default_missing_value = "16", conflicts_with = "no_appearance",

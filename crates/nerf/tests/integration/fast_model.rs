@@ -220,6 +220,46 @@ fn appearance_codes_absorb_exposure_changes() {
     );
 }
 
+/// The looks `nerf eval` and `--appearance-of` pick index the codes of the photos a run
+/// trained on: with `--train-views`, code k belongs to the k-th photo kept.
+#[test]
+fn looks_follow_the_views_trained() {
+    use nerf::looks::{appearance_of, looks_of};
+    use nerf::stage::Appearance;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 16);
+    let mut config = fast_config(&data, 1);
+    config.train_views = Some(8);
+    if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
+        m.field.appearance_dims = 4;
+        m.field.appearance_images = 8;
+    }
+    let scene = config.open_scene(1).expect("scene");
+    let train = scene.indices(Split::Train).to_vec();
+    let kept: Vec<usize> = nerf::data::evenly_kept(train.len(), 8)
+        .into_iter()
+        .map(|i| train[i])
+        .collect();
+    assert_ne!(kept[3], train[3], "the test needs photos left out");
+    let name = |f: usize| scene.frames[f].name.clone();
+    let of = |which: &str| appearance_of(&config, &scene, which);
+    assert_eq!(of(&name(kept[3])).expect("kept"), Appearance::Of(3));
+    assert_eq!(of("3").expect("index"), Appearance::Of(3));
+    let left_out = of(&name(train[1])).expect_err("left out").to_string();
+    assert!(left_out.contains("--train-views"), "{left_out}");
+    assert!(of("8").is_err(), "8 photos trained: codes 0..8");
+    // Each kept photo's own camera is nearest to itself.
+    let poses: Vec<_> = kept.iter().map(|&f| scene.frames[f].camera.c2w).collect();
+    let looks = looks_of(&config, &poses, EvalLook::Nearest)
+        .expect("looks")
+        .expect("a run with codes has looks");
+    for (k, look) in looks.iter().enumerate() {
+        assert_eq!(look.appearance, Appearance::Of(k as u32));
+        assert_eq!(look.photo, Some(name(kept[k])));
+    }
+}
+
 /// Pose errors are measured on the cameras a run trained from: with `--train-views`, the
 /// views it kept (correction k belongs to the k-th of them), moved by the same noise.
 #[test]
