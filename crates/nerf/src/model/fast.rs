@@ -57,6 +57,15 @@ pub struct FastModelConfig {
     /// Learn a correction of every training camera's pose (see `camera_refine`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub refine_cameras: Option<CameraRefinement>,
+    /// Weight of mip-NeRF 360's distortion loss (`render::distortion`), which gathers each
+    /// ray's weight into a short stretch and so clears thin fog; 0: none. Runs saved
+    /// before it existed had none.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub distortion: f32,
+}
+
+fn is_zero(x: &f32) -> bool {
+    *x == 0.0
 }
 
 impl Default for FastModelConfig {
@@ -71,6 +80,7 @@ impl Default for FastModelConfig {
             weight_decay: 1e-6,
             contract: false,
             refine_cameras: None,
+            distortion: 0.0,
         }
     }
 }
@@ -350,6 +360,15 @@ impl FastModel {
             &ws.outputs,
             &ws.targets,
         );
+        if self.config.distortion > 0.0 {
+            ws.loss.add_distortion(
+                &ws.samples,
+                &ws.weights,
+                self.config.step_length(),
+                2.0 * 3f32.sqrt() * self.config.field.bound,
+                self.config.distortion,
+            );
+        }
         check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
         check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
         if n > 0 && !cameras.is_empty() {

@@ -7,6 +7,7 @@
 //! these stages together.
 
 pub mod contraction;
+pub mod distortion;
 pub mod loss;
 pub mod march;
 pub mod occupancy;

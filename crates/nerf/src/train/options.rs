@@ -73,6 +73,11 @@ pub struct TrainOptions {
     /// Fast: no per-photo appearance codes (the default for Blender scenes).
     #[arg(long)]
     pub no_appearance: bool,
+    /// Fast: weight of mip-NeRF 360's distortion loss, which gathers each ray's weight
+    /// into a short stretch and so clears the thin fog that makes forward-facing and
+    /// unbounded captures slow to render (0, the default: none; CPU engine).
+    #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive_f64)]
+    pub distortion: Option<f64>,
     /// Fast: learn a correction of every training camera's pose with the field (after
     /// BARF), for poses that are a little off. With 16 appearance codes per photo, the
     /// default for real captures (instant-ngp / nerfstudio transforms.json, COLMAP, LLFF
@@ -328,6 +333,9 @@ impl TrainOptions {
                     }
                     None => None,
                 };
+                if let Some(w) = self.distortion {
+                    m.distortion = w as f32;
+                }
                 if let Some(dims) = appearance {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
@@ -382,10 +390,14 @@ impl TrainOptions {
                 return refuse("--antialias applies to --model fast only".into());
             }
             ModelConfig::Vanilla(_)
-                if self.appearance.is_some() || self.refine_cameras || self.camera_lr.is_some() =>
+                if self.appearance.is_some()
+                    || self.refine_cameras
+                    || self.camera_lr.is_some()
+                    || self.distortion.is_some() =>
             {
                 return refuse(
-                    "--appearance and --refine-cameras apply to --model fast only".into(),
+                    "--appearance, --refine-cameras and --distortion apply to --model fast only"
+                        .into(),
                 );
             }
             ModelConfig::Vanilla(_) => {}
@@ -562,11 +574,12 @@ impl TrainOptions {
             || self.perturb_poses.is_some()
             || self.antialias
             || self.no_antialias
+            || self.distortion.is_some()
         {
             out.push(
                 "--paper-pe / --no-contract / --appearance / --no-appearance / \
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
-                 --antialias / --no-antialias (set when the run was made)"
+                 --antialias / --no-antialias / --distortion (set when the run was made)"
                     .into(),
             );
         }
@@ -698,6 +711,25 @@ mod tests {
             Some((1e-3, true))
         );
         config(&["--camera-lr", "1e-3", "--no-refine-cameras"], dir.path()).expect_err("both");
+    }
+
+    /// `--distortion` reaches the fast model (none without it), and is refused where it
+    /// cannot apply: a weight that is not positive, the vanilla model.
+    #[test]
+    fn the_distortion_weight_is_set_and_checked() {
+        let dir = tiny_scene(8);
+        let weight = |c: &TrainConfig| match &c.model {
+            ModelConfig::Fast(m) => Some(m.distortion),
+            ModelConfig::Vanilla(_) => None,
+        };
+        let c = config(&[], dir.path()).expect("default");
+        assert_eq!(weight(&c), Some(0.0));
+        let c = config(&["--distortion", "0.002"], dir.path()).expect("set");
+        assert_eq!(weight(&c), Some(0.002));
+        config(&["--distortion", "0"], dir.path()).expect_err("zero");
+        let err =
+            config(&["--distortion", "0.01", "--preset", "demo"], dir.path()).expect_err("vanilla");
+        assert!(err.to_string().contains("--distortion"), "{err}");
     }
 
     fn refinement(c: &TrainConfig) -> Option<crate::model::camera_refine::CameraRefinement> {

@@ -59,11 +59,15 @@ pub fn open(
     options: EngineOptions,
     seed: u64,
 ) -> Result<Box<dyn Engine>> {
-    // Appearance codes, camera refinement and anti-aliasing have no GPU kernels yet:
+    // Appearance codes, camera refinement, the distortion loss and anti-aliasing have no
+    // GPU kernels yet:
     // `auto` picks the CPU.
     let cpu_only = match model {
         ModelConfig::Fast(c) => {
-            c.field.appearance_dims > 0 || c.refine_cameras.is_some() || c.field.antialias.is_some()
+            c.field.appearance_dims > 0
+                || c.refine_cameras.is_some()
+                || c.field.antialias.is_some()
+                || c.distortion > 0.0
         }
         ModelConfig::Vanilla(c) => c.integrated || c.shared_network,
     };
@@ -87,8 +91,9 @@ pub fn open(
         )),
         ModelConfig::Fast(_) if cpu_only => Err(NerfError::Device(
             "per-photo appearance codes (--appearance), camera refinement \
-             (--refine-cameras) and anti-aliasing (--antialias; trained without it: \
-             --no-antialias) run on the CPU engine only so far; use --device cpu"
+             (--refine-cameras), the distortion loss (--distortion) and anti-aliasing \
+             (--antialias; trained without it: --no-antialias) run on the CPU engine only \
+             so far; use --device cpu"
                 .into(),
         )),
         ModelConfig::Fast(config) if config.batch_samples > engine::MAX_DEVICE_SAMPLES => {
