@@ -80,7 +80,9 @@ impl LossBackward {
     /// ray's first sample (through any skipped gaps), and every sample's interval is
     /// `step` long, both divided by `scale` (the box's diagonal, so a ray spans at most 1).
     /// `weights` are compositing's. The value is not added to the returned loss, which
-    /// stays the photometric error the PSNR figures come from.
+    /// stays the photometric error the PSNR figures come from. The middles move with the
+    /// samples, but that pull is not carried back: camera refinement sees the term only
+    /// through the densities.
     pub fn add_distortion(
         &mut self,
         samples: &PackedSamples,
