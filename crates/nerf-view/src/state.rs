@@ -87,7 +87,7 @@ impl Viewer {
             center: [0.0; 3],
             radius: mean_distance(&cameras, [0.0; 3]),
             live,
-            appearance_photos: appearance_photos(&run.config.model),
+            appearance_photos: run.config.model.appearance_photos(),
         };
         Ok(Viewer {
             model: Arc::new(Model {
@@ -148,16 +148,6 @@ impl Viewer {
             view.image.width,
             view.image.height,
         ))
-    }
-}
-
-/// Training photos with an appearance code in `model`.
-fn appearance_photos(model: &nerf::model::ModelConfig) -> usize {
-    match model {
-        nerf::model::ModelConfig::Fast(m) if m.field.appearance_dims > 0 => {
-            m.field.appearance_images
-        }
-        _ => 0,
     }
 }
 

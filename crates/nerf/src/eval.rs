@@ -155,11 +155,12 @@ pub fn evaluate(
 ) -> Result<EvalReport> {
     let cfg = &run.config;
     let (split, every) = (options.split, options.every.max(1));
-    let mut data = cfg.open_scene(1)?.load(split, every)?;
+    let scene = cfg.open_scene(1)?;
+    let mut data = scene.load(split, every)?;
     // Picked where the scene puts the cameras, before any alignment, as the training
     // photos' are.
     let given: Vec<_> = data.views.iter().map(|v| v.camera.c2w).collect();
-    let looks = looks_of(cfg, &given, options.looks)?;
+    let looks = looks_of(cfg, &scene, &given, options.looks);
     let appearance: Vec<Appearance> = looks.iter().flatten().map(|l| l.appearance).collect();
     let run_cameras = RunCameras::of(run)?;
     if let Some(c) = &run_cameras {

@@ -36,37 +36,31 @@ pub struct ViewLook {
     pub photo: Option<String>,
 }
 
-/// The look of each of `poses` (in the scene's given frame, before any alignment) for a
-/// run with appearance codes under `how`, with the training photo's name where it is one;
-/// `None` for a run without codes.
+/// The look of each of `poses` (in the frame of `scene`, the run's, before any
+/// alignment) for a run with appearance codes under `how`, with the training photo's name
+/// where it is one; `None` for a run without codes.
 pub fn looks_of(
     config: &TrainConfig,
+    scene: &Scene,
     poses: &[Pose],
     how: EvalLook,
-) -> Result<Option<Vec<ViewLook>>> {
-    let has_codes = match &config.model {
-        crate::model::ModelConfig::Fast(m) => {
-            m.field.appearance_dims > 0 && m.field.appearance_images > 0
-        }
-        crate::model::ModelConfig::Vanilla(_) => false,
-    };
-    if !has_codes {
-        return Ok(None);
+) -> Option<Vec<ViewLook>> {
+    if config.model.appearance_photos() == 0 {
+        return None;
     }
     if how == EvalLook::Mean {
         let mean = ViewLook {
             appearance: Appearance::Mean,
             photo: None,
         };
-        return Ok(Some(vec![mean; poses.len()]));
+        return Some(vec![mean; poses.len()]);
     }
-    let scene = config.open_scene(1)?;
-    let kept = trained_photos(config, &scene);
+    let kept = trained_photos(config, scene);
     let centres: Vec<_> = kept
         .iter()
         .map(|&f| centre(&scene.frames[f].camera.c2w))
         .collect();
-    Ok(Some(
+    Some(
         poses
             .iter()
             .map(|pose| match nearest(&centres, centre(pose)) {
@@ -80,7 +74,7 @@ pub fn looks_of(
                 },
             })
             .collect(),
-    ))
+    )
 }
 
 /// The frames of `scene` the run trained on, in the order of their codes: the training

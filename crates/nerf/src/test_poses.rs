@@ -187,12 +187,8 @@ pub fn refine_test_poses(
 /// mean for `Appearance::Mean` (and photos past the end of `looks`).
 fn looks_as_rows(codes: &[f32], dims: usize, looks: &[Appearance], photos: usize) -> Vec<f32> {
     let images = codes.len() / dims.max(1);
-    let mut mean = vec![0.0f32; dims];
-    for row in codes.chunks_exact(dims.max(1)) {
-        for (m, v) in mean.iter_mut().zip(row) {
-            *m += v / images.max(1) as f32;
-        }
-    }
+    let mut mean = Vec::new();
+    crate::field::fast::mean_code(codes, dims, &mut mean);
     (0..photos)
         .flat_map(|k| match looks.get(k) {
             Some(Appearance::Of(i)) if (*i as usize) < images => {

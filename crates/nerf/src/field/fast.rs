@@ -154,6 +154,22 @@ fn relu_bwd(dh: &mut [f32], h: &[f32]) {
 /// The name of the per-photo appearance codes (`images x dims`) among the parameters.
 pub const APPEARANCE_CODES: &str = "appearance.codes";
 
+/// The mean of `codes` (rows of `dims` values) into `mean`: the look of
+/// `Appearance::Mean`. Empty when there are no codes.
+pub fn mean_code(codes: &[f32], dims: usize, mean: &mut Vec<f32>) {
+    mean.clear();
+    if dims == 0 {
+        return;
+    }
+    mean.resize(dims, 0.0);
+    let images = codes.len() / dims;
+    for row in codes.chunks_exact(dims) {
+        for (m, v) in mean.iter_mut().zip(row) {
+            *m += v / images as f32;
+        }
+    }
+}
+
 impl FastField {
     pub fn new(config: FastFieldConfig) -> Self {
         let mut layout = ParamLayout::default();
@@ -285,15 +301,8 @@ impl FastField {
         if dims == 0 {
             return;
         }
-        let codes = self.codes(params);
         let images = self.config.appearance_images;
-        ws.mean_code.clear();
-        ws.mean_code.resize(dims, 0.0);
-        for row in codes.chunks_exact(dims) {
-            for (m, v) in ws.mean_code.iter_mut().zip(row) {
-                *m += v / images as f32;
-            }
-        }
+        mean_code(self.codes(params), dims, &mut ws.mean_code);
         ws.code_index.clear();
         ws.code_index
             .extend((0..n).map(|s| match appearance.get(s) {

@@ -73,6 +73,14 @@ impl ModelConfig {
         }
     }
 
+    /// Training photos with a per-photo appearance code (`--appearance`); 0 without codes.
+    pub fn appearance_photos(&self) -> usize {
+        match self {
+            ModelConfig::Fast(m) if m.field.appearance_dims > 0 => m.field.appearance_images,
+            _ => 0,
+        }
+    }
+
     /// The density grid `nerf mesh` samples by default: points per axis, and the half-extent
     /// of the box (a contracted model's inner cube, the part of its box that is undistorted).
     pub fn mesh_defaults(&self) -> (usize, f32) {

@@ -251,9 +251,8 @@ fn looks_follow_the_views_trained() {
     assert!(of("8").is_err(), "8 photos trained: codes 0..8");
     // Each kept photo's own camera is nearest to itself.
     let poses: Vec<_> = kept.iter().map(|&f| scene.frames[f].camera.c2w).collect();
-    let looks = looks_of(&config, &poses, EvalLook::Nearest)
-        .expect("looks")
-        .expect("a run with codes has looks");
+    let looks =
+        looks_of(&config, &scene, &poses, EvalLook::Nearest).expect("a run with codes has looks");
     for (k, look) in looks.iter().enumerate() {
         assert_eq!(look.appearance, Appearance::Of(k as u32));
         assert_eq!(look.photo, Some(name(kept[k])));
