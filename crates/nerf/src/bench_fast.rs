@@ -32,8 +32,12 @@ pub struct FastBenchOptions {
     /// Size of the rendered view (square) when the scene has no test camera of its own.
     pub render_size: usize,
     pub model: FastModelConfig,
-    /// Anti-alias (the reference footprint from the training cameras).
-    pub antialias: bool,
+    /// Anti-alias (the reference footprint from the training cameras); `None`: as `nerf
+    /// train` would (on the CPU engine, but not in NDC).
+    pub antialias: Option<bool>,
+    /// Weight of the distortion loss; `None`: as `nerf train` would (forward-facing NDC
+    /// scenes on the CPU engine get it).
+    pub distortion: Option<f32>,
     pub device: crate::engine::Device,
 }
 
@@ -44,6 +48,8 @@ pub struct FastBenchReport {
     pub engine: String,
     pub scene: String,
     pub antialias: bool,
+    /// Weight of the distortion loss the model trained with (0: none).
+    pub distortion: f32,
     pub warmup_steps: u64,
     pub samples_per_step: usize,
     pub rays_per_step_median: f64,
@@ -109,11 +115,18 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
             crate::camera::look_at([0.0, -4.0, 1.5], [0.0; 3], [0.0, 0.0, 1.0]),
         )
     });
-    if opts.antialias {
+    let on_cpu = crate::engine::runs_on_cpu(opts.device);
+    let ndc = data.space != crate::camera::ray_space::RaySpace::World;
+    let antialias = opts.antialias.unwrap_or(on_cpu && !ndc);
+    model.distortion = opts
+        .distortion
+        .unwrap_or_else(|| crate::train::options::distortion_by_default(&data.space, on_cpu));
+    if antialias {
         let cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
         model.antialias_for(&cameras, &data.space);
     }
     let mut config = TrainConfig::fast("(in memory)".into());
+    let distortion = model.distortion;
     config.model = ModelConfig::Fast(model);
     config.steps = opts.warmup_steps + opts.steps as u64;
     let mut trainer = Trainer::on(opts.device, config, data)?;
@@ -159,7 +172,8 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     Ok(FastBenchReport {
         threads,
         scene,
-        antialias: opts.antialias,
+        antialias,
+        distortion,
         warmup_steps: opts.warmup_steps,
         samples_per_step: opts.model.samples_per_step,
         rays_per_step_median: rays_median,

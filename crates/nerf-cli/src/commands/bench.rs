@@ -33,12 +33,21 @@ pub struct BenchArgs {
     /// Fast: log2 of the hash-table entries per level.
     #[arg(long)]
     table_log2: Option<u32>,
-    /// Fast: anti-aliased (the default on the CPU engine, as `nerf train`).
+    /// Fast: anti-aliased (the default on the CPU engine but for forward-facing NDC
+    /// scenes, as `nerf train`).
     #[arg(long, conflicts_with = "no_antialias")]
     antialias: bool,
     /// Fast: point samples (the default on a GPU).
     #[arg(long)]
     no_antialias: bool,
+    /// Fast: train with the distortion loss of this weight (as `nerf train`: the default
+    /// for forward-facing NDC scenes on the CPU engine).
+    #[arg(long, value_name = "WEIGHT", conflicts_with = "no_distortion",
+          value_parser = nerf::args::positive_f64)]
+    distortion: Option<f64>,
+    /// Fast: no distortion loss, whatever the scene (the figure to compare against).
+    #[arg(long)]
+    no_distortion: bool,
     /// Vanilla: rays per training step.
     #[arg(long, default_value_t = 1024)]
     rays: usize,
@@ -101,11 +110,17 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
     let mut model = nerf::model::FastModelConfig::default();
     model.samples_per_step = a.samples.unwrap_or(model.samples_per_step);
     model.field.grid.log2_table_size = a.table_log2.unwrap_or(model.field.grid.log2_table_size);
-    let antialias = nerf::engine::antialias_by_default(
-        a.antialias,
-        a.no_antialias,
-        nerf::engine::runs_on_cpu(a.device.device),
-    );
+    // Unasked, both follow the scene as `nerf train` does (`None`).
+    let antialias = match (a.antialias, a.no_antialias) {
+        (true, _) => Some(true),
+        (_, true) => Some(false),
+        _ => None,
+    };
+    let distortion = match (a.distortion, a.no_distortion) {
+        (Some(w), _) => Some(w as f32),
+        (_, true) => Some(0.0),
+        _ => None,
+    };
     let opts = nerf::bench_fast::FastBenchOptions {
         data: a.data,
         warmup_steps: a.warmup_steps,
@@ -113,6 +128,7 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         render_size: a.render_size,
         model,
         antialias,
+        distortion,
         device: a.device.device,
     };
     let r = nerf::bench_fast::run(&opts, &mut |line| eprintln!("{line}"))?;
@@ -121,9 +137,14 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     println!(
-        "\n{}, fast model{} on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        "\n{}, fast model{}{} on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
         r.engine,
         if r.antialias { " (anti-aliased)" } else { "" },
+        if r.distortion > 0.0 {
+            format!(" (distortion loss {})", r.distortion)
+        } else {
+            String::new()
+        },
         r.scene,
         r.warmup_steps,
         100.0 * r.occupied_fraction

@@ -519,11 +519,15 @@ fn llff_scene_through_the_same_commands() {
             "12",
             "--val-every",
             "10",
+            "--device",
+            "cpu",
         ],
         d,
     ));
     let config = std::fs::read_to_string(d.join("run/config.json")).expect("config");
     assert!(config.contains("\"holdout\": 8"), "{config}");
+    // Forward-facing: the distortion loss against fog, by default, recorded in the run.
+    assert!(config.contains("\"distortion\": 0.0001"), "{config}");
     let text = ok(&nerf(&["eval", "--run", "run"], d));
     assert!(text.contains("4 views of test"), "{text}");
     ok(&nerf(

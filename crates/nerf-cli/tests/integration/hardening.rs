@@ -425,7 +425,8 @@ fn the_end_of_training_says_what_matters() {
     assert!(t.contains("no validation image"), "{t}");
 }
 
-/// #24: `nerf bench --json` prints JSON alone on stdout.
+/// #24: `nerf bench --json` prints JSON alone on stdout. The built-in chair is bounded: no
+/// distortion loss unless asked for (forward-facing scenes get it, as in `nerf train`).
 #[test]
 fn bench_json_is_json() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -452,6 +453,7 @@ fn bench_json_is_json() {
     let v: serde_json::Value =
         serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("not JSON ({e}):\n{t}"));
     assert!(v.is_object(), "{t}");
+    assert_eq!(v["distortion"].as_f64(), Some(0.0), "{t}");
 }
 
 /// The debug switch: NERF_CHECK_FINITE=1 names the stage, step and buffer of the first
