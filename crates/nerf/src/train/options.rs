@@ -76,7 +76,7 @@ pub struct TrainOptions {
     /// Fast: weight of mip-NeRF 360's distortion loss, which gathers each ray's weight
     /// into a short stretch and so clears the thin fog that makes forward-facing and
     /// unbounded captures slow to render (CPU engine). Default: 1e-4 for forward-facing
-    /// (NDC) scenes, which then render 2-4x faster for 0.2-0.3 dB; none for others.
+    /// (NDC) scenes, which then render 2.4-4.8x faster for 0.16-0.35 dB; none for others.
     #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive_f64,
           conflicts_with = "no_distortion")]
     pub distortion: Option<f64>,
@@ -220,9 +220,10 @@ pub fn distortion_by_default(space: &crate::camera::ray_space::RaySpace, on_cpu:
 }
 
 /// The distortion weight of forward-facing (NDC) scenes. On the built-in chair and rug as
-/// 504x378 LLFF captures (2000 steps) it made `nerf eval` 3.5x and 2.4x faster for 0.16
-/// and 0.27 dB; five times the weight bought a little more speed (4.2x, 2.7x) for about
-/// twice the cost (see the README's figures).
+/// 504x378 LLFF captures it made `nerf eval` 3.5x and 2.4x faster for 0.16 and 0.27 dB
+/// after 2000 steps, 4.8x and 3.2x for 0.35 and 0.27 dB after the default 5000; five
+/// times the weight bought a little more speed (4.2x, 2.7x at 2000 steps) for about twice
+/// the cost (see the README's figures).
 pub const FORWARD_FACING_DISTORTION: f32 = 1e-4;
 
 fn refuse<T>(message: String) -> Result<T> {
@@ -366,7 +367,7 @@ impl TrainOptions {
                         if w > 0.0 {
                             on_notice(&format!(
                                 "note: distortion loss {w} against fog (the default for \
-                                 forward-facing scenes: views render 2-4x faster; \
+                                 forward-facing scenes: views render 2-5x faster; \
                                  --no-distortion turns it off)"
                             ));
                         }
