@@ -117,7 +117,11 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     });
     let on_cpu = crate::engine::runs_on_cpu(opts.device);
     let ndc = data.space != crate::camera::ray_space::RaySpace::World;
-    let antialias = opts.antialias.unwrap_or(on_cpu && !ndc);
+    let antialias = crate::engine::antialias_by_default(
+        opts.antialias == Some(true),
+        opts.antialias == Some(false) || ndc,
+        on_cpu,
+    );
     model.distortion = opts
         .distortion
         .unwrap_or_else(|| crate::train::options::distortion_by_default(&data.space, on_cpu));

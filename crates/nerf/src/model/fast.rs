@@ -96,9 +96,14 @@ impl FastModelConfig {
         });
     }
 
+    /// The diagonal of the scene box `[-B, B]^3`.
+    pub fn box_diagonal(&self) -> f32 {
+        2.0 * 3f32.sqrt() * self.field.bound
+    }
+
     /// The marching step (metric).
     pub fn step_length(&self) -> f32 {
-        3f32.sqrt() * 2.0 * self.field.bound / self.steps_per_diagonal
+        self.box_diagonal() / self.steps_per_diagonal
     }
 }
 
@@ -365,7 +370,7 @@ impl FastModel {
                 &ws.samples,
                 &ws.weights,
                 self.config.step_length(),
-                2.0 * 3f32.sqrt() * self.config.field.bound,
+                self.config.box_diagonal(),
                 self.config.distortion,
             );
         }
