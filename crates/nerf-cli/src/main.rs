@@ -28,7 +28,7 @@ enum Command {
     /// Render a built-in scene (procedural furniture) as a Blender-format dataset.
     Synth(commands::synth::SynthArgs),
     /// Photos or a video -> camera poses with COLMAP -> a trainable scene folder.
-    Capture(nerf::capture::CaptureOptions),
+    Capture(nerf::app::capture::CaptureOptions),
     /// What a scene folder holds, as training reads it (format, splits, bounds, box).
     Scene(commands::scene::SceneArgs),
     /// Train a radiance field on a scene (Blender, instant-ngp / nerfstudio, LLFF, COLMAP).
@@ -44,7 +44,7 @@ enum Command {
     /// A run's training cameras (refined, with --refine-cameras) as a transforms.json.
     ExportCameras(commands::export_cameras::ExportCamerasArgs),
     /// Built-in scene -> train -> evaluate -> orbit, no data needed.
-    Demo(nerf::demo::DemoOptions),
+    Demo(nerf::app::demo::DemoOptions),
     /// Throughput of the training step and of rendering on this machine.
     Bench(commands::bench::BenchArgs),
     /// Fly around a trained run in the web browser; make and render camera paths.

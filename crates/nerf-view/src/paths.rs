@@ -5,9 +5,9 @@
 
 use std::path::{Path, PathBuf};
 
+use nerf::app::frames::{render_frames, FrameProgress, FramesOptions, PathKind};
 use nerf::camera::path::{path_parameter, through_keyframes};
 use nerf::camera::Pose;
-use nerf::frames::{render_frames, FrameProgress, FramesOptions, PathKind};
 use serde_json::json;
 
 use crate::protocol::{check_name, CameraPath};
@@ -88,7 +88,7 @@ pub fn render(
     on_frame: &(dyn Fn(usize, usize) + Sync),
 ) -> Result<Rendered, String> {
     let file = save(&viewer.run_dir, name, path)?;
-    let ext = if nerf::video::ffmpeg_available() {
+    let ext = if nerf::app::video::ffmpeg_available() {
         "mp4"
     } else {
         "gif"

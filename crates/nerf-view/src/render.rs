@@ -197,9 +197,9 @@ pub fn to_rgb8(out: &[RayOutput], mode: Mode, settings: &RenderSettings) -> Vec<
         Mode::Depth => {
             let depth: Vec<f32> = out.iter().map(|o| o.depth).collect();
             let opacity: Vec<f32> = out.iter().map(|o| o.opacity).collect();
-            let (near, far) = nerf::video::auto_depth_range(&depth, &opacity)
+            let (near, far) = nerf::app::video::auto_depth_range(&depth, &opacity)
                 .unwrap_or((settings.near, settings.far));
-            nerf::video::depth_turbo(&depth, &opacity, near, far)
+            nerf::app::video::depth_turbo(&depth, &opacity, near, far)
         }
     };
     float.iter().map(|&v| to_u8(v)).collect()

@@ -65,7 +65,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
     if a.model == ModelKind::Fast {
         return bench_fast(a);
     }
-    let opts = nerf::bench_vanilla::BenchOptions {
+    let opts = nerf::app::bench_vanilla::BenchOptions {
         rays: a.rays,
         steps: a.steps.unwrap_or(3).max(1),
         render_size: a.render_size,
@@ -73,7 +73,7 @@ pub fn run(a: BenchArgs) -> Result<()> {
         preset: a.preset,
         device: a.device.device,
     };
-    let report = nerf::bench_vanilla::run(&opts, &mut |line| eprintln!("{line}"))?;
+    let report = nerf::app::bench_vanilla::run(&opts, &mut |line| eprintln!("{line}"))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
@@ -121,7 +121,7 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         (_, true) => Some(0.0),
         _ => None,
     };
-    let opts = nerf::bench_fast::FastBenchOptions {
+    let opts = nerf::app::bench_fast::FastBenchOptions {
         data: a.data,
         warmup_steps: a.warmup_steps,
         steps: a.steps.unwrap_or(32).max(1),
@@ -131,7 +131,7 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         distortion,
         device: a.device.device,
     };
-    let r = nerf::bench_fast::run(&opts, &mut |line| eprintln!("{line}"))?;
+    let r = nerf::app::bench_fast::run(&opts, &mut |line| eprintln!("{line}"))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&r)?);
         return Ok(());

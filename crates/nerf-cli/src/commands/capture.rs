@@ -3,11 +3,11 @@
 use std::time::Instant;
 
 use anyhow::Result;
-use nerf::capture::CaptureOptions;
+use nerf::app::capture::CaptureOptions;
 
 pub fn run(opts: CaptureOptions) -> Result<()> {
     let t0 = Instant::now();
-    let report = nerf::capture::capture(&opts, &mut |stage| {
+    let report = nerf::app::capture::capture(&opts, &mut |stage| {
         println!("[{:6.1} s] {stage}", t0.elapsed().as_secs_f64());
     })?;
     println!(
@@ -24,7 +24,7 @@ pub fn run(opts: CaptureOptions) -> Result<()> {
             report.unregistered.len(),
             report.unregistered.join(", ")
         );
-        println!("{}", nerf::capture::FIXES);
+        println!("{}", nerf::app::capture::FIXES);
     }
     println!(
         "scene: {} -> nerf train --data {}",

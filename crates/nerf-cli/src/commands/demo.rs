@@ -2,8 +2,8 @@
 
 use anyhow::Result;
 use indicatif::ProgressBar;
-use nerf::demo::{DemoHooks, DemoOptions};
-use nerf::frames::FrameProgress;
+use nerf::app::demo::{DemoHooks, DemoOptions};
+use nerf::app::frames::FrameProgress;
 use nerf::train::run::Event;
 
 use crate::progress::{bar, TrainProgress};
@@ -49,7 +49,7 @@ pub fn run(opts: DemoOptions) -> Result<()> {
         eval: bar(0, "eval test rays"),
         frames: bar(0, "render rays"),
     };
-    let report = nerf::demo::run(&opts, &mut bars);
+    let report = nerf::app::demo::run(&opts, &mut bars);
     bars.train.finish();
     bars.eval.finish_and_clear();
     bars.frames.finish_and_clear();

@@ -4,9 +4,9 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
+use nerf::app::eval::{EvalOptions, EvalProgress, EvalReport};
+use nerf::app::test_poses::TestPoseFit;
 use nerf::data::Split;
-use nerf::eval::{EvalOptions, EvalProgress, EvalReport};
-use nerf::test_poses::TestPoseFit;
 use nerf::train::folder::LoadedRun;
 
 use crate::progress::bar;
@@ -49,7 +49,7 @@ pub struct EvalArgs {
     /// points; no pixel of the evaluated photo is read) or with the mean code (the look
     /// of render and the viewer). metrics.json names each view's photo under "look".
     #[arg(long, value_enum, default_value = "nearest")]
-    look: nerf::looks::EvalLook,
+    look: nerf::app::looks::EvalLook,
     /// Also report LPIPS (AlexNet, lower is better) with these weights: a safetensors file
     /// made by scripts/lpips_weights.py (the weights cannot ship with nerf).
     #[arg(long, value_name = "FILE")]
@@ -95,7 +95,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
     };
     let fit = bar(0, &format!("fit {} cameras, steps", a.split.name()));
     let pb = bar(0, &format!("eval {} rays", a.split.name()));
-    let report = nerf::eval::evaluate(&run, &options, &out, &|p| match p {
+    let report = nerf::app::eval::evaluate(&run, &options, &out, &|p| match p {
         EvalProgress::FittingCameras { step, steps } => {
             fit.set_length(steps);
             fit.set_position(step);
@@ -159,11 +159,11 @@ pub fn print_report(report: &EvalReport, out: &std::path::Path) {
         println!("LPIPS skipped: {why}");
     }
     match report.looks {
-        Some(nerf::looks::EvalLook::Nearest) => println!(
+        Some(nerf::app::looks::EvalLook::Nearest) => println!(
             "each view rendered with the look (appearance code) of the training photo taken \
              nearest to it (--look mean: the mean code)"
         ),
-        Some(nerf::looks::EvalLook::Mean) => {
+        Some(nerf::app::looks::EvalLook::Mean) => {
             println!("views rendered with the mean of the photos' looks (appearance codes)")
         }
         None => {}

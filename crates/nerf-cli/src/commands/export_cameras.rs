@@ -6,8 +6,8 @@ use anyhow::{Context, Result};
 use clap::Args;
 use nerf::data::scene::PlacedBox;
 use nerf::data::Split;
-use nerf::refined_cameras::RunCameras;
 use nerf::train::folder::LoadedRun;
+use nerf::train::refined_cameras::RunCameras;
 
 #[derive(Args)]
 pub struct ExportCamerasArgs {

@@ -47,7 +47,7 @@ pub fn run(a: PointsArgs) -> Result<()> {
     let scene = config.open_scene(a.downscale)?;
     let mut cameras = scene.cameras(nerf::data::Split::Train);
     // A run that refined its cameras sees the training views from where it put them.
-    if let Some(refined) = nerf::refined_cameras::RunCameras::of(&run)? {
+    if let Some(refined) = nerf::train::refined_cameras::RunCameras::of(&run)? {
         for (c, pose) in cameras.iter_mut().zip(&refined.refined) {
             c.c2w = *pose;
         }

@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 use anyhow::Result;
 use clap::Args;
-use nerf::frames::{FrameProgress, FramesOptions, FramesReport};
+use nerf::app::frames::{FrameProgress, FramesOptions, FramesReport};
 use nerf::train::folder::LoadedRun;
 
 use crate::progress::bar;
@@ -31,12 +31,12 @@ pub fn run(a: RenderArgs) -> Result<()> {
         .clone()
         .unwrap_or_else(|| a.run.join(format!("render_{}", a.frames.path.name())));
     if let Some(v) = &a.frames.video {
-        if let Some(why) = nerf::frames::video_target(v)?.fallback {
+        if let Some(why) = nerf::app::frames::video_target(v)?.fallback {
             eprintln!("{why}");
         }
     }
     let pb = bar(0, "render rays");
-    let report = nerf::frames::render_frames(&run, &a.frames, &out, &|p| show(&pb, p))?;
+    let report = nerf::app::frames::render_frames(&run, &a.frames, &out, &|p| show(&pb, p))?;
     pb.finish_and_clear();
     print_report(&report, &out);
     Ok(())

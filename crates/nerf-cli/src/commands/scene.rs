@@ -31,7 +31,7 @@ pub fn run(a: SceneArgs) -> Result<()> {
                 path.display()
             );
         }
-        nerf::capture::transforms_from_colmap(&a.data, path)?;
+        nerf::app::capture::transforms_from_colmap(&a.data, path)?;
         println!("wrote {}", path.display());
         return Ok(());
     }

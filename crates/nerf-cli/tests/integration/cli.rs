@@ -382,7 +382,7 @@ fn fast_model_through_the_same_commands() {
     assert!(text.contains("video: o.gif"), "{text}");
     let gif = std::fs::read(d.join("o.gif")).expect("gif");
     assert!(gif.starts_with(b"GIF89a"));
-    if nerf::video::ffmpeg_available() {
+    if nerf::app::video::ffmpeg_available() {
         ok(&nerf(
             &[
                 "render", "--run", "run", "--frames", "3", "--size", "12", "--video", "o.mp4",

@@ -12,8 +12,8 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use base64::Engine as _;
+use nerf::app::frames::{render_frames, FramesOptions, PathKind};
 use nerf::engine::Device;
-use nerf::frames::{render_frames, FramesOptions, PathKind};
 use nerf::train::folder::LoadedRun;
 use nerf_view::protocol::ViewCamera;
 use nerf_view::render::camera_at;

@@ -38,11 +38,12 @@ fn train_multiscale(dir: &std::path::Path, antialias: bool) -> Vec<f32> {
     }
     run::train(&cpu_run(&out, config), &mut |_| {}).expect("train");
     let loaded = LoadedRun::open(&out).expect("open");
-    let options = nerf::eval::EvalOptions {
+    let options = nerf::app::eval::EvalOptions {
         multiscale: SCALES,
-        ..nerf::eval::EvalOptions::new(Split::Test, 1)
+        ..nerf::app::eval::EvalOptions::new(Split::Test, 1)
     };
-    let report = nerf::eval::evaluate(&loaded, &options, &out.join("eval"), &|_| {}).expect("eval");
+    let report =
+        nerf::app::eval::evaluate(&loaded, &options, &out.join("eval"), &|_| {}).expect("eval");
     assert_eq!(report.scales.len(), SCALES);
     assert_eq!(report.views.len(), 3 * SCALES);
     let psnr: Vec<f32> = report.scales.iter().map(|s| s.mean_psnr).collect();

@@ -6,8 +6,8 @@ use std::path::Path;
 
 use crate::common::{cpu_run, fast_config, small_scene};
 
+use nerf::app::looks::EvalLook;
 use nerf::data::Split;
-use nerf::looks::EvalLook;
 use nerf::train::run::{self, LoadedRun, RunOptions, StopReason};
 use nerf::train::TrainConfig;
 
@@ -91,9 +91,9 @@ fn fast_model_trains_a_small_scene_past_a_psnr_floor() {
         })
     };
     let before = error(&test.views);
-    let fit = nerf::test_poses::TestPoseFit::new(150);
-    let fitted =
-        nerf::test_poses::refine_test_poses(&loaded, &mut test, fit, &[], &|_, _| {}).expect("fit");
+    let fit = nerf::app::test_poses::TestPoseFit::new(150);
+    let fitted = nerf::app::test_poses::refine_test_poses(&loaded, &mut test, fit, &[], &|_, _| {})
+        .expect("fit");
     let after = error(&test.views);
     eprintln!(
         "test cameras: {:.2} degrees, {:.4} units -> {:.2} degrees, {:.4} units ({fitted:?})",
@@ -172,11 +172,11 @@ fn appearance_codes_absorb_exposure_changes() {
     }
     // The test photos have no gain: the mean look is theirs.
     let eval = |loaded: &LoadedRun, looks: EvalLook, out: &Path| {
-        let options = nerf::eval::EvalOptions {
+        let options = nerf::app::eval::EvalOptions {
             looks,
-            ..nerf::eval::EvalOptions::new(nerf::data::Split::Test, 1)
+            ..nerf::app::eval::EvalOptions::new(nerf::data::Split::Test, 1)
         };
-        nerf::eval::evaluate(loaded, &options, out, &|_| {}).expect("eval")
+        nerf::app::eval::evaluate(loaded, &options, out, &|_| {}).expect("eval")
     };
     let train = |name: &str, appearance: usize| {
         let mut config = fast_config(&data, 400);
@@ -224,7 +224,7 @@ fn appearance_codes_absorb_exposure_changes() {
 /// trained on: with `--train-views`, code k belongs to the k-th photo kept.
 #[test]
 fn looks_follow_the_views_trained() {
-    use nerf::looks::{appearance_of, looks_of};
+    use nerf::app::looks::{appearance_of, looks_of};
     use nerf::stage::Appearance;
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("chair");
@@ -264,7 +264,7 @@ fn looks_follow_the_views_trained() {
 #[test]
 fn pose_errors_are_measured_on_the_views_trained() {
     use nerf::model::camera_refine::{Frame, PosePerturbation};
-    use nerf::refined_cameras::StartingCameras;
+    use nerf::train::refined_cameras::StartingCameras;
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("chair");
     small_scene(&data, 16);
@@ -302,7 +302,7 @@ fn pose_errors_are_measured_on_the_views_trained() {
 #[test]
 fn refinement_recovers_perturbed_cameras() {
     use nerf::model::camera_refine::{CameraRefinement, Frame, PosePerturbation};
-    use nerf::refined_cameras::{PoseError, RunCameras};
+    use nerf::train::refined_cameras::{PoseError, RunCameras};
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("chair");
     small_scene(&data, 48);

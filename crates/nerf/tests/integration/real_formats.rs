@@ -337,7 +337,7 @@ fn colmap_text_model_round_trips_with_bounds_from_its_points() {
     // the folder must agree; the box is the cameras' (as LLFF --spherify's), not the
     // points'.
     let file = dir.path().join("transforms.json");
-    nerf::capture::transforms_from_colmap(dir.path(), &file).expect("write transforms.json");
+    nerf::app::capture::transforms_from_colmap(dir.path(), &file).expect("write transforms.json");
     let text = std::fs::read_to_string(&file).expect("read");
     assert!(
         text.contains("\"images/"),

@@ -65,7 +65,7 @@ pub fn eval_test(
     run: &nerf::train::folder::LoadedRun,
     every: usize,
     out: &Path,
-) -> nerf::eval::EvalReport {
-    let options = nerf::eval::EvalOptions::new(nerf::data::Split::Test, every);
-    nerf::eval::evaluate(run, &options, out, &|_| {}).expect("eval")
+) -> nerf::app::eval::EvalReport {
+    let options = nerf::app::eval::EvalOptions::new(nerf::data::Split::Test, every);
+    nerf::app::eval::evaluate(run, &options, out, &|_| {}).expect("eval")
 }

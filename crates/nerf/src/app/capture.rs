@@ -162,7 +162,7 @@ pub fn capture(opts: &CaptureOptions, on_stage: &mut dyn FnMut(&str)) -> Result<
         }
         (None, Some(video)) => {
             on_stage("extracting video frames");
-            if !crate::video::ffmpeg_available() {
+            if !crate::app::video::ffmpeg_available() {
                 return Err(NerfError::Config(
                     "--video needs ffmpeg on PATH (Debian: apt-get install ffmpeg)".into(),
                 ));

@@ -5,11 +5,11 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use crate::app::eval::EvalReport;
+use crate::app::frames::{FrameProgress, FramesOptions, FramesReport};
 use crate::data::synth::{self, SceneKind, SynthOptions};
 use crate::data::{blender, Split};
 use crate::error::{NerfError, Result};
-use crate::eval::EvalReport;
-use crate::frames::{FrameProgress, FramesOptions, FramesReport};
 use crate::train::folder::LoadedRun;
 use crate::train::run::{self, Event, RunOptions, RunSummary, CHECKPOINT_FILE};
 use crate::train::TrainConfig;
@@ -129,16 +129,17 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
     let training = run::train(&run_options, &mut |e| hooks.train_event(e))?;
     let loaded = LoadedRun::open_on(&run_dir, opts.device.device)?;
     let eval_dir = run_dir.join("eval_test");
-    let options = crate::eval::EvalOptions::new(Split::Test, 1);
-    let eval = crate::eval::evaluate(&loaded, &options, &eval_dir, &|p| {
-        if let crate::eval::EvalProgress::Rendering { rays, total } = p {
+    let options = crate::app::eval::EvalOptions::new(Split::Test, 1);
+    let eval = crate::app::eval::evaluate(&loaded, &options, &eval_dir, &|p| {
+        if let crate::app::eval::EvalProgress::Rendering { rays, total } = p {
             hooks.eval_progress(rays, total)
         }
     })?;
     let orbit_dir = run_dir.join("render_orbit");
     let frames = FramesOptions::orbit(36, 4.0, run_dir.join("orbit.gif"));
-    let orbit =
-        crate::frames::render_frames(&loaded, &frames, &orbit_dir, &|p| hooks.frames_progress(p))?;
+    let orbit = crate::app::frames::render_frames(&loaded, &frames, &orbit_dir, &|p| {
+        hooks.frames_progress(p)
+    })?;
     Ok(DemoReport {
         scene,
         run: run_dir,

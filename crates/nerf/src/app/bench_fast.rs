@@ -11,7 +11,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
-use crate::bench_vanilla::{median, peak_resident_mib};
+use crate::app::bench_vanilla::{median, peak_resident_mib};
 use crate::camera::Camera;
 use crate::data::scene::{Scene, SceneOptions};
 use crate::data::synth::{self, SceneKind, SynthOptions};

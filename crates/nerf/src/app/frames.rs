@@ -209,7 +209,7 @@ pub fn video_target(path: &Path) -> Result<VideoTarget> {
             mp4: false,
             fallback: None,
         }),
-        Some("mp4") if crate::video::ffmpeg_available() => Ok(VideoTarget {
+        Some("mp4") if crate::app::video::ffmpeg_available() => Ok(VideoTarget {
             path: path.to_path_buf(),
             mp4: true,
             fallback: None,
@@ -275,7 +275,7 @@ pub fn render_frames(
     crate::io::create_dir(out)?;
     let mut settings = RenderSettings::of_scene(&scene, cfg.background.eval_colour());
     if let Some(which) = &opts.appearance_of {
-        settings.appearance = crate::looks::appearance_of(cfg, &scene, which)?;
+        settings.appearance = crate::app::looks::appearance_of(cfg, &scene, which)?;
     }
     let rays_total: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let t0 = Instant::now();
@@ -301,14 +301,14 @@ pub fn render_frames(
             &r.rgb,
         )?;
         let (near, far) = *depth_range.get_or_insert_with(|| {
-            crate::video::auto_depth_range(&r.depth, &r.opacity)
+            crate::app::video::auto_depth_range(&r.depth, &r.opacity)
                 .unwrap_or((settings.near, settings.far))
         });
         save_rgb_png(
             &out.join(format!("frame_{k:04}_depth.png")),
             r.width,
             r.height,
-            &crate::video::depth_turbo(&r.depth, &r.opacity, near, far),
+            &crate::app::video::depth_turbo(&r.depth, &r.opacity, near, far),
         )?;
         let opacity: Vec<f32> = r.opacity.iter().flat_map(|&o| [o; 3]).collect();
         save_rgb_png(
@@ -323,9 +323,9 @@ pub fn render_frames(
     }
     if let Some(v) = &video {
         if v.mp4 {
-            crate::video::write_mp4(&out.join("frame_%04d.png"), &v.path, opts.fps)?;
+            crate::app::video::write_mp4(&out.join("frame_%04d.png"), &v.path, opts.fps)?;
         } else if let Some(c) = cameras.first() {
-            crate::video::write_gif(&v.path, c.width, c.height, &gif_frames, opts.fps)?;
+            crate::app::video::write_gif(&v.path, c.width, c.height, &gif_frames, opts.fps)?;
         }
     }
     Ok(FramesReport {

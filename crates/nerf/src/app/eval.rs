@@ -5,13 +5,13 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+use crate::app::looks::{looks_of, EvalLook};
+use crate::app::test_poses::{refine_test_poses, TestPoseFit, TestPoseReport};
 use crate::data::{image::save_rgb_png, Split};
 use crate::error::Result;
-use crate::looks::{looks_of, EvalLook};
 use crate::metrics::lpips::Lpips;
 use crate::metrics::{psnr, ssim};
 use crate::stage::Appearance;
-use crate::test_poses::{refine_test_poses, TestPoseFit, TestPoseReport};
 use crate::train::folder::LoadedRun;
 use crate::train::refined_cameras::{PoseError, RunCameras};
 use crate::views::RenderSettings;
