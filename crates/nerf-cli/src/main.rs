@@ -3,6 +3,8 @@
 //! scenes and the demo are declared once, in the library, with their `--help`.
 
 mod commands;
+#[cfg(test)]
+mod docs_check;
 mod progress;
 mod report;
 mod signals;
@@ -13,7 +15,7 @@ use clap::{Parser, Subcommand};
 #[command(
     name = "nerf",
     version,
-    about = "Neural radiance fields (Mildenhall et al. 2020) on a CPU"
+    about = "Neural radiance fields (Mildenhall et al. 2020) on a CPU or a GPU"
 )]
 struct Cli {
     /// Worker threads (default: all cores).

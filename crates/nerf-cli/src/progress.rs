@@ -246,7 +246,7 @@ impl TrainProgress {
 mod tests {
     use super::*;
 
-    /// Issue 10 #14: one rate format everywhere, no thousands separators, no 4 decimals.
+    /// One rate format everywhere, no thousands separators, no 4 decimals.
     #[test]
     fn rates_have_one_format() {
         assert_eq!(rate(26.8454, ""), "26.8/s");
@@ -255,7 +255,7 @@ mod tests {
         assert_eq!(rate(f64::NAN, "rays"), "- rays/s");
     }
 
-    /// Issue 10 #14: a step ten times slower than the others (an occupancy refresh) moves
+    /// A step ten times slower than the others (an occupancy refresh) moves
     /// the shown rate by less than a fifth, where a plain per-window rate dropped 10x.
     #[test]
     fn one_slow_step_does_not_make_the_rate_jump() {

@@ -22,7 +22,7 @@ pub fn message(e: &anyhow::Error) -> String {
 mod tests {
     use super::*;
 
-    /// Issue 10 #13: an I/O error named its cause twice.
+    /// An I/O error named its cause twice.
     #[test]
     fn each_cause_is_said_once() {
         let missing = nerf::io::read_json::<serde_json::Value>(std::path::Path::new(

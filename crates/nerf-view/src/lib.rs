@@ -47,6 +47,8 @@ pub struct ViewOptions {
     pub bench: bool,
     #[command(flatten)]
     pub device: nerf::engine::DeviceArg,
+    #[command(flatten)]
+    pub scene: nerf::train::run_scene::SceneOverride,
 }
 
 /// A random token of 128 bits, in hex.
@@ -137,7 +139,7 @@ pub fn open_browser(url: &str) {
 
 /// `nerf view`: serves the run until interrupted.
 pub fn run(opts: &ViewOptions) -> anyhow::Result<()> {
-    let run = nerf::train::folder::LoadedRun::open_on(&opts.run, opts.device.device)
+    let run = nerf::train::folder::LoadedRun::open_with(&opts.run, opts.device.device, &opts.scene)
         .with_context(|| format!("opening the run {}", opts.run.display()))?;
     eprintln!(
         "viewing {} (step {}, {})",

@@ -267,7 +267,7 @@ mod tests {
         assert!(read_step(&path).is_err());
     }
 
-    /// Issue 10 #6: a flipped bit is found by the tensor's checksum, and non-finite
+    /// A flipped bit is found by the tensor's checksum, and non-finite
     /// weights (saved as such) are refused, each naming the tensor and the file.
     #[test]
     fn corrupt_and_non_finite_tensors_are_named() {

@@ -65,7 +65,7 @@ pub fn create_dir(path: &Path) -> Result<()> {
 mod tests {
     use super::*;
 
-    /// Issue 10 #13: valid JSON with a missing field says which field; broken text is
+    /// Valid JSON with a missing field says which field; broken text is
     /// called malformed.
     #[test]
     fn json_errors_say_what_is_wrong() {

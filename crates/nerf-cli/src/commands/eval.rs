@@ -17,6 +17,8 @@ pub struct EvalArgs {
     #[arg(long)]
     run: PathBuf,
     #[command(flatten)]
+    scene: nerf::train::run_scene::SceneOverride,
+    #[command(flatten)]
     device: nerf::engine::DeviceArg,
     #[arg(long, value_enum, default_value = "test")]
     split: Split,
@@ -68,7 +70,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         )?)),
         None => None,
     };
-    let run = LoadedRun::open_on(&a.run, a.device.device)?;
+    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
     let out = a
         .out
         .unwrap_or_else(|| a.run.join(format!("eval_{}", a.split.name())));

@@ -14,6 +14,8 @@ pub struct ExportCamerasArgs {
     /// Run folder written by `nerf train`.
     #[arg(long)]
     run: PathBuf,
+    #[command(flatten)]
+    scene: nerf::train::run_scene::SceneOverride,
     /// The transforms.json to write (instant-ngp format, in the scene's placed frame, with
     /// absolute image paths): the training cameras as the run refined them.
     #[arg(long)]
@@ -21,7 +23,7 @@ pub struct ExportCamerasArgs {
 }
 
 pub fn run(a: ExportCamerasArgs) -> Result<()> {
-    let run = LoadedRun::open_on(&a.run, nerf::engine::Device::Cpu)?;
+    let run = LoadedRun::open_with(&a.run, nerf::engine::Device::Cpu, &a.scene)?;
     let scene = run.config.open_scene(1)?;
     let cameras = RunCameras::of(&run)?;
     let mut entries = Vec::new();

@@ -18,6 +18,8 @@ pub struct MeshArgs {
     #[arg(long)]
     run: PathBuf,
     #[command(flatten)]
+    scene: nerf::train::run_scene::SceneOverride,
+    #[command(flatten)]
     device: nerf::engine::DeviceArg,
     /// Output file: .ply (binary), .obj or .glb (binary glTF, +Y up).
     #[arg(long)]
@@ -51,7 +53,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     if !matches!(ext.as_deref(), Some("ply" | "obj" | "glb")) {
         bail!("{}: choose a .ply, .obj or .glb file", a.out.display());
     }
-    let run = LoadedRun::open_on(&a.run, a.device.device)?;
+    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
     let (default_resolution, default_bound) = run.config.model.mesh_defaults();
     let resolution = a.resolution.unwrap_or(default_resolution);
     let bound = a.bound.unwrap_or(default_bound);

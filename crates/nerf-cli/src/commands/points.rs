@@ -16,6 +16,8 @@ pub struct PointsArgs {
     #[arg(long)]
     run: PathBuf,
     #[command(flatten)]
+    scene: nerf::train::run_scene::SceneOverride,
+    #[command(flatten)]
     device: nerf::engine::DeviceArg,
     /// Output file (.ply, binary, coloured vertices).
     #[arg(long)]
@@ -42,7 +44,7 @@ pub fn run(a: PointsArgs) -> Result<()> {
     {
         bail!("{}: point clouds are written as .ply", a.out.display());
     }
-    let run = LoadedRun::open_on(&a.run, a.device.device)?;
+    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
     let config = &run.config;
     let scene = config.open_scene(a.downscale)?;
     let mut cameras = scene.cameras(nerf::data::Split::Train);

@@ -15,6 +15,8 @@ pub struct RenderArgs {
     #[arg(long)]
     run: PathBuf,
     #[command(flatten)]
+    scene: nerf::train::run_scene::SceneOverride,
+    #[command(flatten)]
     device: nerf::engine::DeviceArg,
     #[command(flatten)]
     frames: FramesOptions,
@@ -25,7 +27,7 @@ pub struct RenderArgs {
 }
 
 pub fn run(a: RenderArgs) -> Result<()> {
-    let run = LoadedRun::open_on(&a.run, a.device.device)?;
+    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
     let out = a
         .out
         .clone()

@@ -83,7 +83,7 @@ pub fn run(a: SceneArgs) -> Result<()> {
     for n in &s.notes {
         println!("note: {n}");
     }
-    for w in s.warnings() {
+    for w in s.warnings().into_iter().chain(s.copied_held_out_images()?) {
         println!("warning: {w}");
     }
     Ok(())

@@ -199,7 +199,7 @@ fn errors_name_the_file_and_exit_non_zero() {
         !out.status.success() && err.contains("norun") && err.contains("not a run folder"),
         "{err}"
     );
-    // Issue 10 #13: a folder that exists but holds no run says so.
+    // A folder that exists but holds no run says so.
     let out = nerf(&["eval", "--run", "empty"], dir.path());
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(
@@ -278,7 +278,7 @@ fn fast_model_through_the_same_commands() {
         text.contains("LPIPS skipped: no --lpips-weights given"),
         "{text}"
     );
-    // Issue 15: a multi-scale run, anti-aliased, evaluated per scale.
+    // A multi-scale run, anti-aliased, evaluated per scale.
     let mut multiscale = fast.to_vec();
     multiscale[4] = "ms";
     multiscale.extend(["--multiscale", "2", "--antialias"]);
@@ -313,7 +313,7 @@ fn fast_model_through_the_same_commands() {
         !out.status.success() && err.contains("alex.safetensors"),
         "{err}"
     );
-    // Issue 14 #2: the test cameras fitted to the frozen model first, and said so.
+    // The test cameras fitted to the frozen model first, and said so.
     let text = ok(&nerf(
         &[
             "eval",
@@ -552,7 +552,7 @@ fn llff_scene_through_the_same_commands() {
         d,
     ));
     assert!(mesh.contains("NDC space"), "{mesh}");
-    // Issue 14: forward-facing cameras refine too (corrected in the world, warped again),
+    // Forward-facing cameras refine too (corrected in the world, warped again),
     // and their test cameras are fitted at evaluation.
     let text = ok(&nerf(
         &[

@@ -1,4 +1,4 @@
-//! Issue 10: the `nerf` binary under bad input, kills, full disks and concurrent runs, as a
+//! The `nerf` binary under bad input, kills, full disks and concurrent runs, as a
 //! new user met them. Each test names the defects it covers (#N); the scene-file defects
 //! are tested in the library (`crates/nerf/tests/integration/scene_checks.rs`).
 
@@ -533,4 +533,71 @@ fn numbers_that_make_no_sense_are_refused() {
         assert_eq!(out.status.code(), Some(2), "{args:?}: {t}");
         assert!(t.contains(option), "{args:?}: {t}");
     }
+}
+
+/// A run folder used from another directory, after the run and its scene moved together,
+/// and after the scene is gone: the scene is named relative to the run when it sits
+/// beside it; rendering needs only the run; evaluation, which reads the photos, names
+/// every place it looked and `--data`, which then finds the scene anywhere.
+#[test]
+fn run_folders_work_from_anywhere_and_after_moving() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let home = dir.path().join("home");
+    std::fs::create_dir_all(&home).expect("mkdir");
+    trained(&home);
+    let config: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(home.join("run/config.json")).expect("config"),
+    )
+    .expect("json");
+    assert_eq!(config["data"], "../scene", "stored beside the run");
+    assert!(
+        home.join("run/scene.json").is_file(),
+        "the run keeps its cameras"
+    );
+
+    // From another directory, by an absolute path and by a relative one.
+    let elsewhere = dir.path();
+    let run = home.join("run");
+    let run = run.to_str().expect("utf-8");
+    ok(&nerf(&["eval", "--run", run, "--every", "2"], elsewhere));
+    ok(&nerf(
+        &[
+            "render", "--run", "home/run", "--frames", "1", "--size", "8",
+        ],
+        elsewhere,
+    ));
+
+    // The run and its scene moved together.
+    let moved = dir.path().join("moved");
+    std::fs::rename(&home, &moved).expect("move");
+    ok(&nerf(&["eval", "--run", "run", "--every", "2"], &moved));
+
+    // The scene gone: rendering and the cameras from the run alone.
+    let away = dir.path().join("scene_elsewhere");
+    std::fs::rename(moved.join("scene"), &away).expect("move the scene");
+    ok(&nerf(
+        &["render", "--run", "run", "--frames", "1", "--size", "8"],
+        &moved,
+    ));
+    ok(&nerf(
+        &["export-cameras", "--run", "run", "--out", "cams.json"],
+        &moved,
+    ));
+    let t = fails(
+        &nerf(&["eval", "--run", "run"], &moved),
+        &["not found", "looked in", "--data"],
+    );
+    assert!(t.contains("scene"), "{t}");
+    let away = away.to_str().expect("utf-8");
+    ok(&nerf(
+        &["eval", "--run", "run", "--every", "2", "--data", away],
+        &moved,
+    ));
+    fails(
+        &nerf(
+            &["eval", "--run", "run", "--data", "no/such/folder"],
+            &moved,
+        ),
+        &["no/such/folder", "not a folder"],
+    );
 }

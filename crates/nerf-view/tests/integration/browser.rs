@@ -276,7 +276,7 @@ fn the_page_draws_the_model_follows_the_mouse_and_saves_paths() {
     assert!(psnr > 30.0, "the page shows something else: {psnr:.1} dB");
     browser.screenshot("view.png");
 
-    // Issue 14 #3: the look of one training photo, picked on the page, is what `nerf
+    // The look of one training photo, picked on the page, is what `nerf
     // render --appearance-of` renders.
     let shown = browser.js("return !document.getElementById('appearance-box').hidden;");
     assert_eq!(shown, json!(true), "the look picker is hidden");

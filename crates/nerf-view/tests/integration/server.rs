@@ -208,7 +208,7 @@ fn the_viewer_serves_its_run_and_only_its_run() {
         eprintln!("viewer frame against nerf render: {psnr:.1} dB (JPEG)");
         assert!(psnr > 35.0, "the frame is not the render: {psnr:.1} dB");
 
-        // Issue 14 #3: the same view with one training photo's learned look, as `nerf
+        // The same view with one training photo's learned look, as `nerf
         // render --appearance-of` renders it, and unlike the mean look.
         let mut request: serde_json::Value =
             serde_json::from_str(&view_request(9, test_cam.c2w, fov_y, size, "rgb")).expect("json");

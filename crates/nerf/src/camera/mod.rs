@@ -79,6 +79,37 @@ pub fn check_image_size(width: usize, height: usize) -> std::result::Result<(), 
 /// A camera-to-world pose from the rows of a 4x4 (or 3x4) matrix, checked (see
 /// [`check_pose`]).
 pub fn pose_from_rows(m: &[Vec<f32>]) -> Result<Pose, String> {
+    let pose = pose_from_rows_unchecked(m)?;
+    check_pose(&pose)?;
+    Ok(pose)
+}
+
+/// Divides a uniform scale out of a pose's 3x3 part (some exporters multiply the rotation
+/// by a scene's `scale_factor`): when its three columns are orthogonal and of one length
+/// other than 1, returns that length and leaves a rotation. Anything else (reflections,
+/// shears, columns of different lengths) is left for [`check_pose`] to refuse.
+pub fn remove_uniform_scale(pose: &mut Pose) -> Option<f32> {
+    let col = |p: &Pose, c: usize| [p[0][c], p[1][c], p[2][c]];
+    let lengths = [0, 1, 2].map(|c| crate::math::length(col(pose, c)));
+    let mean = lengths.iter().sum::<f32>() / 3.0;
+    let uniform = lengths.iter().all(|l| (l - mean).abs() <= 1e-3 * mean);
+    if !(uniform && mean.is_finite() && mean > 1e-6) || (mean - 1.0).abs() <= ROTATION_TOLERANCE {
+        return None;
+    }
+    let mut scaled = *pose;
+    for row in scaled.iter_mut() {
+        for v in row.iter_mut().take(3) {
+            *v /= mean;
+        }
+    }
+    check_pose(&scaled).ok()?;
+    *pose = scaled;
+    Some(mean)
+}
+
+/// The rows of a 4x4 (or 3x4) matrix as a pose, its shape and finiteness checked but not
+/// whether its 3x3 part is a rotation.
+pub fn pose_from_rows_unchecked(m: &[Vec<f32>]) -> Result<Pose, String> {
     if !(m.len() == 4 || m.len() == 3) || m.iter().any(|row| row.len() != 4) {
         let shape: Vec<usize> = m.iter().map(|r| r.len()).collect();
         return Err(format!(
@@ -92,7 +123,6 @@ pub fn pose_from_rows(m: &[Vec<f32>]) -> Result<Pose, String> {
     for (r, row) in pose.iter_mut().enumerate() {
         row.copy_from_slice(&m[r]);
     }
-    check_pose(&pose)?;
     Ok(pose)
 }
 

@@ -11,11 +11,13 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::scene::{Format, Frame as SceneFrame, Parsed, Scene, SceneOptions};
+use super::aim::central_ray_hits_box;
+use super::reader::{bounds_around_box, image_dimensions, locate, parse_pose, resolve};
+use super::reader::{Frame as SceneFrame, Parsed, ScaledPoses};
 use super::transforms::{camera_from, Intrinsics};
-use super::{Dataset, Split};
+use super::Split;
 use crate::camera::ray_space::RaySpace;
-use crate::camera::{Camera, Pose};
+use crate::camera::Camera;
 use crate::error::{NerfError, Result};
 
 /// The JSON document of one split.
@@ -45,27 +47,15 @@ pub fn transforms_path(dir: &Path, split: Split) -> PathBuf {
     dir.join(format!("transforms_{}.json", split.name()))
 }
 
-/// Loads one split, area-downscaling images by `downscale` (1 = full size).
-pub fn load(dir: &Path, split: Split, downscale: usize) -> Result<Dataset> {
-    load_every(dir, split, downscale, 1)
-}
-
-/// Loads frames `0, every, 2 every, ...` of one split (quick evaluations, validation views),
-/// reading only their images.
-pub fn load_every(dir: &Path, split: Split, downscale: usize, every: usize) -> Result<Dataset> {
-    let opts = SceneOptions {
-        format: Some(Format::Blender),
-        ..SceneOptions::default()
-    };
-    Scene::open(dir, &opts, downscale)?.load(split, every)
-}
-
 /// One split's JSON as read: beside `camera_angle_x`, files exported by other tools may
 /// carry instant-ngp's keys (`fl_x`, `cx`, `k1`, ..., `aabb_scale`, per file or per
 /// frame). instant-ngp reads them, and so do we (see `transforms`); we say so.
 #[derive(Deserialize)]
 struct SplitJson {
     frames: Vec<FrameJson>,
+    /// Marching bounds, as DS-NeRF's and other exporters write them.
+    near: Option<f32>,
+    far: Option<f32>,
     aabb_scale: Option<f32>,
     scale: Option<f32>,
     #[serde(flatten)]
@@ -91,6 +81,8 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
     let mut size = None;
     let mut notes = Vec::new();
     let mut bound = BOUND;
+    let mut scaled = ScaledPoses::default();
+    let mut given_bounds: Option<(f32, f32, PathBuf)> = None;
     for (s, split) in [Split::Train, Split::Val, Split::Test]
         .into_iter()
         .enumerate()
@@ -110,6 +102,15 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
                     format!("camera_angle_x {fov} is not an angle in (0, pi)"),
                 ));
             }
+        }
+        if let (Some(near), Some(far)) = (doc.near, doc.far) {
+            if !(near.is_finite() && far.is_finite() && near >= 0.0 && near < far) {
+                return Err(NerfError::format(
+                    &json_path,
+                    format!("near {near} and far {far} must be finite with 0 <= near < far"),
+                ));
+            }
+            given_bounds.get_or_insert((near, far, json_path.clone()));
         }
         let mut given = doc.intrinsics.given();
         for f in &doc.frames {
@@ -143,16 +144,15 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
             let bad = |m: String| {
                 NerfError::format(&json_path, format!("frame {k} ({}): {m}", frame.file_path))
             };
-            let pose = parse_pose(&frame.transform_matrix).map_err(bad)?;
+            let (pose, scale) = parse_pose(&frame.transform_matrix).map_err(bad)?;
+            scaled.add(scale);
             let image = image_path(base, &frame.file_path);
             let intr = frame.intrinsics.over(&doc.intrinsics);
             // The size the intrinsics refer to: the file's `w`, `h`, else the first image's
             // (every image is checked against its camera when the scene opens).
             let (w, h) = match (intr.size(), size) {
                 (Some(s), _) | (None, Some(s)) => s,
-                (None, None) => *size.insert(super::scene::image_dimensions(
-                    &super::scene::locate(dir, &image),
-                )?),
+                (None, None) => *size.insert(image_dimensions(&locate(dir, &image))?),
             };
             let camera = camera_from(&intr, w, h, pose).map_err(bad)?;
             splits[s].push(frames.len());
@@ -164,12 +164,26 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
             });
         }
     }
-    let (near, far) = if bound > BOUND {
+    notes.extend(scaled.note(&transforms_path(dir, Split::Train)));
+    let (mut near, mut far) = if bound > BOUND {
         let cameras: Vec<Camera> = frames.iter().map(|f| f.camera.clone()).collect();
-        super::scene::bounds_around_box(&cameras, bound)
+        bounds_around_box(&cameras, bound)
     } else {
         (NEAR, FAR)
     };
+    if let Some((n, f, path)) = given_bounds {
+        (near, far) = (n, f);
+        if (n, f) != (NEAR, FAR) {
+            notes.push(format!(
+                "{}: near {n} and far {f} read from the file",
+                path.display()
+            ));
+        }
+    }
+    if let Some(placed) = centre_on_what_cameras_see(&mut frames, bound, near, far) {
+        bound = placed.bound;
+        notes.push(placed.note);
+    }
     Ok(Parsed {
         frames,
         splits: Some(splits),
@@ -185,9 +199,67 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
     })
 }
 
+/// A box moved onto what the cameras look at, and what to tell the user.
+struct Recentred {
+    bound: f32,
+    note: String,
+}
+
+/// Blender scenes are made around the origin, but files of the format written by other
+/// tools may circle another point: when most central rays miss the box, the frames are
+/// moved so that the point nearest every optical axis is the origin, and the box is sized
+/// to what lies between `near` and `far` around it.
+fn centre_on_what_cameras_see(
+    frames: &mut [SceneFrame],
+    bound: f32,
+    near: f32,
+    far: f32,
+) -> Option<Recentred> {
+    let missing = frames
+        .iter()
+        .filter(|f| !central_ray_hits_box(&f.camera, bound, far))
+        .count();
+    if missing * 2 <= frames.len() {
+        return None;
+    }
+    let poses: Vec<crate::camera::Pose> = frames.iter().map(|f| f.camera.c2w).collect();
+    let focus = super::poses::focus_point(&poses);
+    // Each camera sees the focus at some depth; nothing nearer than `near` is in view,
+    // so the subject reaches at most that depth minus `near` from the focus.
+    let mut reach: Vec<f32> = frames
+        .iter()
+        .map(|f| {
+            let depth = crate::math::length(crate::math::sub(focus, f.camera.origin()));
+            (depth - near).clamp(0.1 * depth, depth)
+        })
+        .collect();
+    reach.sort_by(f32::total_cmp);
+    let new_bound = reach[reach.len() / 2];
+    if !(new_bound.is_finite() && new_bound > 0.0) {
+        return None;
+    }
+    for f in frames.iter_mut() {
+        for (r, row) in f.camera.c2w.iter_mut().enumerate() {
+            row[3] -= focus[r];
+        }
+    }
+    Some(Recentred {
+        bound: new_bound,
+        note: format!(
+            "{missing} of {} cameras look past the box around the origin: the scene is \
+             moved by ({:.3}, {:.3}, {:.3}) so that what they look at is the origin, in a \
+             box of half-extent {new_bound:.3} (--bound overrides)",
+            frames.len(),
+            -focus[0],
+            -focus[1],
+            -focus[2]
+        ),
+    })
+}
+
 /// `file_path` resolved against the JSON's folder, with `.png` added when it has no extension.
 pub fn image_path(base: &Path, file_path: &str) -> PathBuf {
-    let p = super::scene::resolve(base, file_path);
+    let p = resolve(base, file_path);
     if p.extension().is_none() {
         p.with_extension("png")
     } else {
@@ -195,21 +267,9 @@ pub fn image_path(base: &Path, file_path: &str) -> PathBuf {
     }
 }
 
-/// Checks a 4x4 (or 3x4) camera-to-world matrix and keeps its top three rows.
-pub fn parse_pose(m: &[Vec<f32>]) -> std::result::Result<Pose, String> {
-    crate::camera::pose_from_rows(m).map_err(|e| e.replace("the matrix", "transform_matrix"))
-}
-
 /// Writes the JSON of one split atomically.
 pub fn save_transforms(dir: &Path, split: Split, transforms: &Transforms) -> Result<()> {
     crate::io::write_json(&transforms_path(dir, split), transforms)
-}
-
-/// The pose as the 4x4 nested list the format stores.
-pub fn pose_to_matrix(pose: &Pose) -> Vec<Vec<f32>> {
-    let mut m: Vec<Vec<f32>> = pose.iter().map(|r| r.to_vec()).collect();
-    m.push(vec![0.0, 0.0, 0.0, 1.0]);
-    m
 }
 
 /// Reads just the JSON of a split (no images).
@@ -220,6 +280,10 @@ pub fn load_transforms(dir: &Path, split: Split) -> Result<Transforms> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn load(dir: &Path, split: Split, downscale: usize) -> Result<crate::data::Dataset> {
+        crate::data::scene::load_blender(dir, split, downscale, 1)
+    }
     use crate::data::image::save_rgba_png;
 
     fn write_scene(dir: &Path, matrix: Vec<Vec<f32>>, sizes: &[(usize, usize)]) {

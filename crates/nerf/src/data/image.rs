@@ -190,7 +190,7 @@ mod tests {
         assert!(err.to_string().contains("a.png"), "{err}");
     }
 
-    /// Issue 10 #4: a full disk. The temporary file is made a link to `/dev/full`, where
+    /// A full disk. The temporary file is made a link to `/dev/full`, where
     /// every write fails with "No space left on device"; the save must fail, naming the
     /// file, and leave nothing in its place.
     #[test]

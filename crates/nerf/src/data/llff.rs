@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 
 use super::npy;
 use super::poses::{average_pose, into_frame_of, inward_frame, Similarity};
-use super::scene::{image_dimensions, Frame, Parsed, SceneOptions};
+use super::reader::{fit_to_image, image_dimensions, Frame, Parsed, SceneOptions};
 use crate::camera::ray_space::{Ndc, RaySpace};
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
@@ -151,8 +151,8 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
             distortion: Default::default(),
         };
         // Cameras at the resolution of the chosen folder (focal scaled along).
-        let camera = super::scene::fit_to_image(&full, size.0, size.1)
-            .map_err(|m| NerfError::format(image, m))?;
+        let camera =
+            fit_to_image(&full, size.0, size.1).map_err(|m| NerfError::format(image, m))?;
         cameras.push(camera);
         near = near.min(n);
         far = far.max(fa);

@@ -4,14 +4,18 @@
 //! bounds), which loads a split's images into a [`Dataset`]; everything downstream
 //! (training, evaluation, rendering) sees only these types.
 
+pub mod aim;
 pub mod blender;
 pub mod colmap;
+pub mod copies;
 pub mod image;
 pub mod llff;
 pub mod npy;
 pub mod pixels;
 pub mod poses;
+pub mod reader;
 pub mod scene;
+pub mod snapshot;
 pub mod synth;
 pub mod transforms;
 
@@ -160,7 +164,7 @@ mod tests {
     use super::*;
     use crate::camera::{look_at, Camera};
 
-    /// Issue 15 #4: each scale's views are area averages with intrinsics scaled, appended
+    /// Each scale's views are area averages with intrinsics scaled, appended
     /// after the originals, and masks keep a block where they kept any of its pixels.
     #[test]
     fn scales_are_area_averaged_views_with_scaled_cameras() {

@@ -229,7 +229,7 @@ fn rotation_between(from: V3, to: V3) -> [[f32; 3]; 3] {
 /// [`inward_frame`] with radius 1, in units of the cameras' radius; space is contracted
 /// beyond half of it. The kept cube (1.5 radii) holds the cameras and what they look at,
 /// and follows them: a box from the sparse points instead reaches, in a room, far beyond
-/// what the photos see well, and trains worse (issue 14: 23.5 dB against 27.0 dB). Every
+/// what the photos see well, and trains worse. Every
 /// reader of such a capture (LLFF `--spherify`, COLMAP, and `nerf capture`'s
 /// `transforms.json`) uses this one box.
 pub const INWARD_BOX: f32 = 3.0;

@@ -15,96 +15,13 @@
 
 use std::path::{Path, PathBuf};
 
-use rayon::prelude::*;
-use serde::{Deserialize, Serialize};
-
+use super::reader::{find_moved, fit_to_image, image_dimensions};
+pub use super::reader::{Convention, Format, Frame, PlacedBox, SceneOptions};
 use super::{Dataset, RgbaImage, Split, View};
 use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
 use crate::error::{NerfError, Result};
-
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum Format {
-    /// `transforms_{train,val,test}.json`.
-    Blender,
-    /// instant-ngp's or nerfstudio's `transforms.json`.
-    Transforms,
-    Llff,
-    Colmap,
-}
-
-/// Axis and scale conventions of a `transforms.json` (see `data::transforms`).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
-#[serde(rename_all = "lowercase")]
-pub enum Convention {
-    /// instant-ngp when the file has `aabb_scale`, `scale` or `offset`; else nerfstudio.
-    #[default]
-    Auto,
-    Ngp,
-    Nerfstudio,
-}
-
-/// How to read a scene; saved in the run's config so evaluation reads it the same way, and
-/// the scene options of the command line (the doc comments are their `--help`).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, clap::Args)]
-#[serde(default)]
-pub struct SceneOptions {
-    /// Read the scene as this format instead of detecting it.
-    #[arg(long, value_enum)]
-    pub format: Option<Format>,
-    /// LLFF: the capture circles the object (inward-facing 360); train in world space
-    /// centred on what the cameras look at, not in NDC.
-    #[arg(long)]
-    pub spherify: bool,
-    /// LLFF: train a forward-facing scene in world space instead of NDC (the paper's
-    /// choice; `"ndc": false` in config.json).
-    #[arg(long = "no-ndc", action = clap::ArgAction::SetFalse, conflicts_with = "spherify")]
-    #[serde(deserialize_with = "ndc_or_default")]
-    pub ndc: bool,
-    /// Real captures: hold out every N-th image for testing (the paper's LLFF setting: 8).
-    #[arg(long, default_value_t = 8, value_parser = at_least_two)]
-    pub holdout: usize,
-    /// transforms.json: whose world placement to follow (auto: instant-ngp's keys scale or
-    /// offset, else nerfstudio's keys, else aabb_scale; the choice is printed).
-    #[arg(long, value_enum, default_value = "auto")]
-    pub convention: Convention,
-}
-
-impl Default for SceneOptions {
-    fn default() -> Self {
-        SceneOptions {
-            format: None,
-            spherify: false,
-            ndc: true,
-            holdout: 8,
-            convention: Convention::Auto,
-        }
-    }
-}
-
-/// `ndc` of configs written before it was a plain flag: `null` meant the default (NDC).
-fn ndc_or_default<'de, D: serde::Deserializer<'de>>(d: D) -> std::result::Result<bool, D::Error> {
-    Ok(Option::<bool>::deserialize(d)?.unwrap_or(true))
-}
-
-fn at_least_two(s: &str) -> std::result::Result<usize, String> {
-    match s.parse::<usize>() {
-        Ok(n) if n >= 2 => Ok(n),
-        Ok(n) => Err(format!("{n} is too small: at least 2")),
-        Err(e) => Err(e.to_string()),
-    }
-}
-
-/// One image of a scene with its camera (at the resolution of the image file).
-#[derive(Clone, Debug)]
-pub struct Frame {
-    pub camera: Camera,
-    pub image: PathBuf,
-    /// Optional mask: black pixels are left out of training (nerfstudio's convention).
-    pub mask: Option<PathBuf>,
-    pub name: String,
-}
+use rayon::prelude::*;
 
 /// A scene's cameras, splits and bounds.
 #[derive(Clone, Debug)]
@@ -133,39 +50,10 @@ pub struct Scene {
     pub notes: Vec<String>,
     /// What reading the scene repaired or doubts (images found elsewhere, duplicates
     /// dropped, intrinsics rescaled, cameras far outside the box); see [`Scene::warnings`].
-    problems: Vec<String>,
-}
-
-/// What a format reader hands back; [`Scene::open`] adds splits and downscaling.
-pub(crate) struct Parsed {
-    pub frames: Vec<Frame>,
-    /// Explicit splits (Blender); `None` holds out every `holdout`-th frame.
-    pub splits: Option<[Vec<usize>; 3]>,
-    pub near: f32,
-    pub far: f32,
-    pub space: RaySpace,
-    pub bound: f32,
-    pub contract: bool,
-    /// Downscale already applied by picking a smaller image folder (LLFF `images_N`).
-    pub prescaled: usize,
-    /// What the reader decided that a user should hear (see [`Scene::notes`]).
-    pub notes: Vec<String>,
-    /// What the reader doubts (see [`Scene::warnings`]).
-    pub warnings: Vec<String>,
-    /// The format has one image size for every frame (Blender: `camera_angle_x` is shared).
-    pub one_size: bool,
-}
-
-/// Where a scene's rays are marched, as a writer of a scene records it so that every
-/// reader agrees (`nerf capture` puts it in `transforms.json` as `"nerf_box"`): the fast
-/// model's box (half-extent `bound`, in the placed frame), whether space beyond its inner
-/// half is contracted, and the rays' near and far.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
-pub struct PlacedBox {
-    pub bound: f32,
-    pub contract: bool,
-    pub near: f32,
-    pub far: f32,
+    pub(crate) problems: Vec<String>,
+    /// Why the photos cannot be read, for a scene rebuilt from a run's snapshot of it (see
+    /// `data::snapshot`); `None` for a scene read from its folder.
+    pub(crate) photos_missing: Option<String>,
 }
 
 /// The format of the scene in `dir`, from the files it holds.
@@ -247,6 +135,15 @@ impl Scene {
                 [train, test.clone(), test]
             }
         };
+        if parsed.space == RaySpace::World {
+            problems.extend(facing_away(
+                format,
+                &frames,
+                &train,
+                parsed.bound,
+                parsed.far,
+            ));
+        }
         Ok(Scene {
             dir: dir.to_path_buf(),
             format,
@@ -262,6 +159,7 @@ impl Scene {
             image_factor,
             notes: parsed.notes,
             problems,
+            photos_missing: None,
         })
     }
 
@@ -279,12 +177,46 @@ impl Scene {
         !self.val.is_empty()
     }
 
+    /// Why the photos cannot be read, for a scene rebuilt from a run's record of it.
+    pub fn photos_missing(&self) -> Option<&str> {
+        self.photos_missing.as_deref()
+    }
+
     /// The cameras of a split at the resolution the scene is loaded at.
     pub fn cameras(&self, split: Split) -> Vec<Camera> {
         self.indices(split)
             .iter()
             .map(|&i| self.frames[i].camera.downscaled(self.image_factor))
             .collect()
+    }
+
+    /// A warning when held-out images (test or validation) of a scene with its own splits
+    /// are copies of training images under other names (compared by content, so copies
+    /// saved again match too): their scores would be measured on photos the model trained
+    /// on. Reads every image of those splits, so it runs when a run starts and in
+    /// `nerf scene`, not on every open.
+    pub fn copied_held_out_images(&self) -> Result<Option<String>> {
+        if self.format != Format::Blender || self.train.is_empty() || self.photos_missing.is_some()
+        {
+            return Ok(None);
+        }
+        let paths = |ids: &[usize]| -> Vec<&Path> {
+            ids.iter()
+                .map(|&i| self.frames[i].image.as_path())
+                .collect()
+        };
+        let mut held_out: Vec<usize> = self.test.iter().chain(&self.val).copied().collect();
+        held_out.sort_unstable();
+        held_out.dedup();
+        let copies = super::copies::copies_among(&paths(&held_out), &paths(&self.train))?;
+        Ok((copies > 0).then(|| {
+            format!(
+                "{copies} of {} test and validation images are copies of training images \
+                 under other names: their scores will be measured on photos the model \
+                 trained on",
+                held_out.len()
+            )
+        }))
     }
 
     /// What a user should be warned of before training on the scene: what reading it
@@ -315,6 +247,12 @@ impl Scene {
 
     /// Frames `0, every, 2 every, ...` of `split`, with their images.
     pub fn load(&self, split: Split, every: usize) -> Result<Dataset> {
+        if let Some(why) = &self.photos_missing {
+            return Err(NerfError::Config(format!(
+                "the {} photos are needed and {why}",
+                split.name()
+            )));
+        }
         let views = self
             .indices(split)
             .par_iter()
@@ -359,35 +297,6 @@ impl Scene {
     }
 }
 
-/// `camera` for an image of `width x height`: itself, or its intrinsics scaled when the
-/// image was resized since the metadata was written (same shape, another resolution).
-pub(crate) fn fit_to_image(
-    camera: &Camera,
-    width: usize,
-    height: usize,
-) -> std::result::Result<Camera, String> {
-    let (cw, ch) = (camera.width, camera.height);
-    if (cw, ch) == (width, height) {
-        return Ok(camera.clone());
-    }
-    let (sx, sy) = (width as f32 / cw as f32, height as f32 / ch as f32);
-    // Same shape: scaling the camera's height by the width ratio lands within a pixel.
-    if (ch as f32 * sx - height as f32).abs() >= 1.0 {
-        return Err(format!(
-            "image is {width}x{height} but its camera is {cw}x{ch} (a different shape)"
-        ));
-    }
-    Ok(Camera {
-        width,
-        height,
-        fx: camera.fx * sx,
-        fy: camera.fy * sy,
-        cx: camera.cx * sx,
-        cy: camera.cy * sy,
-        ..camera.clone()
-    })
-}
-
 /// Indices of the pixels a mask keeps (mean mask value over the pixel's area >= 0.5).
 fn load_mask(path: &Path, image: &RgbaImage, factor: usize) -> Result<Vec<u32>> {
     let mask = RgbaImage::load(path)?;
@@ -418,50 +327,6 @@ fn load_mask(path: &Path, image: &RgbaImage, factor: usize) -> Result<Vec<u32>> 
         ));
     }
     Ok(kept)
-}
-
-/// The path `relative` names, resolved against `base`. Backslashes are folder separators
-/// (files written on Windows), and a drive letter makes no sense here: `C:\\x\\a.jpg`
-/// is read as `C:/x/a.jpg` relative to `base`, which [`check_frames`] then finds by its
-/// last components.
-pub(crate) fn resolve(base: &Path, relative: &str) -> PathBuf {
-    let text = if std::path::MAIN_SEPARATOR == '/' {
-        relative.replace('\\', "/")
-    } else {
-        relative.to_string()
-    };
-    let p = Path::new(&text);
-    if p.is_absolute() {
-        p.to_path_buf()
-    } else {
-        base.join(p)
-    }
-}
-
-/// `path`, or where [`find_moved`] finds it when it is not there.
-pub(crate) fn locate(dir: &Path, path: &Path) -> PathBuf {
-    if path.exists() {
-        return path.to_path_buf();
-    }
-    find_moved(dir, path).unwrap_or_else(|| path.to_path_buf())
-}
-
-/// A file named by a scene that is not where it says (an absolute path from another
-/// machine, a Windows path), looked up in `dir` by its last one, two or three components.
-fn find_moved(dir: &Path, path: &Path) -> Option<PathBuf> {
-    let parts: Vec<&std::ffi::OsStr> = path
-        .components()
-        .filter_map(|c| match c {
-            std::path::Component::Normal(p) => Some(p),
-            _ => None,
-        })
-        .collect();
-    (1..=parts.len().min(3)).rev().find_map(|n| {
-        let candidate = parts[parts.len() - n..]
-            .iter()
-            .fold(dir.to_path_buf(), |p, c| p.join(c));
-        candidate.is_file().then_some(candidate)
-    })
 }
 
 /// Checks every frame before anything trains, so a problem in any split is found when the
@@ -605,28 +470,41 @@ fn dedupe_splits(
     splits
 }
 
-/// Width and height from an image file's header.
-pub(crate) fn image_dimensions(path: &Path) -> Result<(usize, usize)> {
-    image::image_dimensions(path)
-        .map(|(w, h)| (w as usize, h as usize))
-        .map_err(|e| match e {
-            image::ImageError::IoError(io) => NerfError::io(path, io),
-            e => NerfError::Image {
-                path: path.to_path_buf(),
-                message: e.to_string(),
-            },
-        })
+/// A warning when most training cameras see no part of the box: a file read in another
+/// convention than it was written in (OpenCV's axes read as OpenGL's, world-to-camera
+/// matrices read as camera-to-world) has every camera looking away from the scene.
+fn facing_away(
+    format: Format,
+    frames: &[Frame],
+    train: &[usize],
+    bound: f32,
+    far: f32,
+) -> Option<String> {
+    let cameras: Vec<Camera> = train.iter().map(|&i| frames[i].camera.clone()).collect();
+    let blind = super::aim::cameras_blind_to_box(&cameras, bound, far);
+    if blind * 2 <= cameras.len() {
+        return None;
+    }
+    let fix = match format {
+        Format::Transforms => "try the other placement (--convention ngp or nerfstudio); ",
+        _ => "",
+    };
+    Some(format!(
+        "{blind} of {} training cameras see no part of the scene box ([-{bound}, {bound}]^3 \
+         within {far} of them): they look away from it. The poses may be in another \
+         convention than the file says (OpenCV axes, world-to-camera matrices) or placed \
+         around another centre; {fix}check that they are camera-to-world matrices with \
+         OpenGL axes (the camera looks down -Z, +Y up)",
+        cameras.len()
+    ))
 }
 
-/// Near and far bounds that see the whole box `[-bound, bound]^3` from every camera.
-pub(crate) fn bounds_around_box(cameras: &[Camera], bound: f32) -> (f32, f32) {
-    let far = cameras
-        .iter()
-        .map(|c| {
-            let o = c.origin();
-            let corner = o.map(|x| x.abs() + bound);
-            crate::math::length(corner)
-        })
-        .fold(0.0f32, f32::max);
-    (0.01 * bound, far.max(2.0 * bound))
+/// Loads frames `0, every, 2 every, ...` (every one for 1) of one split of a Blender scene,
+/// area-downscaling images by `downscale` (1 = full size).
+pub fn load_blender(dir: &Path, split: Split, downscale: usize, every: usize) -> Result<Dataset> {
+    let opts = SceneOptions {
+        format: Some(Format::Blender),
+        ..SceneOptions::default()
+    };
+    Scene::open(dir, &opts, downscale)?.load(split, every)
 }

@@ -38,10 +38,11 @@ use std::path::Path;
 use serde::Deserialize;
 
 use super::poses::{centred_frame, Similarity};
-use super::scene::{
+use super::reader::{
     bounds_around_box, image_dimensions, resolve, Convention, Frame, Parsed, PlacedBox,
     SceneOptions,
 };
+use super::reader::{locate, parse_pose, pose_to_matrix, ScaledPoses};
 use crate::camera::distortion::{Distortion, LensModel};
 use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
@@ -221,13 +222,15 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         NerfError::format(&json_path, format!("frame {k} ({}): {m}", f.file_path))
     };
     let mut frames = Vec::with_capacity(doc.frames.len());
+    let mut scaled = ScaledPoses::default();
     for (k, f) in doc.frames.iter().enumerate() {
-        let pose = super::blender::parse_pose(&f.transform_matrix).map_err(|m| bad(k, f, m))?;
+        let (pose, scale) = parse_pose(&f.transform_matrix).map_err(|m| bad(k, f, m))?;
+        scaled.add(scale);
         let image = resolve(dir, &f.file_path);
         let intr = f.intrinsics.over(&doc.intrinsics);
         let (w, h) = match (intr.w, intr.h) {
             (Some(w), Some(h)) => (w as usize, h as usize),
-            _ => image_dimensions(&super::scene::locate(dir, &image))?,
+            _ => image_dimensions(&locate(dir, &image))?,
         };
         let camera = camera_from(&intr, w, h, pose).map_err(|m| bad(k, f, m))?;
         frames.push(Frame {
@@ -242,11 +245,12 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
         Convention::Nerfstudio => (false, "--convention nerfstudio".to_string()),
         Convention::Auto => doc.convention(),
     };
-    let notes = vec![format!(
+    let mut notes = vec![format!(
         "transforms.json placed by {} rules ({why}); override with --convention {}",
         if ngp { "instant-ngp's" } else { "nerfstudio's" },
         if ngp { "nerfstudio" } else { "ngp" }
     )];
+    notes.extend(scaled.note(&json_path));
     let poses: Vec<Pose> = frames.iter().map(|f| f.camera.c2w).collect();
     let (placement, bound) = if ngp {
         let s = doc.scale.unwrap_or(NGP_SCALE);
@@ -286,7 +290,6 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
             cameras.len()
         ));
     }
-    let mut notes = notes;
     let placed = match doc.nerf_box {
         Some(b) => {
             let valid = b.bound.is_finite()
@@ -411,7 +414,7 @@ pub fn frame_entry(camera: &Camera, file_path: &str) -> serde_json::Value {
     let d = &camera.distortion;
     serde_json::json!({
         "file_path": file_path,
-        "transform_matrix": super::blender::pose_to_matrix(&camera.c2w),
+        "transform_matrix": pose_to_matrix(&camera.c2w),
         "fl_x": camera.fx, "fl_y": camera.fy, "cx": camera.cx, "cy": camera.cy,
         "w": camera.width, "h": camera.height,
         "k1": d.k[0], "k2": d.k[1], "k3": d.k[2], "k4": d.k[3], "p1": d.p[0], "p2": d.p[1],

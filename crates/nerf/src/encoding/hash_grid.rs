@@ -331,7 +331,7 @@ fn prefetch(data: &[f32], at: usize) {
 mod tests {
     use super::*;
 
-    /// Issue 14 #1: the gradient with respect to the input point against central
+    /// The gradient with respect to the input point against central
     /// differences, on dense and hashed levels, away from cell faces.
     #[test]
     fn input_gradient_matches_finite_differences() {

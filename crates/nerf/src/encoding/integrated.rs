@@ -136,7 +136,7 @@ mod tests {
             .collect()
     }
 
-    /// Issue 15 #2, against Monte Carlo averages over 200k points: the frustum's Gaussian
+    /// Against Monte Carlo averages over 200k points: the frustum's Gaussian
     /// has the frustum's mean and per-axis variance (to 1% of the variance); the
     /// integrated encoding is the positional encoding's expectation under that Gaussian
     /// (to 0.01); and against the average over the frustum's own points, the Gaussian's

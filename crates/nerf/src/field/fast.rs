@@ -708,7 +708,7 @@ mod tests {
         backward_matches_finite_differences_of(&tiny(), &[], &[]);
     }
 
-    /// Issue 15 #3: the anti-aliased field's gradients, with footprints that weigh the
+    /// The anti-aliased field's gradients, with footprints that weigh the
     /// levels anywhere from nearly 1 to nearly 0, and with the coarse-to-fine schedule.
     #[test]
     fn antialiased_backward_matches_finite_differences() {
@@ -775,7 +775,7 @@ mod tests {
         assert_ne!(wide, point_sigma, "a wide footprint reads less detail");
     }
 
-    /// Issue 14 #3: the appearance codes' gradient, per photo and through the mean code.
+    /// The appearance codes' gradient, per photo and through the mean code.
     #[test]
     fn appearance_code_gradients_match_finite_differences() {
         let field = tiny_with_codes(4, 3);

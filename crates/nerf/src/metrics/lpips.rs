@@ -373,7 +373,7 @@ mod tests {
         Lpips::from_weights(&convs, &heads)
     }
 
-    /// Issue 15 #6: against the `lpips` package (PyTorch) on the same random weights and
+    /// Against the `lpips` package (PyTorch) on the same random weights and
     /// images, per layer and in total, to 1e-4 relative (f32 sums in another order).
     #[test]
     fn matches_the_lpips_package_on_a_random_network() {

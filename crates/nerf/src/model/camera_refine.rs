@@ -56,27 +56,26 @@ pub const PER_CAMERA: usize = 6;
 /// Name of the corrections in checkpoints (`cameras x 6`).
 pub const TENSOR: &str = "camera.corrections";
 
-/// The corrections' default learning rate. Real captures (COLMAP poses a fraction of a
-/// degree off): 3e-3 moved ngp_fox's cameras 0.6 degrees from COLMAP's and lost 0.65 dB
-/// held out (test cameras fitted), 6e-4 moved them 0.2 degrees and gained 0.3 dB. Large
-/// errors need [`LARGE_ERROR_LR`].
+/// The corrections' default learning rate, for real captures (COLMAP poses a fraction of a
+/// degree off): a higher rate lets the cameras wander from COLMAP's further than their
+/// error, and held-out views get worse (figures in `docs/benchmarks.md`). Large errors
+/// need [`LARGE_ERROR_LR`].
 pub const DEFAULT_LR: f32 = 6e-4;
 
 /// The [`CameraRefinement::delay`] of runs whose poses are a fraction of a degree off
-/// (real captures). ngp_fox (2000 steps, seed 1, test cameras fitted): without it the
-/// cameras moved 0.31 degrees from COLMAP's and the run ended 26.18 dB held out (mean
-/// appearance code), 0.50 dB below trusting the poses; starting at 0.2 they moved 0.11
-/// degrees, 26.84 dB.
+/// (real captures): before the field has taken shape, the few rays a camera gets per step
+/// pull it every which way and Adam turns that into full steps, so the cameras drift from
+/// COLMAP's by more than their error; starting a fifth of the way in keeps them close
+/// (ngp_fox, `docs/benchmarks.md`).
 pub const SMALL_ERROR_DELAY: f32 = 0.2;
 
 /// The learning rate for errors of degrees, the default of runs that `--perturb-poses`:
-/// lego with BARF's noise (sigma 0.15, 100 px, 3000 steps) ended 0.67 degrees off on
-/// average at 1e-2, against 2.7 at 3e-3.
+/// at the real-capture rate, cameras degrees off do not come back within the schedule.
 pub const LARGE_ERROR_LR: f32 = 1e-2;
 
-/// [`LARGE_ERROR_LR`] for forward-facing NDC captures, whose cameras all look one way: on
-/// the rug (LLFF, sigma 0.02, 1500 steps) 1e-2 drifted to a pose set that fits the training
-/// photos and not the test ones (15.8 dB held out), 3e-3 gave 25.4 dB.
+/// [`LARGE_ERROR_LR`] for forward-facing NDC captures, whose cameras all look one way: at
+/// the larger rate they drift together to a pose set that fits the training photos and
+/// not the held-out ones.
 pub const LARGE_ERROR_LR_NDC: f32 = 3e-3;
 
 /// Where a correction acts (see the module's documentation). A run's `config.json` names
@@ -94,9 +93,8 @@ pub enum Frame {
 impl Frame {
     /// The frame new corrections of cameras marching in `space` act in: the world where
     /// its origin is the scene's centre, each camera's own in a forward-facing NDC capture,
-    /// whose origin is its mean camera, not what the cameras look at (on the rug, LLFF,
-    /// sigma 0.02, 3e-3, the world frame ended 23.3 dB held out against the camera
-    /// frame's 25.4).
+    /// whose origin is its mean camera, not what the cameras look at (there the world frame
+    /// measured worse held out).
     pub fn for_space(space: RaySpace) -> Frame {
         match space {
             RaySpace::World => Frame::World,
@@ -124,20 +122,17 @@ pub struct CameraRefinement {
     /// The coarse-to-fine weights act on the pose gradient only: the field renders and
     /// learns every level from the first step, and the cameras are moved by the gradient
     /// of its coarse levels (a straight-through schedule, after Heo et al., ICML 2023).
-    /// On for errors of degrees (`--perturb-poses`) outside NDC: perturbed lego ended
-    /// 30.44 dB held out against BARF's schedule's 30.31 (the forward-facing rug, sigma
-    /// 0.02: 31.68 against 31.96). Off: BARF's schedule, which also holds the field's
-    /// fine levels back, and so regularises it: on real captures, whose poses are a
-    /// fraction of a degree off, ngp_fox ended 26.42 dB with it against 26.09 without
-    /// (llff_beer 24.56 and 24.66). Runs saved before this existed used BARF's.
+    /// On for errors of degrees (`--perturb-poses`) outside NDC, where it measured better
+    /// than BARF's schedule. Off: BARF's schedule, which also holds the field's fine levels
+    /// back, and so regularises it: better on real captures, whose poses are a fraction of
+    /// a degree off, and on forward-facing ones. Runs saved before this existed used BARF's.
     #[serde(default)]
     pub pose_gradient_only: bool,
     /// Where (a fraction of the schedule) the field's learning-rate decay starts over from
     /// its initial rate, or `None`. Set at the coarse-to-fine window's end for runs with
     /// errors of degrees: by then the cameras are within a fraction of a degree, and the
     /// field relearns at full rate what it had learned through cameras degrees off.
-    /// Perturbed lego ended 30.78 dB held out with the restart at 0.4 (30.67 at 0.3),
-    /// against 30.44 without (exact poses 31.69). Runs saved before this existed had none.
+    /// Runs saved before this existed had none.
     #[serde(default)]
     pub field_restart: Option<f32>,
     /// Where (a fraction of the schedule) the corrections start to move; their decay then

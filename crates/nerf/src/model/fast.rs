@@ -881,7 +881,7 @@ mod step_tests {
         }
     }
 
-    /// Issue 14 #1: `dL/d camera correction` through a whole training step (rays, field,
+    /// `dL/d camera correction` through a whole training step (rays, field,
     /// compositing, loss) against central differences of the step's loss: through the
     /// sample positions and the view directions. The box is large enough that every
     /// sample stays in the uncontracted cube, so their depths are fixed.

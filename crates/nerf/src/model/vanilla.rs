@@ -549,7 +549,7 @@ mod tests {
         results_do_not_depend_on_chunking_of(&tiny_model_of("mip"));
     }
 
-    /// Issue 15 #2: mip-NeRF's model is one network (the fine pass asks the coarse one),
+    /// mip-NeRF's model is one network (the fine pass asks the coarse one),
     /// and its samples are frustums: means on the ray, variances growing with the pixel's
     /// radius, the depth and the gap to the neighbours.
     #[test]

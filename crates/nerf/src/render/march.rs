@@ -326,7 +326,7 @@ mod tests {
     use super::*;
     use crate::camera::Ray;
 
-    /// Issue 15 #1: a marched sample's footprint is its ray's cone radius times its
+    /// A marched sample's footprint is its ray's cone radius times its
     /// distance (world rays), the radius itself (NDC cylinders), shrunk by contraction.
     #[test]
     fn samples_carry_their_pixel_footprints() {

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use super::TrainConfig;
+use super::{run_scene, TrainConfig};
 use crate::checkpoint::{self, Checkpoint};
 use crate::engine::{self, Engine, EngineState};
 use crate::error::{NerfError, Result};
@@ -28,7 +28,22 @@ impl LoadedRun {
 
     /// The run in `dir`, on `device` (checkpoints are the same files on every device).
     pub fn open_on(dir: &Path, device: engine::Device) -> Result<LoadedRun> {
-        let config = read_config(dir)?;
+        LoadedRun::open_with(dir, device, &run_scene::SceneOverride::default())
+    }
+
+    /// The run in `dir`, on `device`, its scene where `scene` says when it says.
+    pub fn open_with(
+        dir: &Path,
+        device: engine::Device,
+        scene: &run_scene::SceneOverride,
+    ) -> Result<LoadedRun> {
+        let mut config = read_config(dir)?;
+        if let Some(data) = &scene.data {
+            if !data.is_dir() {
+                return Err(NerfError::format(data, "--data: is not a folder"));
+            }
+            config.data = std::fs::canonicalize(data).unwrap_or_else(|_| data.clone());
+        }
         let mut engine =
             engine::open_on(device, &config.model, config.engine_options(), config.seed)?;
         let ckpt = load_checkpoint(&dir.join(CHECKPOINT_FILE), engine.as_mut())?;
@@ -56,11 +71,20 @@ pub fn read_config(dir: &Path) -> Result<TrainConfig> {
             format!("is not a run folder (no {CONFIG_FILE}); `nerf train --out` makes one"),
         ));
     }
-    let config: TrainConfig = crate::io::read_json(&path)?;
+    let mut config: TrainConfig = crate::io::read_json(&path)?;
     config
         .validate()
         .map_err(|e| NerfError::format(&path, e.to_string()))?;
+    config.data = run_scene::resolved(dir, &config.data);
+    config.read_from = run_scene::ReadFrom(Some(dir.to_path_buf()));
     Ok(config)
+}
+
+/// Writes the run's `config.json`, naming its scene as `run_scene::stored_form` says.
+pub fn write_config(dir: &Path, config: &TrainConfig) -> Result<()> {
+    let mut stored = config.clone();
+    stored.data = run_scene::stored_form(dir, &config.data);
+    crate::io::write_json(&dir.join(CONFIG_FILE), &stored)
 }
 
 /// Writes `engine`'s state with the run's step, seed and elapsed time to `path`.

@@ -78,7 +78,7 @@ impl RunLock {
 mod tests {
     use super::*;
 
-    /// Issue 10 #2: a second writer is refused with the holder named; the lock is free
+    /// A second writer is refused with the holder named; the lock is free
     /// again once the first lets go.
     #[test]
     fn one_writer_at_a_time() {

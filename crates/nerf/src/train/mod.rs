@@ -14,6 +14,7 @@ pub mod lock;
 pub mod options;
 pub mod refined_cameras;
 pub mod run;
+pub mod run_scene;
 
 use std::path::PathBuf;
 
@@ -84,6 +85,9 @@ pub struct TrainConfig {
     /// of camera refinement; `--perturb-poses`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
+    /// The run folder this config was read from (see `run_scene`).
+    #[serde(skip)]
+    pub read_from: run_scene::ReadFrom,
 }
 
 /// The most scales of `--multiscale` (down to 1/32 of the resolution).
@@ -126,6 +130,7 @@ impl TrainConfig {
             val_downscale: 4,
             checkpoint_every: 1000,
             perturb_poses: None,
+            read_from: run_scene::ReadFrom::default(),
         })
     }
 
@@ -159,16 +164,14 @@ impl TrainConfig {
             val_downscale: 4,
             checkpoint_every: 500,
             perturb_poses: None,
+            read_from: run_scene::ReadFrom::default(),
         }
     }
 
-    /// The run's scene, read at `1 / (downscale * extra)` of its resolution.
+    /// The run's scene, read at `1 / (downscale * extra)` of its resolution, wherever it
+    /// is found (see `run_scene::open`).
     pub fn open_scene(&self, extra_downscale: usize) -> Result<Scene> {
-        Scene::open(
-            &self.data,
-            &self.scene,
-            self.downscale.max(1) * extra_downscale.max(1),
-        )
+        run_scene::open(self, self.downscale.max(1) * extra_downscale.max(1))
     }
 
     /// The training split as the run trains on it: the views kept, and the poses moved by
@@ -394,7 +397,7 @@ impl Trainer {
 mod tests {
     use super::*;
 
-    /// Issue 14 #4: a step schedule runs by steps; a timed one by the clock alone, and
+    /// A step schedule runs by steps; a timed one by the clock alone, and
     /// ends when its budget does, whatever the step.
     #[test]
     fn the_schedule_runs_by_steps_or_by_the_clock() {

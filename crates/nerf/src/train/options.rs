@@ -76,7 +76,8 @@ pub struct TrainOptions {
     /// Fast: weight of mip-NeRF 360's distortion loss, which gathers each ray's weight
     /// into a short stretch and so clears the thin fog that makes forward-facing and
     /// unbounded captures slow to render (CPU engine). Default: 1e-4 for forward-facing
-    /// (NDC) scenes, which then render 2.4-4.8x faster for 0.16-0.35 dB; none for others.
+    /// (NDC) scenes, which then render several times faster for a fraction of a dB; none
+    /// for others.
     #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive_f64,
           conflicts_with = "no_distortion")]
     pub distortion: Option<f64>,
@@ -200,8 +201,7 @@ const DEFAULT_APPEARANCE_DIMS: u32 = 16;
 /// structure from motion and are never exact and whose photos drift in exposure, but not
 /// for Blender scenes (rendered: exact poses, one look), forward-facing NDC scenes (not
 /// measured there yet) or on a GPU (`on_cpu` false: its kernels do neither yet). Both come
-/// together: refinement alone let the poses absorb ngp_fox's exposure changes (1.5 dB
-/// worse).
+/// together: refinement alone lets the poses absorb exposure changes.
 fn learns_photo_corrections(scene: &crate::data::scene::Scene, on_cpu: bool) -> bool {
     scene.format != crate::data::scene::Format::Blender && world_space(scene) && on_cpu
 }
@@ -219,11 +219,9 @@ pub fn distortion_by_default(space: &crate::camera::ray_space::RaySpace, on_cpu:
     }
 }
 
-/// The distortion weight of forward-facing (NDC) scenes. On the built-in chair and rug as
-/// 504x378 LLFF captures it made `nerf eval` 3.5x and 2.4x faster for 0.16 and 0.27 dB
-/// after 2000 steps, 4.8x and 3.2x for 0.35 and 0.27 dB after the default 5000; five
-/// times the weight bought a little more speed (4.2x, 2.7x at 2000 steps) for about twice
-/// the cost (see the README's figures).
+/// The distortion weight of forward-facing (NDC) scenes: the weight where rendering got
+/// several times faster for a small loss of PSNR; five times it bought a little more speed
+/// for about twice the loss (figures in `docs/benchmarks.md`).
 pub const FORWARD_FACING_DISTORTION: f32 = 1e-4;
 
 fn refuse<T>(message: String) -> Result<T> {
@@ -315,7 +313,11 @@ impl TrainOptions {
         for n in &scene.notes {
             on_notice(&format!("note: {n}"));
         }
-        for w in scene.warnings() {
+        for w in scene
+            .warnings()
+            .into_iter()
+            .chain(scene.copied_held_out_images()?)
+        {
             on_notice(&format!("warning: {w}"));
         }
         match &mut c.model {
@@ -323,8 +325,8 @@ impl TrainOptions {
                 m.field.bound = self.bound.unwrap_or(scene.bound);
                 m.contract = scene.contract && !self.no_contract;
                 // Forward-facing NDC captures see everything from about one distance;
-                // there anti-aliasing measured 0.26 dB worse on the built-in rug, so it is
-                // on there only when asked for.
+                // there anti-aliasing measured worse on the built-in rug, so it is on
+                // there only when asked for.
                 let ndc = !world_space(&scene);
                 // Probing the adapters takes a moment: once for both defaults below.
                 let on_cpu = crate::engine::runs_on_cpu(self.device.device);
@@ -400,11 +402,11 @@ impl TrainOptions {
                         });
                     }
                     // Poses degrees off about the scene's centre: the field learns every
-                    // level from the start (lego +0.13 dB; the forward-facing rug measured
-                    // 0.28 dB better with BARF's schedule, as real captures do).
+                    // level from the start (better on lego; the forward-facing rug measured
+                    // better with BARF's schedule, as real captures do).
                     r.pose_gradient_only = self.perturb_poses.is_some() && !ndc;
                     // ... and the field's learning rate starts over when the cameras have
-                    // settled, at the coarse-to-fine window's end (lego +0.35 dB).
+                    // settled, at the coarse-to-fine window's end (better on lego).
                     if r.pose_gradient_only {
                         r.field_restart = Some(r.anneal[1]);
                     }
@@ -519,10 +521,11 @@ impl TrainOptions {
             .data
             .as_ref()
             .map(|d| std::fs::canonicalize(d).unwrap_or_else(|_| d.clone()));
+        let theirs = std::fs::canonicalize(&saved.data).unwrap_or_else(|_| saved.data.clone());
         check(
             "--data",
             data.map(|d| d.display().to_string()),
-            saved.data.display().to_string(),
+            theirs.display().to_string(),
         );
         let fast = match &saved.model {
             ModelConfig::Fast(m) => Some(m),
@@ -800,7 +803,7 @@ mod tests {
         }
     }
 
-    /// Issue 14 #1: a real capture (here the tiny chair's photos and poses as an
+    /// A real capture (here the tiny chair's photos and poses as an
     /// instant-ngp `transforms.json`) refines its cameras and learns a look per photo by
     /// default on the CPU engine; a Blender scene does neither; `--no-refine-cameras`,
     /// `--no-appearance` and `--multiscale` turn the defaults off.
@@ -852,7 +855,7 @@ mod tests {
         assert!(refinement(&ms).is_none() && codes(&ms).0 == 0);
     }
 
-    /// Issue 15: `--multiscale` and `--antialias` reach the config (anti-aliasing with the
+    /// `--multiscale` and `--antialias` reach the config (anti-aliasing with the
     /// training cameras' footprint as its reference); `--no-antialias` leaves point
     /// samples; a multi-scale run refuses per-photo codes and poses.
     #[test]

@@ -170,7 +170,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         if (config.steps, config.time_budget_s) != (opts.config.steps, opts.config.time_budget_s) {
             config.steps = opts.config.steps;
             config.time_budget_s = opts.config.time_budget_s;
-            crate::io::write_json(&config_path, &config)?;
+            super::folder::write_config(out, &config)?;
         }
         config
     } else {
@@ -180,9 +180,13 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
                 out.display()
             )));
         }
-        crate::io::write_json(&config_path, &opts.config)?;
+        super::folder::write_config(out, &opts.config)?;
         opts.config.clone()
     };
+    if !out.join(super::run_scene::SCENE_FILE).exists() {
+        // What rendering needs of the scene, kept in the run (see `run_scene`).
+        super::run_scene::save_snapshot(out, &config.open_scene(1)?)?;
+    }
     if !from_checkpoint {
         if metrics_path.exists() {
             on_event(Event::Note(

@@ -1,4 +1,4 @@
-//! Issue 15: anti-aliasing. A model trained on a scene at several scales (mip-NeRF's
+//! Anti-aliasing. A model trained on a scene at several scales (mip-NeRF's
 //! multi-scale variant) must render its low-resolution views better when every sample
 //! reads only the detail its pixel's footprint can hold than with point samples.
 

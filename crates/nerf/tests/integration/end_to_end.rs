@@ -116,7 +116,7 @@ fn time_budget_stops_with_a_checkpoint() {
     );
 }
 
-/// Issue 14 #4: `--minutes` alone schedules by the clock. The learning rate falls with
+/// `--minutes` alone schedules by the clock. The learning rate falls with
 /// elapsed time and reaches (nearly) its final value as the budget ends, where a step
 /// schedule cut short by the clock never gets there; a resume with a larger budget goes on
 /// from the saved clock.

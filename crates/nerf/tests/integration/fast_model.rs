@@ -55,7 +55,7 @@ fn fast_model_trains_a_small_scene_past_a_psnr_floor() {
     );
     assert!(report.mean_ssim > 0.85, "test SSIM {:.3}", report.mean_ssim);
 
-    // Issue 14 #2, `--refine-test-poses`: the test cameras moved off their poses (BARF's
+    // `--refine-test-poses`: the test cameras moved off their poses (BARF's
     // noise, sigma 0.02: about 2.5 degrees and 0.14 units) are fitted back to the frozen
     // model: the rotation error more than halves (measured 2.53 -> 0.95 degrees, centres
     // 0.144 -> 0.055 units) and the photos match better.
@@ -145,7 +145,7 @@ fn fast_run_resumes_exactly_across_an_occupancy_refresh() {
     assert!(sa.buffers.iter().any(|&v| v > 0.0));
 }
 
-/// Issue 14 #3: photos whose exposure and white balance change from shot to shot. Every
+/// Photos whose exposure and white balance change from shot to shot. Every
 /// training image of the chair is scaled by its own gain per channel (0.6x to 1.6x); the
 /// test images are not. With a code per photo the field learns the chair once and the
 /// mean code renders it at the usual look: a higher held-out PSNR than a field that must
@@ -292,7 +292,7 @@ fn pose_errors_are_measured_on_the_views_trained() {
     assert!(cameras.error().rotation_deg > 0.5, "{:?}", cameras.error());
 }
 
-/// Issue 14 #1: the chair's training poses moved by BARF's se(3) noise (sigma 0.03, in the
+/// The chair's training poses moved by BARF's se(3) noise (sigma 0.03, in the
 /// world frame: about 2.5 degrees and 4.3% of the camera radius on average) are pulled
 /// back toward the given ones by refinement in a CI-sized run (2000 steps at 48 pixels):
 /// the mean rotation error at least halves and the centres' error falls by a third

@@ -239,6 +239,7 @@ fn render_test_view(run: &LoadedRun) -> Vec<nerf::stage::RayOutput> {
 /// The GPU engine learns the small scene past the CPU test's floor (22 dB).
 #[test]
 fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
+    const STEPS: u64 = 400;
     if !gpu_available() {
         return;
     }
@@ -248,14 +249,14 @@ fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
     let out = dir.path().join("run");
     let t0 = std::time::Instant::now();
     run::train(
-        &options(&out, config(&data, 400), Device::Wgpu, false, None),
+        &options(&out, config(&data, STEPS), Device::Wgpu, false, None),
         &mut |_| {},
     )
     .expect("train");
     let loaded = LoadedRun::open_on(&out, Device::Wgpu).expect("open");
     let report = crate::common::eval_test(&loaded, 1, &out.join("eval"));
     eprintln!(
-        "GPU engine: test PSNR {:.2} dB, SSIM {:.3} after 400 steps ({:.0} s with eval)",
+        "GPU engine: test PSNR {:.2} dB, SSIM {:.3} after {STEPS} steps ({:.0} s with eval)",
         report.mean_psnr,
         report.mean_ssim,
         t0.elapsed().as_secs_f64()

@@ -149,7 +149,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
     }
     // The point cloud from rendered depth lies on the chair too.
     let data_views =
-        nerf::data::blender::load_every(&data, nerf::data::Split::Train, 2, 15).expect("views");
+        nerf::data::scene::load_blender(&data, nerf::data::Split::Train, 2, 15).expect("views");
     let cameras: Vec<_> = data_views.views.iter().map(|v| v.camera.clone()).collect();
     let settings = nerf::views::RenderSettings::of_dataset(&data_views, [1.0; 3]);
     let (points, point_colours) =

@@ -332,7 +332,7 @@ fn colmap_text_model_round_trips_with_bounds_from_its_points() {
     assert_eq!(scene.frames[1].camera.distortion.k[0], 0.02);
     assert_eq!(scene.load(Split::Train, 1).expect("load").views.len(), 10);
 
-    // Issue 14 #6: the transforms.json `nerf capture` writes from this model reads exactly
+    // The transforms.json `nerf capture` writes from this model reads exactly
     // as the model does: the same cameras, box, contraction and bounds, as any reader of
     // the folder must agree; the box is the cameras' (as LLFF --spherify's), not the
     // points'.
@@ -377,7 +377,7 @@ fn transforms_json_intrinsics_distortion_masks_and_conventions() {
         save_rgb_png(&dir.path().join(&name), 16, 12, &vec![0.5; 16 * 12 * 3]).expect("png");
         let mut f = serde_json::json!({
             "file_path": name,
-            "transform_matrix": nerf::data::blender::pose_to_matrix(&c.c2w),
+            "transform_matrix": nerf::data::reader::pose_to_matrix(&c.c2w),
         });
         if k == 1 {
             f["fl_x"] = serde_json::json!(30.0);

@@ -1,4 +1,4 @@
-//! Issue 10: scene files as real tools export them, and as they break. Each test names the
+//! Scene files as real tools export them, and as they break. Each test names the
 //! defect of the issue it covers (#N).
 
 use std::path::Path;
@@ -401,4 +401,242 @@ fn camera_paths() {
         json!({"render_height": 200000, "render_width": 200000, "camera_path": [frame(pose(1))]}),
         "larger than the limit",
     );
+}
+
+/// A 4x4 row list of a camera at `eye` looking at `target` (+Z up).
+fn pose_at(eye: [f32; 3], target: [f32; 3]) -> Value {
+    let p = nerf::camera::look_at(eye, target, [0.0, 0.0, 1.0]);
+    let mut rows: Vec<Vec<f32>> = p.iter().map(|r| r.to_vec()).collect();
+    rows.push(vec![0.0, 0.0, 0.0, 1.0]);
+    json!(rows)
+}
+
+/// A `transforms.json` whose `n` cameras sit on a circle of `radius` at height 1, each
+/// looking at `target(eye)`, with the `top` keys (nerfstudio's `camera_model` and these).
+fn ring_scene(
+    dir: &Path,
+    n: usize,
+    radius: f32,
+    target: impl Fn([f32; 3]) -> [f32; 3],
+    top: Value,
+) {
+    let frames: Vec<Value> = (0..n)
+        .map(|k| {
+            let a = k as f32 * std::f32::consts::TAU / n as f32;
+            let eye = [radius * a.cos(), radius * a.sin(), 1.0];
+            png(&dir.join(format!("images/{k:04}.png")), 16, 16);
+            json!({"file_path": format!("images/{k:04}.png"), "transform_matrix": pose_at(eye, target(eye))})
+        })
+        .collect();
+    let mut doc = json!({"camera_model": "OPENCV", "fl_x": 14.0, "fl_y": 14.0, "frames": frames});
+    if let (Some(d), Some(e)) = (doc.as_object_mut(), top.as_object()) {
+        d.extend(e.clone());
+    }
+    write(&dir.join("transforms.json"), &doc);
+}
+
+fn warns_of_looking_away(scene: &Scene) -> bool {
+    scene
+        .warnings()
+        .iter()
+        .any(|w| w.contains("see no part of the scene box") && w.contains("--convention"))
+}
+
+/// Cameras that all look away from the scene (a file read in another convention than it
+/// was written in) are warned of; an inward capture, a forward-facing one and an inside-out
+/// room, whose box is around the cameras, are not.
+#[test]
+fn cameras_looking_away_from_the_scene_are_warned_of() {
+    // instant-ngp's placement (0.33 units a metre, a box of 1) leaves the ring outside.
+    let ngp = json!({"aabb_scale": 2, "scale": 0.33});
+    let away = tempfile::tempdir().expect("tempdir");
+    ring_scene(
+        away.path(),
+        12,
+        4.0,
+        |e| [3.0 * e[0], 3.0 * e[1], 1.0],
+        ngp.clone(),
+    );
+    let scene = open(away.path(), 1).expect("open");
+    assert!(warns_of_looking_away(&scene), "{:?}", scene.warnings());
+
+    let inward = tempfile::tempdir().expect("tempdir");
+    ring_scene(inward.path(), 12, 4.0, |_| [0.0; 3], ngp);
+    let scene = open(inward.path(), 1).expect("open");
+    assert!(!warns_of_looking_away(&scene), "{:?}", scene.warnings());
+
+    // nerfstudio's placement scales the cameras into the box: a room around them.
+    let room = tempfile::tempdir().expect("tempdir");
+    ring_scene(
+        room.path(),
+        12,
+        0.2,
+        |e| [10.0 * e[0], 10.0 * e[1], 1.0],
+        json!({}),
+    );
+    let scene = open(room.path(), 1).expect("open");
+    assert!(!warns_of_looking_away(&scene), "{:?}", scene.warnings());
+
+    // Forward-facing: a row of cameras all looking along +Y at what stands before them.
+    let forward = tempfile::tempdir().expect("tempdir");
+    ring_scene(forward.path(), 1, 0.0, |_| [0.0; 3], json!({}));
+    let frames: Vec<Value> = (0..9)
+        .map(|k| {
+            let eye = [k as f32 * 0.1 - 0.4, -1.0, 0.2];
+            png(&forward.path().join(format!("images/{k:04}.png")), 16, 16);
+            json!({"file_path": format!("images/{k:04}.png"),
+                   "transform_matrix": pose_at(eye, [eye[0], 3.0, 0.2])})
+        })
+        .collect();
+    write(
+        &forward.path().join("transforms.json"),
+        &json!({"camera_model": "OPENCV", "fl_x": 14.0, "fl_y": 14.0, "frames": frames}),
+    );
+    let scene = open(forward.path(), 1).expect("open");
+    assert!(!warns_of_looking_away(&scene), "{:?}", scene.warnings());
+}
+
+/// Blender-format files with `near` and `far` keys (DS-NeRF's and others'), whose cameras
+/// circle a point away from the origin: the keys are read, and the box is moved onto what
+/// the cameras look at, and said.
+#[test]
+fn blender_files_with_near_far_around_another_centre() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let centre = [6.0, -3.0, 0.5];
+    for (split, n) in [("train", 10), ("test", 3)] {
+        let frames: Vec<Value> = (0..n)
+            .map(|k| {
+                let a = k as f32 * 0.6 + if split == "test" { 0.3 } else { 0.0 };
+                let eye = [centre[0] + 3.0 * a.cos(), centre[1] + 3.0 * a.sin(), 1.5];
+                png(&dir.path().join(format!("{split}/r_{k}.png")), 8, 8);
+                json!({"file_path": format!("./{split}/r_{k}"), "transform_matrix": pose_at(eye, centre)})
+            })
+            .collect();
+        let doc = json!({"camera_angle_x": 0.69, "near": 1.5, "far": 4.5, "frames": frames});
+        write(&dir.path().join(format!("transforms_{split}.json")), &doc);
+    }
+    let scene = open(dir.path(), 1).expect("open");
+    assert_eq!((scene.near, scene.far), (1.5, 4.5));
+    let said = scene.notes.join("\n");
+    assert!(said.contains("near 1.5 and far 4.5"), "{said}");
+    assert!(said.contains("look past the box"), "{said}");
+    // Every camera's central ray now crosses the box, which is centred on what they see.
+    for c in scene.cameras(Split::Train) {
+        assert!(
+            nerf::data::aim::central_ray_hits_box(&c, scene.bound, scene.far),
+            "bound {}: {:?}",
+            scene.bound,
+            c.origin()
+        );
+        let distance = nerf::math::length(c.origin());
+        assert!((distance - 3.0f32.hypot(1.0)).abs() < 0.05, "{distance}");
+    }
+    assert!(scene.bound > 0.5 && scene.bound < 3.0, "{}", scene.bound);
+}
+
+/// Test images that are training images saved again under other names are counted;
+/// a scene whose splits hold different photos is not warned of.
+#[test]
+fn test_images_copied_from_training_images_are_counted() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let picture = |k: usize, noise: f32| -> Vec<f32> {
+        (0..16 * 16 * 4)
+            .map(|i| {
+                let v = ((i / 4) * (k + 3) % 17) as f32 / 17.0;
+                if i % 4 == 3 {
+                    1.0
+                } else {
+                    (v + noise * if i % 2 == 0 { 1.0 } else { -1.0 }).clamp(0.0, 1.0)
+                }
+            })
+            .collect()
+    };
+    for (split, n) in [("train", 4), ("test", 3)] {
+        let frames: Vec<Value> = (0..n)
+            .map(|k| {
+                let path = dir.path().join(format!("{split}/view_{k}.png"));
+                std::fs::create_dir_all(path.parent().expect("parent")).expect("mkdir");
+                // Test 0 and 1 are training photos 2 and 3 saved again (slightly changed).
+                let content = match (split, k) {
+                    ("test", 0 | 1) => picture(k + 2, 0.004),
+                    ("test", _) => picture(k + 10, 0.0),
+                    _ => picture(k, 0.0),
+                };
+                save_rgba_png(&path, 16, 16, &content).expect("png");
+                json!({"file_path": format!("./{split}/view_{k}"), "transform_matrix": pose(k)})
+            })
+            .collect();
+        let doc = json!({"camera_angle_x": 0.69, "frames": frames});
+        write(&dir.path().join(format!("transforms_{split}.json")), &doc);
+    }
+    let scene = open(dir.path(), 1).expect("open");
+    let warning = scene
+        .copied_held_out_images()
+        .expect("read")
+        .expect("warned");
+    assert!(warning.starts_with("2 of 3 test"), "{warning}");
+
+    std::fs::remove_file(dir.path().join("test/view_0.png")).expect("rm");
+    save_rgba_png(
+        &dir.path().join("test/view_0.png"),
+        16,
+        16,
+        &picture(9, 0.0),
+    )
+    .expect("png");
+    std::fs::remove_file(dir.path().join("test/view_1.png")).expect("rm");
+    save_rgba_png(
+        &dir.path().join("test/view_1.png"),
+        16,
+        16,
+        &picture(11, 0.0),
+    )
+    .expect("png");
+    let scene = open(dir.path(), 1).expect("open");
+    assert_eq!(scene.copied_held_out_images().expect("read"), None);
+}
+
+/// A pose whose 3x3 part is a rotation scaled uniformly (an exporter's `scale_factor`) is
+/// normalised with a note; reflections and shears are still refused.
+#[test]
+fn a_uniformly_scaled_rotation_is_normalised() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let doc = transforms(dir.path(), 4, 8, 8, json!({}));
+    let scaled = |doc: &Value, f: &dyn Fn(usize, usize, f64) -> f64| {
+        let mut doc = doc.clone();
+        for frame in doc["frames"].as_array_mut().expect("frames") {
+            for r in 0..3 {
+                for c in 0..3 {
+                    let v = frame["transform_matrix"][r][c].as_f64().expect("number");
+                    frame["transform_matrix"][r][c] = json!(f(r, c, v));
+                }
+            }
+        }
+        doc
+    };
+    write(
+        &dir.path().join("transforms.json"),
+        &scaled(&doc, &|_, _, v| 2.5 * v),
+    );
+    let scene = open(dir.path(), 1).expect("a scaled rotation loads");
+    let said = scene.notes.join("\n");
+    assert!(
+        said.contains("4 poses have a rotation scaled uniformly") && said.contains("2.5"),
+        "{said}"
+    );
+    let c2w = scene.cameras(Split::Train)[0].c2w;
+    let column: [f32; 3] = [c2w[0][0], c2w[1][0], c2w[2][0]];
+    assert!((nerf::math::length(column) - 1.0).abs() < 1e-5);
+
+    // A reflection (one column negated) and a shear stay refused.
+    write(
+        &dir.path().join("transforms.json"),
+        &scaled(&doc, &|_, c, v| if c == 0 { -2.0 * v } else { 2.0 * v }),
+    );
+    assert!(open_err(dir.path(), 1).contains("not a rotation"));
+    write(
+        &dir.path().join("transforms.json"),
+        &scaled(&doc, &|_, c, v| if c == 1 { 3.0 * v } else { v }),
+    );
+    assert!(open_err(dir.path(), 1).contains("not a rotation"));
 }

@@ -14,7 +14,7 @@ use crate::camera::distortion::{Distortion, LensModel};
 use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Pose};
 use crate::data::poses::{inward_frame, Similarity, INWARD_BOX};
-use crate::data::scene::{bounds_around_box, Frame, Parsed, PlacedBox, SceneOptions};
+use crate::data::reader::{bounds_around_box, Frame, Parsed, PlacedBox, SceneOptions};
 use crate::error::{NerfError, Result};
 
 /// RMS distance of the cameras from the scene centre after placement.

@@ -18,8 +18,9 @@ use std::path::Path;
 
 use rayon::prelude::*;
 
-use super::blender::{pose_to_matrix, save_transforms, Frame, Transforms};
+use super::blender::{save_transforms, Frame, Transforms};
 use super::image::{save_gray16_png, save_rgba_png};
+use super::reader::pose_to_matrix;
 use super::Split;
 use crate::camera::{look_at, spherical, Camera, Pose};
 use crate::error::{NerfError, Result};
@@ -230,7 +231,6 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::data::blender;
     use crate::math::normalize_or_zero;
 
     #[test]
@@ -248,7 +248,8 @@ mod tests {
             generate(&opts, dir.path(), &mut |_, _| {}).expect("synth"),
             6
         );
-        let train = blender::load(dir.path(), Split::Train, 1).expect("load train");
+        let train =
+            crate::data::scene::load_blender(dir.path(), Split::Train, 1, 1).expect("load train");
         assert_eq!(train.views.len(), 3);
         let img = &train.views[0].image;
         let coverage = img.data.chunks_exact(4).filter(|p| p[3] > 0.5).count();

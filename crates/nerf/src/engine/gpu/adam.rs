@@ -168,8 +168,7 @@ mod tests {
                 ("v", read(&v), &cpu.v),
             ] {
                 // Relative to 1 + |b|: Vulkan lets a GPU's division and square root be
-                // off by a few ulp (NVIDIA's are: 2e-5 relative to a parameter near zero,
-                // measured on an H100), where lavapipe and the CPU round exactly.
+                // off by a few ulp (NVIDIA's are), where lavapipe and the CPU round exactly.
                 let worst = worst(&got, want);
                 assert!(worst < 1e-5, "round {round}: {name} differs by {worst}");
             }

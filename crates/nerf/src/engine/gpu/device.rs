@@ -4,8 +4,16 @@ use cubecl::client::Client;
 use cubecl::device::WgpuDeviceKind;
 use cubecl::ir::{ElemType, FloatKind, Type};
 
-use super::mlp::Path;
 use crate::error::{NerfError, Result};
+
+/// Which kernels the dense layers run (`mlp`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Path {
+    /// One thread per output value, a dot product from global memory.
+    Plain,
+    /// Tiled products through workgroup memory (`gemm`).
+    Tiled,
+}
 
 /// An opened adapter.
 #[derive(Clone)]
@@ -18,7 +26,7 @@ pub struct Gpu {
     pub software: bool,
     /// The dense layers' kernels: tiled through workgroup memory on a hardware GPU, plain
     /// on a software adapter (where lavapipe runs a workgroup's barriers as separate loops
-    /// and the tiled kernels measured 2.5-3x slower); `NERF_GPU_MATMUL=plain|tiled` overrides.
+    /// and the tiled kernels measured slower); `NERF_GPU_MATMUL=plain|tiled` overrides.
     pub matmul: Path,
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
     /// scattered with a compare-and-swap loop on their bits.

@@ -35,16 +35,15 @@ use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{RayBatch, RayOutput};
 
-/// The most samples one device call takes, in a training step or a rendering round: on
-/// an H100, 2^20 overflowed the adapter's largest storage binding (a 64-wide activation,
-/// 256 MiB) and failed wgpu's validation. `gpu::open` refuses larger steps.
+/// The most samples one device call takes, in a training step or a rendering round: at
+/// 2^20 a 64-wide activation (256 MiB) overflows the largest storage binding of common
+/// adapters and fails wgpu's validation. `gpu::open` refuses larger steps.
 pub const MAX_DEVICE_SAMPLES: usize = 1 << 19;
 
 /// Rays per rendering chunk and samples per round of the renderer. A software adapter
 /// takes small ones (2^14 rays, 2^16 samples: 70 MB of activations per chunk in flight),
 /// where a round trip costs little beside the field; a hardware GPU larger ones (2^18 rays,
-/// 2^19 samples), fewer round trips: on an H100 an 800x800 lego view measured 4.0
-/// frames/s against 3.2-3.3 at the small sizes (2^16 rays: 3.4-3.9).
+/// 2^19 samples), fewer round trips, which measured faster on a data-centre GPU.
 /// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays
 /// and [`MAX_DEVICE_SAMPLES`] samples.
 fn render_sizes(gpu: &Gpu) -> (usize, usize) {

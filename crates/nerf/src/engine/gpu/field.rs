@@ -401,7 +401,7 @@ pub(super) mod tests {
     use super::*;
     use crate::encoding::HashGridConfig;
     use crate::engine::gpu::device::worst;
-    use crate::engine::gpu::mlp::Path;
+    use crate::engine::gpu::device::Path;
     use crate::field::fast::FastWorkspace;
     use crate::field::FastFieldConfig;
     use crate::nn::GradBuffer;

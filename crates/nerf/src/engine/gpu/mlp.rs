@@ -15,7 +15,7 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
-use super::device::Gpu;
+use super::device::{Gpu, Path};
 use super::gemm::{self, Epilogue, View};
 use super::launch::grid;
 
@@ -23,15 +23,6 @@ use super::launch::grid;
 const GROUP: u32 = 256;
 /// Samples summed by one thread of the weight-gradient kernel.
 pub const ROWS_PER_PARTIAL: usize = 256;
-
-/// Which kernels a layer runs.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Path {
-    /// One thread per output value, a dot product from global memory.
-    Plain,
-    /// Tiled products through workgroup memory (`gemm`).
-    Tiled,
-}
 
 /// A layer's shape and where it sits in the parameter vector.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -528,7 +528,7 @@ impl GpuVanillaNet {
 mod tests {
     use super::*;
     use crate::engine::gpu::device::worst;
-    use crate::engine::gpu::mlp::Path;
+    use crate::engine::gpu::device::Path;
     use crate::field::{VanillaConfig, VanillaWorkspace};
     use crate::nn::GradBuffer;
     use crate::rng::Rng;
