@@ -141,6 +141,9 @@ pub fn open_browser(url: &str) {
 pub fn run(opts: &ViewOptions) -> anyhow::Result<()> {
     let run = nerf::train::folder::LoadedRun::open_with(&opts.run, opts.device.device, &opts.scene)
         .with_context(|| format!("opening the run {}", opts.run.display()))?;
+    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
+        eprintln!("note: {note}");
+    }
     eprintln!(
         "viewing {} (step {}, {})",
         opts.run.display(),

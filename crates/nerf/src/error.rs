@@ -32,6 +32,9 @@ pub enum NerfError {
     Checkpoint { path: PathBuf, message: String },
     #[error("invalid configuration: {0}")]
     Config(String),
+    /// Something a command needs is not where it was looked for (the message says where).
+    #[error("{0}")]
+    NotFound(String),
     /// No such device, or the device failed (driver, out of device memory, lost device).
     #[error("GPU: {0}")]
     Device(String),

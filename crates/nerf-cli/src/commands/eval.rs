@@ -71,6 +71,9 @@ pub fn run(a: EvalArgs) -> Result<()> {
         None => None,
     };
     let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
+    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
+        eprintln!("note: {note}");
+    }
     let out = a
         .out
         .unwrap_or_else(|| a.run.join(format!("eval_{}", a.split.name())));

@@ -24,6 +24,9 @@ pub struct ExportCamerasArgs {
 
 pub fn run(a: ExportCamerasArgs) -> Result<()> {
     let run = LoadedRun::open_with(&a.run, nerf::engine::Device::Cpu, &a.scene)?;
+    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
+        eprintln!("note: {note}");
+    }
     let scene = run.config.open_scene(1)?;
     let cameras = RunCameras::of(&run)?;
     let mut entries = Vec::new();

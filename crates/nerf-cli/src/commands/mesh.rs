@@ -54,6 +54,9 @@ pub fn run(a: MeshArgs) -> Result<()> {
         bail!("{}: choose a .ply, .obj or .glb file", a.out.display());
     }
     let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
+    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
+        eprintln!("note: {note}");
+    }
     let (default_resolution, default_bound) = run.config.model.mesh_defaults();
     let resolution = a.resolution.unwrap_or(default_resolution);
     let bound = a.bound.unwrap_or(default_bound);

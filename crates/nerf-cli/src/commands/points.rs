@@ -45,6 +45,9 @@ pub fn run(a: PointsArgs) -> Result<()> {
         bail!("{}: point clouds are written as .ply", a.out.display());
     }
     let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
+    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
+        eprintln!("note: {note}");
+    }
     let config = &run.config;
     let scene = config.open_scene(a.downscale)?;
     let mut cameras = scene.cameras(nerf::data::Split::Train);

@@ -28,6 +28,9 @@ pub struct RenderArgs {
 
 pub fn run(a: RenderArgs) -> Result<()> {
     let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
+    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
+        eprintln!("note: {note}");
+    }
     let out = a
         .out
         .clone()

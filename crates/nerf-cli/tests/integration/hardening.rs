@@ -572,13 +572,14 @@ fn run_folders_work_from_anywhere_and_after_moving() {
     std::fs::rename(&home, &moved).expect("move");
     ok(&nerf(&["eval", "--run", "run", "--every", "2"], &moved));
 
-    // The scene gone: rendering and the cameras from the run alone.
+    // The scene gone: rendering and the cameras from the run alone, and said.
     let away = dir.path().join("scene_elsewhere");
     std::fs::rename(moved.join("scene"), &away).expect("move the scene");
-    ok(&nerf(
+    let t = ok(&nerf(
         &["render", "--run", "run", "--frames", "1", "--size", "8"],
         &moved,
     ));
+    assert!(t.contains("not found") && t.contains("scene.json"), "{t}");
     ok(&nerf(
         &["export-cameras", "--run", "run", "--out", "cams.json"],
         &moved,

@@ -247,9 +247,9 @@ impl Scene {
 
     /// Frames `0, every, 2 every, ...` of `split`, with their images.
     pub fn load(&self, split: Split, every: usize) -> Result<Dataset> {
-        if let Some(why) = &self.photos_missing {
-            return Err(NerfError::Config(format!(
-                "the {} photos are needed and {why}",
+        if let Some(missing) = &self.photos_missing {
+            return Err(NerfError::NotFound(format!(
+                "{missing}, and its {} photos are needed; pass --data DIR to say where it is",
                 split.name()
             )));
         }

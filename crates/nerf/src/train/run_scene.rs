@@ -94,16 +94,46 @@ pub fn open(config: &TrainConfig, downscale: usize) -> Result<Scene> {
         return Scene::open(dir, &config.scene, downscale);
     }
     let places: Vec<String> = looked.iter().map(|p| p.display().to_string()).collect();
-    let why = format!(
-        "the run's scene is not found (looked in {}); pass --data DIR to say where it is",
+    let run = config.read_from.0.as_deref().unwrap_or(Path::new("."));
+    let missing = format!(
+        "{}: the run's scene is not found (looked in {})",
+        run.display(),
         places.join(", ")
     );
-    match &config.read_from.0 {
-        Some(run) if run.join(SCENE_FILE).is_file() => {
-            Ok(SceneSnapshot::load(&run.join(SCENE_FILE))?.scene(downscale, why))
-        }
-        _ => Err(NerfError::Config(why)),
+    if run.join(SCENE_FILE).is_file() {
+        return Ok(SceneSnapshot::load(&run.join(SCENE_FILE))?.scene(downscale, missing));
     }
+    Err(NerfError::NotFound(format!(
+        "{missing}; pass --data DIR to say where it is"
+    )))
+}
+
+/// What to tell a user about where a run's scene was found, for a config read from a run
+/// folder: `None` when it is where the config says; else the folder used instead, or that
+/// the run renders from the cameras it keeps (`open` rebuilds the scene from them).
+pub fn missing_note(config: &TrainConfig) -> Option<String> {
+    let run = config.read_from.0.as_deref()?;
+    let looked = candidates(config);
+    let first = looked.first()?;
+    if first.is_dir() {
+        return None;
+    }
+    if let Some(found) = looked.iter().find(|d| d.is_dir()) {
+        return Some(format!(
+            "the run's scene is not at {}: using {} (--data DIR says where it is)",
+            first.display(),
+            found.display()
+        ));
+    }
+    if !run.join(SCENE_FILE).is_file() {
+        return None;
+    }
+    let places: Vec<String> = looked.iter().map(|p| p.display().to_string()).collect();
+    Some(format!(
+        "the run's scene is not found (looked in {}): using the cameras the run keeps in \
+         {SCENE_FILE}; --data DIR says where the scene is",
+        places.join(", ")
+    ))
 }
 
 /// Records the scene's cameras in the run folder (see [`SCENE_FILE`]).
