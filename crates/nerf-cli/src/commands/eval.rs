@@ -7,7 +7,6 @@ use clap::Args;
 use nerf::app::eval::{EvalOptions, EvalProgress, EvalReport};
 use nerf::app::test_poses::TestPoseFit;
 use nerf::data::Split;
-use nerf::train::folder::LoadedRun;
 
 use crate::progress::bar;
 
@@ -70,10 +69,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         )?)),
         None => None,
     };
-    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
-    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
-        eprintln!("note: {note}");
-    }
+    let run = super::open_run(&a.run, a.device.device, &a.scene)?;
     let out = a
         .out
         .unwrap_or_else(|| a.run.join(format!("eval_{}", a.split.name())));

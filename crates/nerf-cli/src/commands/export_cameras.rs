@@ -6,7 +6,6 @@ use anyhow::{Context, Result};
 use clap::Args;
 use nerf::data::scene::PlacedBox;
 use nerf::data::Split;
-use nerf::train::folder::LoadedRun;
 use nerf::train::refined_cameras::RunCameras;
 
 #[derive(Args)]
@@ -23,10 +22,7 @@ pub struct ExportCamerasArgs {
 }
 
 pub fn run(a: ExportCamerasArgs) -> Result<()> {
-    let run = LoadedRun::open_with(&a.run, nerf::engine::Device::Cpu, &a.scene)?;
-    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
-        eprintln!("note: {note}");
-    }
+    let run = super::open_run(&a.run, nerf::engine::Device::Cpu, &a.scene)?;
     let scene = run.config.open_scene(1)?;
     let cameras = RunCameras::of(&run)?;
     let mut entries = Vec::new();

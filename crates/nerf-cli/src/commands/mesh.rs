@@ -8,7 +8,6 @@ use clap::Args;
 use nerf::camera::ray_space::RaySpace;
 use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
-use nerf::train::folder::LoadedRun;
 
 use crate::progress::bar;
 
@@ -53,10 +52,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     if !matches!(ext.as_deref(), Some("ply" | "obj" | "glb")) {
         bail!("{}: choose a .ply, .obj or .glb file", a.out.display());
     }
-    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
-    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
-        eprintln!("note: {note}");
-    }
+    let run = super::open_run(&a.run, a.device.device, &a.scene)?;
     let (default_resolution, default_bound) = run.config.model.mesh_defaults();
     let resolution = a.resolution.unwrap_or(default_resolution);
     let bound = a.bound.unwrap_or(default_bound);

@@ -11,3 +11,22 @@ pub mod render;
 pub mod scene;
 pub mod synth;
 pub mod train;
+
+use std::path::Path;
+
+use nerf::train::folder::LoadedRun;
+use nerf::train::run_scene::SceneOverride;
+
+/// The run in `dir` on `device`, its scene where `--data` says, and a `note:` when the
+/// scene was found somewhere other than where the run says, or not at all.
+pub fn open_run(
+    dir: &Path,
+    device: nerf::engine::Device,
+    scene: &SceneOverride,
+) -> anyhow::Result<LoadedRun> {
+    let run = LoadedRun::open_with(dir, device, scene)?;
+    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
+        eprintln!("note: {note}");
+    }
+    Ok(run)
+}

@@ -6,7 +6,6 @@ use std::time::Instant;
 use anyhow::{bail, Result};
 use clap::Args;
 use nerf::mesh::export::write_mesh;
-use nerf::train::folder::LoadedRun;
 
 use crate::progress::bar;
 
@@ -44,10 +43,7 @@ pub fn run(a: PointsArgs) -> Result<()> {
     {
         bail!("{}: point clouds are written as .ply", a.out.display());
     }
-    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
-    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
-        eprintln!("note: {note}");
-    }
+    let run = super::open_run(&a.run, a.device.device, &a.scene)?;
     let config = &run.config;
     let scene = config.open_scene(a.downscale)?;
     let mut cameras = scene.cameras(nerf::data::Split::Train);

@@ -5,7 +5,6 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Args;
 use nerf::app::frames::{FrameProgress, FramesOptions, FramesReport};
-use nerf::train::folder::LoadedRun;
 
 use crate::progress::bar;
 
@@ -27,10 +26,7 @@ pub struct RenderArgs {
 }
 
 pub fn run(a: RenderArgs) -> Result<()> {
-    let run = LoadedRun::open_with(&a.run, a.device.device, &a.scene)?;
-    if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
-        eprintln!("note: {note}");
-    }
+    let run = super::open_run(&a.run, a.device.device, &a.scene)?;
     let out = a
         .out
         .clone()

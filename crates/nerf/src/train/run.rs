@@ -185,7 +185,8 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     };
     if !out.join(super::run_scene::SCENE_FILE).exists() {
         // What rendering needs of the scene, kept in the run (see `run_scene`).
-        super::run_scene::save_snapshot(out, &config.open_scene(1)?)?;
+        // At full resolution: a run's downscale applies when the scene is opened.
+        super::run_scene::save_snapshot(out, &super::run_scene::open(&config, 1)?)?;
     }
     if !from_checkpoint {
         if metrics_path.exists() {

@@ -93,13 +93,8 @@ pub fn open(config: &TrainConfig, downscale: usize) -> Result<Scene> {
     if let Some(dir) = looked.iter().find(|d| d.is_dir()) {
         return Scene::open(dir, &config.scene, downscale);
     }
-    let places: Vec<String> = looked.iter().map(|p| p.display().to_string()).collect();
     let run = config.read_from.0.as_deref().unwrap_or(Path::new("."));
-    let missing = format!(
-        "{}: the run's scene is not found (looked in {})",
-        run.display(),
-        places.join(", ")
-    );
+    let missing = format!("{}: {}", run.display(), not_found(&looked));
     if run.join(SCENE_FILE).is_file() {
         return Ok(SceneSnapshot::load(&run.join(SCENE_FILE))?.scene(downscale, missing));
     }
@@ -128,12 +123,20 @@ pub fn missing_note(config: &TrainConfig) -> Option<String> {
     if !run.join(SCENE_FILE).is_file() {
         return None;
     }
-    let places: Vec<String> = looked.iter().map(|p| p.display().to_string()).collect();
     Some(format!(
-        "the run's scene is not found (looked in {}): using the cameras the run keeps in \
-         {SCENE_FILE}; --data DIR says where the scene is",
-        places.join(", ")
+        "{}: using the cameras the run keeps in {SCENE_FILE}; --data DIR says where the \
+         scene is",
+        not_found(&looked)
     ))
+}
+
+/// "the run's scene is not found (looked in A, B, C)".
+fn not_found(looked: &[PathBuf]) -> String {
+    let places: Vec<String> = looked.iter().map(|p| p.display().to_string()).collect();
+    format!(
+        "the run's scene is not found (looked in {})",
+        places.join(", ")
+    )
 }
 
 /// Records the scene's cameras in the run folder (see [`SCENE_FILE`]).

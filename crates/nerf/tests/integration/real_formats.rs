@@ -127,6 +127,14 @@ fn llff_forward_facing_round_trips_and_trains_in_ndc() {
     assert_eq!((cams[0].width, cams[0].height), (48, 36));
     assert!((cams[0].fx - 0.5 * shots[1].camera.fx).abs() < 1e-3);
     assert_eq!(half.load(Split::Test, 1).expect("load").views.len(), 4);
+    // A run's record of the scene, taken at full resolution, gives the same cameras at
+    // --downscale 2 as images_2/ does.
+    let full = Scene::open(dir.path(), &SceneOptions::default(), 1).expect("open full");
+    let kept = nerf::data::snapshot::SceneSnapshot::of(&full).scene(2, String::new());
+    for (a, b) in kept.cameras(Split::Train).iter().zip(&cams) {
+        assert_eq!((a.width, a.height), (b.width, b.height));
+        assert!((a.fx - b.fx).abs() < 1e-3 && (a.cx - b.cx).abs() < 1e-3);
+    }
 
     // The fast model learns the scene in NDC space: held-out PSNR well above a blank guess.
     let mut config = crate::common::fast_config(dir.path(), 600);
