@@ -94,10 +94,6 @@ pub struct RenderedView {
     pub opacity: Vec<f32>,
 }
 
-/// Rays handed to the engine at a time: bounds the memory of big views (a 4K frame is 8 M
-/// rays) while keeping every thread busy.
-const SLAB_RAYS: usize = 1 << 16;
-
 /// Renders `camera`'s view; `on_progress` is called with the number of rays finished so far.
 pub fn render_view(
     engine: &dyn Engine,
@@ -106,8 +102,15 @@ pub fn render_view(
     on_progress: &(dyn Fn(usize) + Sync),
 ) -> RenderedView {
     let never = || false;
-    let out =
-        render_pixels(engine, camera, settings, SLAB_RAYS, on_progress, &never).unwrap_or_default();
+    let out = render_pixels(
+        engine,
+        camera,
+        settings,
+        engine.render_slab(),
+        on_progress,
+        &never,
+    )
+    .unwrap_or_default();
     RenderedView {
         width: camera.width,
         height: camera.height,

@@ -248,7 +248,12 @@ pub struct FrameProgress {
 #[derive(Clone, Debug)]
 pub struct FramesReport {
     pub frames: usize,
+    /// Wall time of the whole path, writing included.
     pub seconds: f64,
+    /// Time the engine spent rendering the frames (writing overlaps it).
+    pub render_seconds: f64,
+    /// The first frame's share of it (which includes compiling a GPU's kernels).
+    pub first_frame_seconds: f64,
     pub video: Option<VideoTarget>,
 }
 
@@ -279,48 +284,62 @@ pub fn render_frames(
     }
     let rays_total: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let t0 = Instant::now();
-    let mut done = 0;
-    let mut depth_range = opts.depth_range;
+    let mut render_seconds = 0.0;
+    let mut first_frame_seconds = 0.0;
     let mut gif_frames = Vec::new();
-    for (k, cam) in cameras.iter().enumerate() {
-        let progress = |rays_done| FrameProgress {
-            frame: k,
-            frames: cameras.len(),
-            rays_done,
-            rays_total,
-            frames_per_second: k as f64 / t0.elapsed().as_secs_f64().max(1e-9),
-        };
-        let r = render_view(run.engine.as_ref(), cam, &settings, &|n| {
-            on_progress(progress(done + n))
+    // Frames are written by a thread of their own while the next one renders, so the
+    // engine never waits on PNG encoding; at most two rendered frames wait to be written.
+    let (send, receive) = std::sync::mpsc::sync_channel::<FrameToWrite>(2);
+    let written = std::thread::scope(|scope| -> Result<()> {
+        let writer = scope.spawn(move || -> Result<()> {
+            for frame in receive {
+                frame.write(out)?;
+            }
+            Ok(())
         });
-        done += cam.width * cam.height;
-        save_rgb_png(
-            &out.join(format!("frame_{k:04}.png")),
-            r.width,
-            r.height,
-            &r.rgb,
-        )?;
-        let (near, far) = *depth_range.get_or_insert_with(|| {
-            crate::app::video::auto_depth_range(&r.depth, &r.opacity)
-                .unwrap_or((settings.near, settings.far))
-        });
-        save_rgb_png(
-            &out.join(format!("frame_{k:04}_depth.png")),
-            r.width,
-            r.height,
-            &crate::app::video::depth_turbo(&r.depth, &r.opacity, near, far),
-        )?;
-        let opacity: Vec<f32> = r.opacity.iter().flat_map(|&o| [o; 3]).collect();
-        save_rgb_png(
-            &out.join(format!("frame_{k:04}_opacity.png")),
-            r.width,
-            r.height,
-            &opacity,
-        )?;
-        if video.as_ref().is_some_and(|v| !v.mp4) {
-            gif_frames.push(r.rgb);
+        let mut done = 0;
+        let mut depth_range = opts.depth_range;
+        for (k, cam) in cameras.iter().enumerate() {
+            let progress = |rays_done| FrameProgress {
+                frame: k,
+                frames: cameras.len(),
+                rays_done,
+                rays_total,
+                frames_per_second: k as f64 / t0.elapsed().as_secs_f64().max(1e-9),
+            };
+            let started = Instant::now();
+            let r = render_view(run.engine.as_ref(), cam, &settings, &|n| {
+                on_progress(progress(done + n))
+            });
+            let seconds = started.elapsed().as_secs_f64();
+            render_seconds += seconds;
+            if k == 0 {
+                first_frame_seconds = seconds;
+            }
+            done += cam.width * cam.height;
+            let depth_range = *depth_range.get_or_insert_with(|| {
+                crate::app::video::auto_depth_range(&r.depth, &r.opacity)
+                    .unwrap_or((settings.near, settings.far))
+            });
+            if video.as_ref().is_some_and(|v| !v.mp4) {
+                gif_frames.push(r.rgb.clone());
+            }
+            let frame = FrameToWrite {
+                index: k,
+                view: r,
+                depth_range,
+            };
+            if send.send(frame).is_err() {
+                // The writer stopped on an error, which it returns below.
+                break;
+            }
         }
-    }
+        drop(send);
+        writer
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    });
+    written?;
     if let Some(v) = &video {
         if v.mp4 {
             crate::app::video::write_mp4(&out.join("frame_%04d.png"), &v.path, opts.fps)?;
@@ -331,6 +350,44 @@ pub fn render_frames(
     Ok(FramesReport {
         frames: cameras.len(),
         seconds: t0.elapsed().as_secs_f64(),
+        render_seconds,
+        first_frame_seconds,
         video,
     })
+}
+
+/// A rendered frame on its way to its three PNGs.
+struct FrameToWrite {
+    index: usize,
+    view: crate::views::RenderedView,
+    /// Depths mapped to the turbo colour map's ends.
+    depth_range: (f32, f32),
+}
+
+impl FrameToWrite {
+    /// Writes `frame_NNNN.png`, `_depth.png` and `_opacity.png` into `out`, side by side.
+    fn write(self, out: &Path) -> Result<()> {
+        let (r, k) = (&self.view, self.index);
+        let (near, far) = self.depth_range;
+        let rgb = || {
+            save_rgb_png(
+                &out.join(format!("frame_{k:04}.png")),
+                r.width,
+                r.height,
+                &r.rgb,
+            )
+        };
+        let depth = || {
+            let turbo = crate::app::video::depth_turbo(&r.depth, &r.opacity, near, far);
+            let path = out.join(format!("frame_{k:04}_depth.png"));
+            save_rgb_png(&path, r.width, r.height, &turbo)
+        };
+        let opacity = || {
+            let grey: Vec<f32> = r.opacity.iter().flat_map(|&o| [o; 3]).collect();
+            let path = out.join(format!("frame_{k:04}_opacity.png"));
+            save_rgb_png(&path, r.width, r.height, &grey)
+        };
+        let (a, (b, c)) = rayon::join(rgb, || rayon::join(depth, opacity));
+        a.and(b).and(c)
+    }
 }

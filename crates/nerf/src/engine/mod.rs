@@ -79,6 +79,9 @@ pub struct EngineState {
     pub buffers: Vec<f32>,
 }
 
+/// Rays per [`Engine::render_rays`] call of a whole view, unless the engine takes more.
+pub const RENDER_SLAB: usize = 1 << 16;
+
 /// A model behind an engine.
 pub trait Engine: Send + Sync {
     /// Which engine and device, for logs ("cpu, 2 threads").
@@ -105,6 +108,12 @@ pub trait Engine: Send + Sync {
         out: &mut [RayOutput],
         on_progress: &(dyn Fn(usize) + Sync),
     );
+
+    /// Rays a whole view hands to [`render_rays`](Self::render_rays) at a time: bounds the
+    /// memory of big views (a 4K frame is 8 M rays) while keeping the device busy.
+    fn render_slab(&self) -> usize {
+        RENDER_SLAB
+    }
 
     /// Densities at world `positions` (`n x 3`) into `out` (`n`).
     fn density(&self, positions: &[f32], out: &mut [f32]);

@@ -31,6 +31,11 @@ pub struct Gpu {
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
     /// scattered with a compare-and-swap loop on their bits.
     pub float_atomics: bool,
+    /// Whether rendering and density queries evaluate the fast field in one kernel per
+    /// batch (`fused`) rather than layer by layer: off unless `NERF_GPU_FIELD=fused`, since
+    /// on a data-centre GPU it rendered no faster than the layers while marching rounds
+    /// set the pace, and its compilation delays the first frame (docs/benchmarks.md).
+    pub fused_field: bool,
 }
 
 impl Gpu {
@@ -50,8 +55,10 @@ impl Gpu {
             _ if software => Path::Plain,
             _ => Path::Tiled,
         };
+        let fused_field = std::env::var("NERF_GPU_FIELD").as_deref() == Ok("fused");
         Gpu {
             matmul,
+            fused_field,
             name: format!(
                 "{runtime}: {}{}",
                 identity.name,

@@ -40,26 +40,38 @@ use crate::stage::{RayBatch, RayOutput};
 /// adapters and fails wgpu's validation. `gpu::open` refuses larger steps.
 pub const MAX_DEVICE_SAMPLES: usize = 1 << 19;
 
+/// Samples per rendering round when the field runs fused: it keeps no activations, so a
+/// round holds only the samples' positions, directions, depths and results (44 bytes each).
+pub const MAX_FUSED_ROUND: usize = 1 << 22;
+
 /// Rays per rendering chunk and samples per round of the renderer. A software adapter
 /// takes small ones (2^14 rays, 2^16 samples: 70 MB of activations per chunk in flight),
-/// where a round trip costs little beside the field; a hardware GPU larger ones (2^18 rays,
-/// 2^19 samples), fewer round trips, which measured faster on a data-centre GPU.
-/// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays
-/// and [`MAX_DEVICE_SAMPLES`] samples.
-fn render_sizes(gpu: &Gpu) -> (usize, usize) {
+/// where a round trip costs little beside the field. On a hardware GPU every round waits
+/// for the device once and passes over all of its chunk's rays, so chunks of a few ten
+/// thousand rays render a frame fastest (docs/benchmarks.md has the sizes measured):
+/// 2^15 rays and rounds of 2^18 samples layer by layer (whose activations cap a round at
+/// [`MAX_DEVICE_SAMPLES`]), 2^16 rays and 2^20 samples fused.
+/// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays and
+/// the round cap.
+fn render_sizes(gpu: &Gpu, fused: bool) -> (usize, usize) {
+    let max_round = if fused {
+        MAX_FUSED_ROUND
+    } else {
+        MAX_DEVICE_SAMPLES
+    };
     let from_env = std::env::var("NERF_GPU_RENDER").ok().and_then(|v| {
         let (chunk, round) = v.split_once(',')?;
         let log2 = |s: &str, max: u32| s.trim().parse::<u32>().ok().filter(|&l| l <= max);
-        let max_round = MAX_DEVICE_SAMPLES.trailing_zeros();
         Some((
             1usize << log2(chunk, 20)?,
-            1usize << log2(round, max_round)?,
+            1usize << log2(round, max_round.trailing_zeros())?,
         ))
     });
     match from_env {
         Some(sizes) => sizes,
         None if gpu.software => (1 << 14, 1 << 16),
-        None => (1 << 18, 1 << 19),
+        None if fused => (1 << 16, 1 << 20),
+        None => (1 << 15, 1 << 18),
     }
 }
 
@@ -125,13 +137,13 @@ impl GpuEngine {
     /// Densities of `positions` (`n x 3`, at most `DENSITY_CHUNK` points) into `out`.
     fn density_chunk(&self, positions: &[f32], out: &mut [f32]) -> Result<()> {
         let n = out.len();
-        let acts = self.field.density(
+        let sigma = self.field.infer_density(
             &self.gpu,
             &self.state.values,
             &self.gpu.upload(positions),
             n,
         );
-        out.copy_from_slice(&self.gpu.read(&acts.sigma, n)?);
+        out.copy_from_slice(&self.gpu.read(&sigma, n)?);
         Ok(())
     }
 
@@ -210,7 +222,7 @@ impl GpuEngine {
         }
         let dt = self.model.config.step_length();
         let (gpu, field, params) = (&self.gpu, &self.field, &self.state.values);
-        let density = |points: &Handle, n: usize| field.density(gpu, params, points, n).sigma;
+        let density = |points: &Handle, n: usize| field.infer_density(gpu, params, points, n);
         self.occupancy
             .update(gpu, &config, steps_done, seed, dt, &density);
         let cells = self.occupancy.cells();
@@ -376,13 +388,12 @@ impl Engine for GpuEngine {
         on_progress: &(dyn Fn(usize) + Sync),
     ) {
         // Few, large device calls: every round of the renderer is a round trip.
-        let (chunk_rays, round_samples) = render_sizes(&self.gpu);
+        let (chunk_rays, round_samples) = render_sizes(&self.gpu, self.field.is_fused());
         let chunk = self.chunk_rays.max(chunk_rays);
         let marcher = self.model.marcher(rays.near, rays.far);
         let (gpu, params) = (&self.gpu, &self.state.values);
         let field = |positions: &Handle, dirs: &Handle, n: usize| {
-            let acts = self.field.forward(gpu, params, positions, dirs, n);
-            (acts.sigma, acts.rgb)
+            self.field.infer(gpu, params, positions, dirs, n)
         };
         render_in_chunks(rays, out, chunk, on_progress, |part, out| {
             let rendered = render::render_rays(
@@ -400,6 +411,14 @@ impl Engine for GpuEngine {
                 Err(e) => fail_rays(&e, out),
             }
         });
+    }
+
+    /// A view goes to the device in chunks as large as its rendering takes (fewer calls,
+    /// each with its rays' spans made and uploaded at once).
+    fn render_slab(&self) -> usize {
+        render_sizes(&self.gpu, self.field.is_fused())
+            .0
+            .max(crate::engine::RENDER_SLAB)
     }
 
     fn density(&self, positions: &[f32], out: &mut [f32]) {

@@ -8,6 +8,7 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::device::Gpu;
+use super::fused::FusedShape;
 use super::hash_grid::{GpuHashGrid, Scatter};
 use super::launch::grid;
 use super::mlp::Dense;
@@ -139,6 +140,8 @@ pub struct GpuFastField {
     /// density 0, 1, colour 0, 1, 2.
     layers: [Dense; 5],
     scatter: Scatter,
+    /// The one-kernel inference (`fused`), where the adapter runs it and the switch allows.
+    fused: Option<FusedShape>,
 }
 
 impl GpuFastField {
@@ -150,8 +153,16 @@ impl GpuFastField {
             c.geo_features,
             field.colour_in_dims(),
         );
-        debug_assert_eq!(ci, SH_DIMS + g - 1);
         let off = field.weight_offsets();
+        let shape = FusedShape {
+            levels: field.grid.levels.len(),
+            hidden: w,
+            geo: g,
+            weights: off,
+            bound: c.bound,
+        };
+        // The fused kernel's colour input is the harmonics and the geometry features alone.
+        let fused = (gpu.fused_field && ci == SH_DIMS + g - 1 && shape.fits(gpu)).then_some(shape);
         let layer = |k: usize, inputs, outputs, relu| Dense {
             inputs,
             outputs,
@@ -177,6 +188,56 @@ impl GpuFastField {
             } else {
                 Scatter::CompareAndSwap
             },
+            fused,
+        }
+    }
+
+    /// Whether [`infer`](Self::infer) runs the one-kernel path.
+    pub fn is_fused(&self) -> bool {
+        self.fused.is_some()
+    }
+
+    /// Densities (`n`) and colours (`n x 3`) for rendering, with no activations kept: the
+    /// fused kernel where it runs, else [`forward`](Self::forward).
+    pub fn infer(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        positions: &Handle,
+        dirs: &Handle,
+        n: usize,
+    ) -> (Handle, Handle) {
+        match &self.fused {
+            Some(f) => f.infer(
+                gpu,
+                &self.grid,
+                params,
+                self.n_params,
+                positions,
+                Some(dirs),
+                n,
+            ),
+            None => {
+                let acts = self.forward(gpu, params, positions, dirs, n);
+                (acts.sigma, acts.rgb)
+            }
+        }
+    }
+
+    /// Densities (`n`) of `n` world `positions`, as [`infer`](Self::infer) does.
+    pub fn infer_density(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        positions: &Handle,
+        n: usize,
+    ) -> Handle {
+        match &self.fused {
+            Some(f) => {
+                f.infer(gpu, &self.grid, params, self.n_params, positions, None, n)
+                    .0
+            }
+            None => self.density(gpu, params, positions, n).sigma,
         }
     }
 

@@ -16,11 +16,11 @@ const PRIME_Z: u32 = 805_459_861;
 /// Threads per workgroup.
 const GROUP: u32 = 256;
 /// `u32`s describing one level to the kernels: resolution, entries, dense (0/1), offset.
-const LEVEL_WORDS: usize = 4;
+pub(super) const LEVEL_WORDS: usize = 4;
 
 /// Table index of grid vertex `(x, y, z)` of a level.
 #[cube]
-fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
+pub(super) fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
     let s = res + 1;
     let indexed = x + s * (y + s * z);
     // u32 products wrap on every backend, as `wrapping_mul` does on the CPU.
@@ -28,13 +28,20 @@ fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
     select(dense == 1, indexed, hashed) as usize
 }
 
-/// Where thread `t`'s sample sits in level `l`'s grid: the cell's corner and the fractions.
+/// Where sample `s` of `points` sits in a level's grid of `res` cells a side: the cell's
+/// corner and the fractions.
 #[cube]
 fn cell(points: &[f32], s: usize, res: u32) -> (u32, u32, u32, f32, f32, f32) {
+    cell_at(points[3 * s], points[3 * s + 1], points[3 * s + 2], res)
+}
+
+/// [`cell`] of the unit-cube point `(x, y, z)`.
+#[cube]
+pub(super) fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, f32, f32) {
     let rf = f32::cast_from(res);
-    let px = f32::clamp(points[3 * s], 0.0, 1.0) * rf;
-    let py = f32::clamp(points[3 * s + 1], 0.0, 1.0) * rf;
-    let pz = f32::clamp(points[3 * s + 2], 0.0, 1.0) * rf;
+    let px = f32::clamp(x, 0.0, 1.0) * rf;
+    let py = f32::clamp(y, 0.0, 1.0) * rf;
+    let pz = f32::clamp(z, 0.0, 1.0) * rf;
     let cx = u32::min(u32::cast_from(px), res - 1);
     let cy = u32::min(u32::cast_from(py), res - 1);
     let cz = u32::min(u32::cast_from(pz), res - 1);
@@ -50,7 +57,7 @@ fn cell(points: &[f32], s: usize, res: u32) -> (u32, u32, u32, f32, f32, f32) {
 
 /// Trilinear weight of corner `k` (bit 0: +x, bit 1: +y, bit 2: +z).
 #[cube]
-fn weight(k: u32, fx: f32, fy: f32, fz: f32) -> f32 {
+pub(super) fn weight(k: u32, fx: f32, fy: f32, fz: f32) -> f32 {
     let wx = select((k & 1) == 1, fx, 1.0 - fx);
     let wy = select(((k >> 1) & 1) == 1, fy, 1.0 - fy);
     let wz = select(((k >> 2) & 1) == 1, fz, 1.0 - fz);
@@ -168,8 +175,8 @@ pub enum Scatter {
 
 /// A hash grid's level table on the device.
 pub struct GpuHashGrid {
-    levels: Handle,
-    n_levels: usize,
+    pub(super) levels: Handle,
+    pub(super) n_levels: usize,
     num_params: usize,
 }
 

@@ -10,6 +10,17 @@ use crate::error::{NerfError, Result};
 /// Workgroups along x before a grid spills into y (Vulkan guarantees 65535 per axis).
 const MAX_GROUPS_X: u32 = 32768;
 
+/// Threads per workgroup of the fill kernel.
+const FILL_GROUP: u32 = 256;
+
+#[cube(launch_unchecked)]
+fn fill_zero(v: &mut [u32]) {
+    let i = ABSOLUTE_POS;
+    if i < v.len() {
+        v[i] = 0;
+    }
+}
+
 /// A one-dimensional launch of at least `threads` threads in workgroups of `group`.
 /// `ABSOLUTE_POS` counts threads linearly across both axes; kernels bounds-check it, since
 /// the last workgroup (and, past 32768 workgroups, the last row) runs over.
@@ -42,9 +53,26 @@ impl Gpu {
         self.client.empty(n.max(1) * 4)
     }
 
-    /// A device buffer of `n` zeros.
+    /// A device buffer of `n` zeros (filled on the device: nothing crosses the bus).
     pub fn zeros(&self, n: usize) -> Handle {
-        self.upload(&vec![0.0; n.max(1)])
+        self.zeros_u32(n)
+    }
+
+    /// A device buffer of `n` zero `u32`s (the bits of `0.0f32` too).
+    pub fn zeros_u32(&self, n: usize) -> Handle {
+        let n = n.max(1);
+        let h = self.client.empty(n * 4);
+        let (count, dim) = grid(n, FILL_GROUP);
+        // SAFETY: `h` holds `n` words and the kernel bounds-checks its index against them.
+        unsafe {
+            fill_zero::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(h.clone(), n),
+            );
+        }
+        h
     }
 
     /// The first `n` floats of `h`, read back (waits for the work that writes them).

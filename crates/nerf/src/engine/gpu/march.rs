@@ -13,6 +13,7 @@
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
+use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
 use super::device::Gpu;
 use super::launch::grid;
@@ -386,26 +387,26 @@ impl GpuRays {
         jitter: &[f32],
     ) -> Self {
         let n = rays.len();
-        let (mut dirs, mut views) = (Vec::with_capacity(n * 3), Vec::with_capacity(n * 3));
-        let (mut start, mut end) = (Vec::with_capacity(n), Vec::with_capacity(n));
-        for r in 0..n {
-            let (o, dir) = (rays.origins[r], rays.dirs[r]);
-            let norm = length(dir);
-            let d = scale(dir, 1.0 / norm);
-            let view = scale(rays.view_dirs[r], 1.0 / length(rays.view_dirs[r]));
-            dirs.extend_from_slice(&d);
-            views.extend_from_slice(&view);
-            match marcher.span(grid, o, d, norm) {
-                Some((t0, t1)) => {
-                    start.push(t0 + jitter[r] * marcher.dt);
-                    end.push(t1);
-                }
-                None => {
-                    start.push(0.0);
-                    end.push(0.0);
-                }
-            }
-        }
+        // Per ray: unit direction, unit view direction, span; in parallel (a frame is a
+        // million rays, made while the device waits).
+        let per_ray: Vec<([f32; 3], [f32; 3], [f32; 2])> = (0..n)
+            .into_par_iter()
+            .map(|r| {
+                let (o, dir) = (rays.origins[r], rays.dirs[r]);
+                let norm = length(dir);
+                let d = scale(dir, 1.0 / norm);
+                let view = scale(rays.view_dirs[r], 1.0 / length(rays.view_dirs[r]));
+                let span = match marcher.span(grid, o, d, norm) {
+                    Some((t0, t1)) => [t0 + jitter[r] * marcher.dt, t1],
+                    None => [0.0, 0.0],
+                };
+                (d, view, span)
+            })
+            .collect();
+        let dirs: Vec<f32> = per_ray.iter().flat_map(|p| p.0).collect();
+        let views: Vec<f32> = per_ray.iter().flat_map(|p| p.1).collect();
+        let start: Vec<f32> = per_ray.iter().map(|p| p.2[0]).collect();
+        let end: Vec<f32> = per_ray.iter().map(|p| p.2[1]).collect();
         GpuRays {
             origins: gpu.upload(rays.origins.as_flattened()),
             dirs: gpu.upload(&dirs),
@@ -437,7 +438,7 @@ impl RoundState {
         state.iter_mut().step_by(STATE_WORDS).for_each(|t| *t = 1.0);
         RoundState {
             state: gpu.upload(&state),
-            taken: gpu.upload_u32(&vec![0; n.max(1)]),
+            taken: gpu.zeros_u32(n),
             rays,
         }
     }
@@ -509,7 +510,7 @@ impl GpuMarcher {
     /// Passes 1 and 2: counts every ray's samples and scans them into slots.
     pub fn count(&self, gpu: &Gpu, rays: &GpuRays) -> Counted {
         let n = rays.len;
-        let counts = gpu.upload_u32(&vec![0; n.max(1)]);
+        let counts = gpu.zeros_u32(n);
         if n > 0 {
             let none = gpu.floats(1);
             let unused = gpu.upload_u32(&[0]);
@@ -647,7 +648,7 @@ impl GpuMarcher {
         let (t, dt) = (gpu.floats(n), gpu.floats(n));
         let (positions, dirs) = (gpu.floats(3 * n), gpu.floats(3 * n));
         // CSR offsets of the kept rays: their slots, then the total.
-        let offsets = gpu.upload_u32(&vec![0; k + 1]);
+        let offsets = gpu.zeros_u32(k + 1);
         if k > 0 {
             let out = PackOutputs {
                 t: t.clone(),
@@ -686,7 +687,7 @@ impl GpuMarcher {
     /// at most `per_ray`, from where its last round stopped; then the counts are scanned.
     pub fn count_round(&self, gpu: &Gpu, round: &RoundState, per_ray: usize) -> Counted {
         let n = round.rays.len;
-        let counts = gpu.upload_u32(&vec![0; n.max(1)]);
+        let counts = gpu.zeros_u32(n);
         if n > 0 {
             // SAFETY: `count` plus the round's state (`taken`: `n`, `state`: `STATE_WORDS n`);
             // the count pass writes only `counts[r]` for `r < n`.
@@ -828,12 +829,12 @@ impl PackOutputs {
 
 /// The exclusive prefix sums of `n` counts (passes 1 to 3 of the scan).
 fn scan(gpu: &Gpu, counts: &Handle, n: usize) -> Handle {
-    let offsets = gpu.upload_u32(&vec![0; n.max(1)]);
+    let offsets = gpu.zeros_u32(n);
     if n == 0 {
         return offsets;
     }
     let blocks = n.div_ceil(SCAN_BLOCK);
-    let totals = gpu.upload_u32(&vec![0; blocks + 1]);
+    let totals = gpu.zeros_u32(blocks + 1);
     // SAFETY: `counts` and `offsets` hold `n` values, `totals` `blocks + 1`; each pass
     // bounds-checks its index against `n` or `blocks`.
     unsafe {

@@ -33,6 +33,7 @@ pub mod device;
 pub mod engine;
 pub mod field;
 pub mod finite;
+pub mod fused;
 pub mod gemm;
 pub mod hash_grid;
 pub mod launch;
