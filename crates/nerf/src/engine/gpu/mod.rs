@@ -15,6 +15,8 @@
 //! * [`field`]: the fast field forward and backward, built from [`hash_grid`] (the
 //!   multiresolution hash encoding; gradients scattered with float atomics, or a
 //!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
+//!   [`fused`]: the same field's inference in one kernel per batch, for rendering and
+//!   density queries (`NERF_GPU_FIELD=fused`);
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient;
