@@ -82,7 +82,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     crate::camera::check_image_size(opts.render_size, opts.render_size)
         .map_err(|m| NerfError::Config(format!("--render-size: {m}")))?;
     let mut model = opts.model.clone();
-    let (data, scene, camera) = match &opts.data {
+    let (data, scene, camera, blender) = match &opts.data {
         Some(dir) => {
             say(format!("loading {}...", dir.display()));
             let scene = Scene::open(dir, &SceneOptions::default(), 1)?;
@@ -90,7 +90,8 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
             model.contract = scene.contract;
             let train = scene.load(Split::Train, 1)?;
             let camera = scene.cameras(Split::Test).into_iter().next();
-            (train, dir.display().to_string(), camera)
+            let blender = scene.format == crate::data::scene::Format::Blender;
+            (train, dir.display().to_string(), camera, blender)
         }
         None => {
             say("rendering the built-in chair to train on (100x100, 40 views)...".into());
@@ -104,6 +105,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
                 synth::dataset(&synth_opts, Split::Train, 40),
                 "built-in chair".into(),
                 None,
+                true,
             )
         }
     };
@@ -115,16 +117,33 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
             crate::camera::look_at([0.0, -4.0, 1.5], [0.0; 3], [0.0, 0.0, 1.0]),
         )
     });
-    let on_cpu = crate::engine::runs_on_cpu(opts.device);
-    let ndc = data.space != crate::camera::ray_space::RaySpace::World;
-    let antialias = crate::engine::antialias_by_default(
-        opts.antialias == Some(true),
-        opts.antialias == Some(false) || ndc,
-        on_cpu,
-    );
-    model.distortion = opts
-        .distortion
-        .unwrap_or_else(|| crate::train::options::distortion_by_default(&data.space, on_cpu));
+    // The step `nerf train` would take on this scene and device, less the per-photo
+    // corrections (the bench measures the field's step).
+    use crate::train::defaults::{self, Choice};
+    let flags = defaults::Flags {
+        antialias: match opts.antialias {
+            Some(true) => Choice::On(()),
+            Some(false) => Choice::Off,
+            None => Choice::Default,
+        },
+        appearance: Choice::Off,
+        refine_cameras: Choice::Off,
+        distortion: opts.distortion.map_or(Choice::Default, Choice::On),
+    };
+    let has_gpu =
+        opts.device == crate::engine::Device::Auto && crate::engine::hardware_gpu_present();
+    let (engine, engine_note) = defaults::engine_for(opts.device, has_gpu, &flags);
+    let facts = defaults::SceneFacts {
+        blender,
+        space: data.space,
+        multiscale: 1,
+    };
+    let chosen = defaults::fast_defaults(&facts, engine, &flags);
+    for note in engine_note.into_iter().chain(chosen.notes) {
+        say(note);
+    }
+    let antialias = chosen.antialias;
+    model.distortion = chosen.distortion;
     if antialias {
         let cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
         model.antialias_for(&cameras, &data.space);

@@ -194,7 +194,7 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
     let engine = trainer.engine.describe();
     Ok(BenchReport {
         threads,
-        on_cpu: engine.starts_with("cpu"),
+        on_cpu: trainer.engine.kind() == crate::engine::caps::EngineKind::Cpu,
         engine,
         preset: opts.preset.clone(),
         gemm_gflops_one_thread: gemm_one,

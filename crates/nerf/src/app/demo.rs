@@ -106,16 +106,26 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         opts.steps
     ));
     let mut config = train_config(scene.clone(), opts.steps);
-    // Anti-aliased where `nerf train` would be (the CPU engine).
-    if crate::engine::antialias_by_default(
-        false,
-        false,
-        crate::engine::runs_on_cpu(opts.device.device),
-    ) {
-        let opened = config.open_scene(1)?;
-        if let crate::model::ModelConfig::Fast(m) = &mut config.model {
+    // The features `nerf train` would give the built-in chair on this device.
+    let flags = crate::train::defaults::Flags::default();
+    let device = opts.device.device;
+    let has_gpu = device == crate::engine::Device::Auto && crate::engine::hardware_gpu_present();
+    let (engine, _) = crate::train::defaults::engine_for(device, has_gpu, &flags);
+    let opened = config.open_scene(1)?;
+    let facts = crate::train::defaults::SceneFacts {
+        blender: opened.format == crate::data::scene::Format::Blender,
+        space: opened.space,
+        multiscale: 1,
+    };
+    let chosen = crate::train::defaults::fast_defaults(&facts, engine, &flags);
+    for note in &chosen.notes {
+        hooks.say(note);
+    }
+    if let crate::model::ModelConfig::Fast(m) = &mut config.model {
+        if chosen.antialias {
             m.antialias_for(&opened.cameras(Split::Train), &opened.space);
         }
+        m.distortion = chosen.distortion;
     }
     let run_options = RunOptions {
         out: run_dir.clone(),

@@ -101,6 +101,10 @@ impl<M: Model> Engine for CpuEngine<M> {
         format!("cpu, {} threads", rayon::current_num_threads())
     }
 
+    fn kind(&self) -> super::caps::EngineKind {
+        super::caps::EngineKind::Cpu
+    }
+
     fn model_config(&self) -> &ModelConfig {
         &self.config
     }

@@ -7,8 +7,9 @@
 //! queries. State crosses the seam only as host copies ([`EngineState`]) for checkpoints,
 //! so every engine reads and writes the same checkpoint files. [`cpu::CpuEngine`] is the
 //! reference engine; `gpu::engine::GpuEngine` (feature `wgpu`) is the second, and
-//! [`open_on`] picks one for a [`Device`].
+//! [`open_on`] picks one for a [`Device`]. [`caps`] says which features each one runs.
 
+pub mod caps;
 pub mod cpu;
 #[cfg(feature = "wgpu")]
 pub mod gpu;
@@ -86,6 +87,9 @@ pub const RENDER_SLAB: usize = 1 << 16;
 pub trait Engine: Send + Sync {
     /// Which engine and device, for logs ("cpu, 2 threads").
     fn describe(&self) -> String;
+
+    /// Which engine this is (what it runs: `caps`).
+    fn kind(&self) -> caps::EngineKind;
 
     fn model_config(&self) -> &ModelConfig;
 
@@ -195,31 +199,15 @@ pub fn open_on(
     }
 }
 
-/// Whether a run asking for `device` ends up on the CPU engine: `cpu`, or `auto` on a
-/// machine with no hardware GPU (probes the adapters, as opening one does). Defaults that
-/// only the CPU engine supports (anti-aliasing) follow it.
-pub fn runs_on_cpu(device: Device) -> bool {
-    match device {
-        Device::Cpu => true,
-        Device::Wgpu | Device::Cuda => false,
-        #[cfg(feature = "wgpu")]
-        Device::Auto => {
-            gpu::device::Gpu::cuda().is_err() && gpu::device::Gpu::wgpu_hardware().is_none()
-        }
-        #[cfg(not(feature = "wgpu"))]
-        Device::Auto => true,
+/// Whether `--device auto` finds a hardware GPU here (probes the adapters, as opening one
+/// does): CUDA, else a wgpu adapter that is not a software one.
+pub fn hardware_gpu_present() -> bool {
+    #[cfg(feature = "wgpu")]
+    {
+        gpu::device::Gpu::cuda().is_ok() || gpu::device::Gpu::wgpu_hardware().is_some()
     }
-}
-
-/// Whether the fast model anti-aliases given `--antialias` / `--no-antialias`: as asked,
-/// else when the run will be on the CPU engine (`on_cpu`, from [`runs_on_cpu`]: the GPU
-/// kernels do not anti-alias yet).
-pub fn antialias_by_default(on: bool, off: bool, on_cpu: bool) -> bool {
-    match (on, off) {
-        (true, _) => true,
-        (_, true) => false,
-        _ => on_cpu,
-    }
+    #[cfg(not(feature = "wgpu"))]
+    false
 }
 
 /// Renders `rays` into `out` in chunks of `chunk` rays, in parallel, `render_chunk` doing

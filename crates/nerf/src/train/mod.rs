@@ -9,6 +9,7 @@
 //! rays of a step are a function of the seed and the step alone (`data::pixels`), so a run
 //! gives the same rays and samples for any thread count; [`run`] adds the run folder.
 
+pub mod defaults;
 pub mod folder;
 pub mod lock;
 pub mod options;

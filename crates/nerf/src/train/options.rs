@@ -5,6 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
+use super::defaults;
 use super::run::{RunOptions, CONFIG_FILE};
 use super::TrainConfig;
 use crate::data::scene::SceneOptions;
@@ -193,42 +194,34 @@ fn world_space(scene: &crate::data::scene::Scene) -> bool {
     scene.space == crate::camera::ray_space::RaySpace::World
 }
 
-/// Appearance codes per photo when real captures get them by default.
-const DEFAULT_APPEARANCE_DIMS: u32 = 16;
-
-/// Whether the fast model learns per-photo corrections (a pose correction and an
-/// appearance code) unless told otherwise: for real captures, whose poses come from
-/// structure from motion and are never exact and whose photos drift in exposure, but not
-/// for Blender scenes (rendered: exact poses, one look), forward-facing NDC scenes (not
-/// measured there yet) or on a GPU (`on_cpu` false: its kernels do neither yet). Both come
-/// together: refinement alone lets the poses absorb exposure changes.
-fn learns_photo_corrections(scene: &crate::data::scene::Scene, on_cpu: bool) -> bool {
-    scene.format != crate::data::scene::Format::Blender && world_space(scene) && on_cpu
-}
-
-/// The weight of the distortion loss a run gets unless told otherwise: forward-facing
-/// captures marched in NDC grow fog in front of what they see (a textureless or distant
-/// background has no one depth), which every rendered ray then walks through; on the CPU
-/// engine (the GPU engine's kernels lack the loss) they get [`FORWARD_FACING_DISTORTION`].
-/// Bounded and contracted scenes get none (their figures were measured without it).
-pub fn distortion_by_default(space: &crate::camera::ray_space::RaySpace, on_cpu: bool) -> f32 {
-    if on_cpu && *space != crate::camera::ray_space::RaySpace::World {
-        FORWARD_FACING_DISTORTION
-    } else {
-        0.0
-    }
-}
-
-/// The distortion weight of forward-facing (NDC) scenes: the weight where rendering got
-/// several times faster for a small loss of PSNR; five times it bought a little more speed
-/// for about twice the loss (figures in `docs/benchmarks.md`).
-pub const FORWARD_FACING_DISTORTION: f32 = 1e-4;
-
 fn refuse<T>(message: String) -> Result<T> {
     Err(NerfError::Config(message))
 }
 
 impl TrainOptions {
+    /// The flags of the features whose defaults `defaults::fast_defaults` decides.
+    fn feature_flags(&self) -> defaults::Flags {
+        use defaults::Choice;
+        defaults::Flags {
+            antialias: Choice::from_flags(self.antialias, self.no_antialias),
+            appearance: match (self.appearance, self.no_appearance) {
+                (Some(dims), _) => Choice::On(dims),
+                (None, true) => Choice::Off,
+                (None, false) => Choice::Default,
+            },
+            // A camera learning rate asks for refinement.
+            refine_cameras: Choice::from_flags(
+                self.refine_cameras || self.camera_lr.is_some(),
+                self.no_refine_cameras,
+            ),
+            distortion: match (self.distortion, self.no_distortion) {
+                (Some(w), _) => Choice::On(w as f32),
+                (None, true) => Choice::Off,
+                (None, false) => Choice::Default,
+            },
+        }
+    }
+
     /// The model: `--model`, else vanilla when a preset is named, else fast.
     pub fn model(&self) -> Result<ModelKind> {
         match (self.model, &self.preset) {
@@ -324,19 +317,7 @@ impl TrainOptions {
             ModelConfig::Fast(m) => {
                 m.field.bound = self.bound.unwrap_or(scene.bound);
                 m.contract = scene.contract && !self.no_contract;
-                // Forward-facing NDC captures see everything from about one distance;
-                // there anti-aliasing measured worse on the built-in rug, so it is on
-                // there only when asked for.
                 let ndc = !world_space(&scene);
-                // Probing the adapters takes a moment: once for both defaults below.
-                let on_cpu = crate::engine::runs_on_cpu(self.device.device);
-                if crate::engine::antialias_by_default(
-                    self.antialias,
-                    self.no_antialias || ndc,
-                    on_cpu,
-                ) {
-                    m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
-                }
                 if c.multiscale > 1
                     && (self.appearance.is_some()
                         || self.refine_cameras
@@ -349,40 +330,31 @@ impl TrainOptions {
                             .into(),
                     );
                 }
-                let real_capture = c.multiscale == 1 && learns_photo_corrections(&scene, on_cpu);
-                let appearance = match self.appearance {
-                    Some(dims) => Some(dims),
-                    None if real_capture && !self.no_appearance => {
-                        on_notice(
-                            "note: learning a look per photo (the default for real captures; \
-                             --no-appearance turns it off)",
-                        );
-                        Some(DEFAULT_APPEARANCE_DIMS)
-                    }
-                    None => None,
+                let flags = self.feature_flags();
+                // Probing the adapters takes a moment: once, for every default.
+                let has_gpu = self.device.device == crate::engine::Device::Auto
+                    && crate::engine::hardware_gpu_present();
+                let (engine, engine_note) =
+                    defaults::engine_for(self.device.device, has_gpu, &flags);
+                let facts = defaults::SceneFacts {
+                    blender: scene.format == crate::data::scene::Format::Blender,
+                    space: scene.space,
+                    multiscale: c.multiscale,
                 };
-                m.distortion = match self.distortion {
-                    Some(w) => w as f32,
-                    None if self.no_distortion => 0.0,
-                    None => {
-                        let w = distortion_by_default(&scene.space, on_cpu);
-                        if w > 0.0 {
-                            on_notice(&format!(
-                                "note: distortion loss {w} against fog (the default for \
-                                 forward-facing scenes: views render 2-5x faster; \
-                                 --no-distortion turns it off)"
-                            ));
-                        }
-                        w
-                    }
-                };
-                if let Some(dims) = appearance {
+                let d = defaults::fast_defaults(&facts, engine, &flags);
+                for note in engine_note.iter().chain(&d.notes) {
+                    on_notice(note);
+                }
+                if d.antialias {
+                    m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
+                }
+                m.distortion = d.distortion;
+                if let Some(dims) = d.appearance {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
                 }
-                let asked = self.refine_cameras || self.camera_lr.is_some();
-                let refine = asked || (real_capture && !self.no_refine_cameras);
-                if refine {
+                let asked = d.refine_asked;
+                if d.refine_cameras {
                     let mut r =
                         crate::model::camera_refine::CameraRefinement::new(scene.train.len());
                     r.frame = crate::model::camera_refine::Frame::for_space(scene.space);
@@ -776,7 +748,7 @@ mod tests {
         assert_eq!(weight(&c), Some(0.0));
         let llff = tiny_llff();
         let c = config(&["--device", "cpu"], llff.path()).expect("llff");
-        assert_eq!(weight(&c), Some(FORWARD_FACING_DISTORTION));
+        assert_eq!(weight(&c), Some(defaults::FORWARD_FACING_DISTORTION));
         assert!(weight(&c) > Some(0.0), "on by default");
         // The GPU engine's kernels lack the loss: not its default there.
         let c = config(&["--device", "wgpu"], llff.path()).expect("gpu");
@@ -842,7 +814,10 @@ mod tests {
         assert_eq!(r.lr_init, crate::model::camera_refine::DEFAULT_LR);
         assert_eq!(r.delay, crate::model::camera_refine::SMALL_ERROR_DELAY);
         let train = c.open_scene(1).expect("scene").train.len();
-        assert_eq!(codes(&c), (DEFAULT_APPEARANCE_DIMS as usize, train));
+        assert_eq!(
+            codes(&c),
+            (defaults::DEFAULT_APPEARANCE_DIMS as usize, train)
+        );
         assert_eq!(codes(&config(&cpu, blender.path()).expect("blender")).0, 0);
         let off = config(&["--device", "cpu", "--no-refine-cameras"], real.path()).expect("off");
         assert!(refinement(&off).is_none());

@@ -254,6 +254,10 @@ impl GpuEngine {
 }
 
 impl Engine for GpuEngine {
+    fn kind(&self) -> crate::engine::caps::EngineKind {
+        crate::engine::caps::EngineKind::Gpu
+    }
+
     fn describe(&self) -> String {
         format!(
             "{}{}",

@@ -50,7 +50,7 @@ pub mod vanilla;
 pub mod vanilla_net;
 pub mod volume;
 
-use crate::engine::{Device, Engine, EngineOptions};
+use crate::engine::{caps, Device, Engine, EngineOptions};
 use crate::error::{NerfError, Result};
 use crate::model::ModelConfig;
 
@@ -62,19 +62,10 @@ pub fn open(
     options: EngineOptions,
     seed: u64,
 ) -> Result<Box<dyn Engine>> {
-    // Appearance codes, camera refinement, the distortion loss and anti-aliasing have no
-    // GPU kernels yet:
-    // `auto` picks the CPU.
-    let cpu_only = match model {
-        ModelConfig::Fast(c) => {
-            c.field.appearance_dims > 0
-                || c.refine_cameras.is_some()
-                || c.field.antialias.is_some()
-                || c.distortion > 0.0
-        }
-        ModelConfig::Vanilla(c) => c.integrated || c.shared_network,
-    };
-    if cpu_only && device == Device::Auto {
+    // What the GPU engine does not run yet (`caps`): `auto` takes the CPU (the trainer
+    // has said so: `train::defaults::engine_for`), an asked-for GPU refuses by name.
+    let refusal = caps::refusal(caps::EngineKind::Gpu, model);
+    if refusal.is_some() && device == Device::Auto {
         return Ok(super::open(model, options, seed));
     }
     let gpu = match device {
@@ -86,19 +77,10 @@ pub fn open(
             None => return Ok(super::open(model, options, seed)),
         },
     };
+    if let Some(why) = refusal {
+        return Err(NerfError::Device(why));
+    }
     match model {
-        ModelConfig::Vanilla(_) if cpu_only => Err(NerfError::Device(
-            "mip-NeRF's frustums and shared network (--preset mip) run on the CPU engine \
-             only so far; use --device cpu"
-                .into(),
-        )),
-        ModelConfig::Fast(_) if cpu_only => Err(NerfError::Device(
-            "per-photo appearance codes (--appearance), camera refinement \
-             (--refine-cameras), the distortion loss (--distortion) and anti-aliasing \
-             (--antialias; trained without it: --no-antialias) run on the CPU engine only \
-             so far; use --device cpu"
-                .into(),
-        )),
         ModelConfig::Fast(config) if config.batch_samples > engine::MAX_DEVICE_SAMPLES => {
             Err(NerfError::Config(format!(
                 "--samples {}: the GPU engine takes at most {} samples a step (more would \
@@ -152,6 +134,39 @@ mod tests {
         let text = e.to_string();
         assert!(
             text.contains("--samples 1048576") && text.contains("524288"),
+            "{text}"
+        );
+    }
+
+    /// A feature the GPU engine does not run is refused by name when the GPU is asked for,
+    /// with the way out, and `auto` takes the CPU engine for it.
+    #[test]
+    fn what_the_gpu_does_not_run_is_refused_by_name() {
+        let mut config = FastModelConfig::default();
+        config.field.appearance_dims = 4;
+        config.field.appearance_images = 3;
+        let model = ModelConfig::Fast(config);
+        let missing = caps::EngineKind::Gpu.missing(&model);
+        if missing.is_empty() {
+            eprintln!("skipping: the GPU engine runs appearance codes");
+            return;
+        }
+        let options = || EngineOptions {
+            adam: crate::nn::adam::AdamConfig::default(),
+            chunk_rays: 64,
+            check_finite: false,
+        };
+        let auto = open(Device::Auto, &model, options(), 0).expect("auto");
+        assert_eq!(auto.kind(), caps::EngineKind::Cpu);
+        if device::test_gpu().is_none() {
+            return;
+        }
+        let Err(e) = open(Device::Wgpu, &model, options(), 0) else {
+            panic!("the GPU engine took appearance codes");
+        };
+        let text = e.to_string();
+        assert!(
+            text.contains("--appearance") && text.contains("--device cpu"),
             "{text}"
         );
     }

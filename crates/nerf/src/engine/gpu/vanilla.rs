@@ -201,6 +201,10 @@ impl GpuVanillaEngine {
 }
 
 impl Engine for GpuVanillaEngine {
+    fn kind(&self) -> crate::engine::caps::EngineKind {
+        crate::engine::caps::EngineKind::Gpu
+    }
+
     fn describe(&self) -> String {
         self.gpu.name.clone()
     }

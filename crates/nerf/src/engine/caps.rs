@@ -1,0 +1,198 @@
+//! What each engine can run: the one table the rest of the code asks. A run's defaults
+//! (`train::defaults`) turn a feature on only where its engine runs it; opening an engine
+//! for a configuration that uses a feature the engine lacks is refused by name, with the
+//! way out; `--device auto` says when such a run goes to the CPU. A feature that gains
+//! kernels on an engine changes its row here and nowhere else.
+
+use crate::model::ModelConfig;
+
+/// The engines.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum EngineKind {
+    /// The CPU engine: every feature.
+    Cpu,
+    /// The GPU engine (wgpu or CUDA).
+    Gpu,
+}
+
+/// A feature of a run that not every engine may run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Feature {
+    /// Cone footprints and the scale-aware hash grid (`--antialias`, `--multiscale`).
+    Antialias,
+    /// A learned appearance code per training photo (`--appearance`).
+    Appearance,
+    /// Pose corrections learned with the field (`--refine-cameras`), and eval's fitting of
+    /// the test poses that follows from it.
+    CameraRefinement,
+    /// mip-NeRF 360's distortion loss (`--distortion`).
+    Distortion,
+    /// The paper model's integrated positional encoding and shared network (`--preset mip`).
+    Mip,
+}
+
+/// Which engine runs which feature: `(feature, CPU, GPU)`.
+const TABLE: [(Feature, bool, bool); 5] = [
+    (Feature::Antialias, true, false),
+    (Feature::Appearance, true, false),
+    (Feature::CameraRefinement, true, false),
+    (Feature::Distortion, true, false),
+    (Feature::Mip, true, false),
+];
+
+impl Feature {
+    /// Every feature, in the table's order.
+    pub const ALL: [Feature; 5] = [
+        Feature::Antialias,
+        Feature::Appearance,
+        Feature::CameraRefinement,
+        Feature::Distortion,
+        Feature::Mip,
+    ];
+
+    /// Its name and the flags that ask for it and turn it off, for messages.
+    pub fn describe(self) -> &'static str {
+        match self {
+            Feature::Antialias => "anti-aliasing (--antialias; turned off by --no-antialias)",
+            Feature::Appearance => {
+                "per-photo appearance codes (--appearance; turned off by --no-appearance)"
+            }
+            Feature::CameraRefinement => {
+                "camera refinement (--refine-cameras; turned off by --no-refine-cameras)"
+            }
+            Feature::Distortion => {
+                "the distortion loss (--distortion; turned off by --no-distortion)"
+            }
+            Feature::Mip => "mip-NeRF's frustums and shared network (--preset mip)",
+        }
+    }
+
+    /// The features `model` uses.
+    pub fn used_by(model: &ModelConfig) -> Vec<Feature> {
+        Feature::ALL
+            .into_iter()
+            .filter(|f| match (f, model) {
+                (Feature::Antialias, ModelConfig::Fast(c)) => c.field.antialias.is_some(),
+                (Feature::Appearance, ModelConfig::Fast(c)) => c.field.appearance_dims > 0,
+                (Feature::CameraRefinement, ModelConfig::Fast(c)) => c.refine_cameras.is_some(),
+                (Feature::Distortion, ModelConfig::Fast(c)) => c.distortion > 0.0,
+                (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
+                _ => false,
+            })
+            .collect()
+    }
+}
+
+impl EngineKind {
+    /// Whether this engine runs `feature`.
+    pub fn runs(self, feature: Feature) -> bool {
+        TABLE
+            .iter()
+            .find(|(f, ..)| *f == feature)
+            .is_some_and(|&(_, cpu, gpu)| match self {
+                EngineKind::Cpu => cpu,
+                EngineKind::Gpu => gpu,
+            })
+    }
+
+    /// The features `model` uses that this engine does not run.
+    pub fn missing(self, model: &ModelConfig) -> Vec<Feature> {
+        Feature::used_by(model)
+            .into_iter()
+            .filter(|&f| !self.runs(f))
+            .collect()
+    }
+
+    /// "the CPU engine" / "the GPU engine", for messages.
+    pub fn name(self) -> &'static str {
+        match self {
+            EngineKind::Cpu => "the CPU engine",
+            EngineKind::Gpu => "the GPU engine",
+        }
+    }
+}
+
+/// `features`, described and joined for a sentence ("a, b and c").
+pub fn list(features: &[Feature]) -> String {
+    let names: Vec<&str> = features.iter().map(|f| f.describe()).collect();
+    match names.split_last() {
+        None => String::new(),
+        Some((last, [])) => (*last).to_string(),
+        Some((last, rest)) => format!("{} and {last}", rest.join(", ")),
+    }
+}
+
+/// Why `engine` cannot run `model`, naming each feature it lacks and the way out; `None`
+/// when it can.
+pub fn refusal(engine: EngineKind, model: &ModelConfig) -> Option<String> {
+    let missing = engine.missing(model);
+    (!missing.is_empty()).then(|| {
+        let one = missing.len() == 1;
+        format!(
+            "{} {} not run on {} yet: use --device cpu (a new run can also leave {} out)",
+            list(&missing),
+            if one { "does" } else { "do" },
+            engine.name(),
+            if one { "it" } else { "them" },
+        )
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::FastModelConfig;
+
+    #[test]
+    fn every_feature_has_one_row_and_the_cpu_runs_them_all() {
+        for f in Feature::ALL {
+            assert_eq!(TABLE.iter().filter(|(g, ..)| *g == f).count(), 1, "{f:?}");
+            assert!(EngineKind::Cpu.runs(f), "{f:?}");
+        }
+    }
+
+    #[test]
+    fn a_plain_model_runs_everywhere_and_each_feature_is_named() {
+        let plain = ModelConfig::Fast(FastModelConfig::default());
+        assert!(Feature::used_by(&plain).is_empty());
+        assert_eq!(refusal(EngineKind::Gpu, &plain), None);
+        let mut fast = FastModelConfig {
+            distortion: 1e-4,
+            ..FastModelConfig::default()
+        };
+        fast.field.appearance_dims = 16;
+        let model = ModelConfig::Fast(fast);
+        assert_eq!(
+            Feature::used_by(&model),
+            [Feature::Appearance, Feature::Distortion]
+        );
+        assert_eq!(refusal(EngineKind::Cpu, &model), None);
+        let gpu_missing = EngineKind::Gpu.missing(&model);
+        let why = refusal(EngineKind::Gpu, &model).unwrap_or_default();
+        for f in &gpu_missing {
+            assert!(why.contains(f.describe()), "{why}");
+        }
+        assert!(
+            gpu_missing.is_empty() || why.contains("--device cpu"),
+            "{why}"
+        );
+    }
+
+    #[test]
+    fn the_mip_preset_is_a_feature_of_the_paper_model() {
+        let preset = |name| ModelConfig::Vanilla(crate::presets::build(name).expect(name).0);
+        assert_eq!(Feature::used_by(&preset("mip")), [Feature::Mip]);
+        assert_eq!(Feature::used_by(&preset("paper")), []);
+    }
+
+    #[test]
+    fn lists_read_as_sentences() {
+        assert_eq!(list(&[]), "");
+        assert_eq!(list(&[Feature::Mip]), Feature::Mip.describe());
+        let three = list(&[Feature::Antialias, Feature::Appearance, Feature::Mip]);
+        assert!(
+            three.contains("), per-photo") && three.contains(") and mip-NeRF"),
+            "{three}"
+        );
+    }
+}

@@ -1,0 +1,381 @@
+//! A run's defaults: the one function that turns what a scene is, the engine the run will
+//! be on and the user's flags into the fast model's quality features. `nerf train`, the
+//! demo and `nerf bench` all take their features from [`fast_defaults`].
+//!
+//! The rules, in order (each feature as the user asked when they asked; otherwise):
+//! 1. anti-aliasing: on, but for forward-facing (NDC) scenes, where it measured worse on
+//!    the built-in rug;
+//! 2. per-photo appearance codes and camera refinement, together: on for real captures (a
+//!    scene not rendered in Blender, seen in world space, trained at one scale), whose
+//!    poses come from structure from motion and whose photos drift in exposure; off for
+//!    Blender scenes (exact poses, one look). Refinement alone would let the poses absorb
+//!    exposure changes, so a default turns on both or neither;
+//! 3. the distortion loss: on for forward-facing scenes, which grow fog in front of what
+//!    they see ([`FORWARD_FACING_DISTORTION`]).
+//!
+//! A default turns a feature on only where the run's engine runs it (`engine::caps`), and
+//! says so when it leaves one off for that reason. With `--device auto` on a machine with a
+//! GPU, a run that asks for a feature only the CPU engine runs goes to the CPU, and says so.
+
+use crate::camera::ray_space::RaySpace;
+use crate::engine::caps::{EngineKind, Feature};
+use crate::engine::Device;
+
+/// Appearance codes per photo when real captures get them by default.
+pub const DEFAULT_APPEARANCE_DIMS: u32 = 16;
+
+/// The distortion weight of forward-facing (NDC) scenes: the weight where rendering got
+/// several times faster for a small loss of PSNR; five times it bought a little more speed
+/// for about twice the loss (figures in `docs/benchmarks.md`).
+pub const FORWARD_FACING_DISTORTION: f32 = 1e-4;
+
+/// What the user said about one feature: nothing, on (with its setting), or off.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub enum Choice<T = ()> {
+    #[default]
+    Default,
+    On(T),
+    Off,
+}
+
+impl Choice {
+    /// From a pair of flags (`--x`, `--no-x`; clap keeps them apart).
+    pub fn from_flags(on: bool, off: bool) -> Choice {
+        match (on, off) {
+            (true, _) => Choice::On(()),
+            (_, true) => Choice::Off,
+            _ => Choice::Default,
+        }
+    }
+}
+
+impl<T> Choice<T> {
+    fn asked(&self) -> bool {
+        matches!(self, Choice::On(_))
+    }
+}
+
+/// The user's flags for the features that have defaults.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Flags {
+    pub antialias: Choice,
+    /// With the code's length.
+    pub appearance: Choice<u32>,
+    pub refine_cameras: Choice,
+    /// With the loss's weight.
+    pub distortion: Choice<f32>,
+}
+
+/// What a scene is, as far as the defaults care.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SceneFacts {
+    /// Rendered in Blender (exact poses, one look), the built-in scenes included.
+    pub blender: bool,
+    pub space: RaySpace,
+    /// Scales each photo is trained at (`--multiscale`).
+    pub multiscale: usize,
+}
+
+impl SceneFacts {
+    /// Forward-facing: marched in NDC.
+    pub fn forward_facing(&self) -> bool {
+        self.space != RaySpace::World
+    }
+
+    /// A real capture that learns per-photo corrections by default.
+    pub fn real_capture(&self) -> bool {
+        !self.blender && !self.forward_facing() && self.multiscale == 1
+    }
+}
+
+/// The features a run gets.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Defaults {
+    pub antialias: bool,
+    /// The appearance code's length, when there are codes.
+    pub appearance: Option<u32>,
+    pub refine_cameras: bool,
+    /// Whether refinement was asked for (else it is a real capture's default).
+    pub refine_asked: bool,
+    pub distortion: f32,
+    /// What the user should hear: each default that turned a feature on or left one off.
+    pub notes: Vec<String>,
+}
+
+/// The engine a run on `device` will be on: the CPU for `cpu` and for `auto` without a
+/// hardware GPU (`has_gpu`); with one, `auto` takes the GPU unless `flags` ask for a
+/// feature only the CPU engine runs, which is said.
+pub fn engine_for(device: Device, has_gpu: bool, flags: &Flags) -> (EngineKind, Option<String>) {
+    match device {
+        Device::Cpu => (EngineKind::Cpu, None),
+        Device::Wgpu | Device::Cuda => (EngineKind::Gpu, None),
+        Device::Auto if !has_gpu => (EngineKind::Cpu, None),
+        Device::Auto => {
+            let asked = [
+                (flags.antialias.asked(), Feature::Antialias),
+                (flags.appearance.asked(), Feature::Appearance),
+                (flags.refine_cameras.asked(), Feature::CameraRefinement),
+                (flags.distortion.asked(), Feature::Distortion),
+            ];
+            let cpu_only: Vec<Feature> = asked
+                .into_iter()
+                .filter(|&(on, f)| on && !EngineKind::Gpu.runs(f))
+                .map(|(_, f)| f)
+                .collect();
+            if cpu_only.is_empty() {
+                (EngineKind::Gpu, None)
+            } else {
+                let note = format!(
+                    "note: training on the CPU: {} {} on the GPU engine yet",
+                    crate::engine::caps::list(&cpu_only),
+                    if cpu_only.len() == 1 {
+                        "does not run"
+                    } else {
+                        "do not run"
+                    }
+                );
+                (EngineKind::Cpu, Some(note))
+            }
+        }
+    }
+}
+
+/// The fast model's features for a run of `scene` on `engine`, as `flags` ask and the
+/// rules in this module's docs give.
+pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> Defaults {
+    let mut notes = Vec::new();
+    let mut by_default = |feature: Feature, wanted: bool, on_note: &str| -> bool {
+        if !wanted {
+            return false;
+        }
+        if engine.runs(feature) {
+            if !on_note.is_empty() {
+                notes.push(format!("note: {on_note}"));
+            }
+            true
+        } else {
+            notes.push(format!(
+                "note: {} is off: {} does not run it yet (--device cpu does)",
+                feature.describe(),
+                engine.name()
+            ));
+            false
+        }
+    };
+
+    let antialias = match flags.antialias {
+        Choice::On(()) => true,
+        Choice::Off => false,
+        Choice::Default => by_default(Feature::Antialias, !scene.forward_facing(), ""),
+    };
+
+    // Codes and refinement: both or neither by default.
+    let real = scene.real_capture();
+    let corrections_run =
+        engine.runs(Feature::Appearance) && engine.runs(Feature::CameraRefinement);
+    let appearance = match flags.appearance {
+        Choice::On(dims) => Some(dims),
+        Choice::Off => None,
+        Choice::Default => by_default(
+            Feature::Appearance,
+            real && (corrections_run || !engine.runs(Feature::Appearance)),
+            "learning a look per photo (the default for real captures; --no-appearance \
+             turns it off)",
+        )
+        .then_some(DEFAULT_APPEARANCE_DIMS),
+    };
+    let refine_cameras = match flags.refine_cameras {
+        Choice::On(()) => true,
+        Choice::Off => false,
+        Choice::Default => by_default(
+            Feature::CameraRefinement,
+            real && (corrections_run || !engine.runs(Feature::CameraRefinement)),
+            "",
+        ),
+    };
+
+    let distortion = match flags.distortion {
+        Choice::On(w) => w,
+        Choice::Off => 0.0,
+        Choice::Default => {
+            let on = by_default(
+                Feature::Distortion,
+                scene.forward_facing(),
+                &format!(
+                    "distortion loss {FORWARD_FACING_DISTORTION} against fog (the default \
+                     for forward-facing scenes: views render 2-5x faster; --no-distortion \
+                     turns it off)"
+                ),
+            );
+            if on {
+                FORWARD_FACING_DISTORTION
+            } else {
+                0.0
+            }
+        }
+    };
+
+    Defaults {
+        antialias,
+        appearance,
+        refine_cameras,
+        refine_asked: flags.refine_cameras.asked(),
+        distortion,
+        notes,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn facts(blender: bool, space: RaySpace) -> SceneFacts {
+        SceneFacts {
+            blender,
+            space,
+            multiscale: 1,
+        }
+    }
+
+    const CPU: EngineKind = EngineKind::Cpu;
+    const NDC: RaySpace = RaySpace::Ndc(crate::camera::ray_space::Ndc {
+        ax: 1.5,
+        ay: 2.0,
+        near: 1.0,
+    });
+
+    #[test]
+    fn blender_scenes_anti_alias_and_nothing_else() {
+        let d = fast_defaults(&facts(true, RaySpace::World), CPU, &Flags::default());
+        assert!(d.antialias);
+        assert_eq!(
+            (d.appearance, d.refine_cameras, d.distortion),
+            (None, false, 0.0)
+        );
+        assert!(d.notes.is_empty(), "{:?}", d.notes);
+    }
+
+    #[test]
+    fn real_captures_learn_a_look_and_a_pose_per_photo() {
+        let d = fast_defaults(&facts(false, RaySpace::World), CPU, &Flags::default());
+        assert!(d.antialias && d.refine_cameras && !d.refine_asked);
+        assert_eq!(d.appearance, Some(DEFAULT_APPEARANCE_DIMS));
+        assert_eq!(d.distortion, 0.0);
+        assert!(d.notes.iter().any(|n| n.contains("a look per photo")));
+        // At several scales a photo would get a code and a pose per scale: neither.
+        let multiscale = SceneFacts {
+            multiscale: 2,
+            ..facts(false, RaySpace::World)
+        };
+        let d = fast_defaults(&multiscale, CPU, &Flags::default());
+        assert_eq!((d.appearance, d.refine_cameras), (None, false));
+    }
+
+    #[test]
+    fn forward_facing_scenes_get_the_distortion_loss_and_no_anti_aliasing() {
+        let d = fast_defaults(&facts(false, NDC), CPU, &Flags::default());
+        assert!(!d.antialias);
+        assert_eq!(d.distortion, FORWARD_FACING_DISTORTION);
+        assert_eq!((d.appearance, d.refine_cameras), (None, false));
+        assert!(d.notes.iter().any(|n| n.contains("distortion loss")));
+    }
+
+    #[test]
+    fn flags_win_over_every_rule() {
+        let flags = Flags {
+            antialias: Choice::Off,
+            appearance: Choice::On(8),
+            refine_cameras: Choice::On(()),
+            distortion: Choice::On(0.01),
+        };
+        let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
+        assert!(!d.antialias && d.refine_cameras && d.refine_asked);
+        assert_eq!((d.appearance, d.distortion), (Some(8), 0.01));
+        let off = Flags {
+            antialias: Choice::On(()),
+            appearance: Choice::Off,
+            refine_cameras: Choice::Off,
+            distortion: Choice::Off,
+        };
+        let d = fast_defaults(&facts(false, NDC), CPU, &off);
+        assert!(d.antialias);
+        assert_eq!(
+            (d.appearance, d.refine_cameras, d.distortion),
+            (None, false, 0.0)
+        );
+    }
+
+    /// On the GPU engine each default it cannot run is left off and said, by name; the
+    /// features it runs follow the same rules as on the CPU.
+    #[test]
+    fn the_gpu_gets_what_it_runs_and_hears_what_it_does_not() {
+        let gpu = EngineKind::Gpu;
+        for (blender, space) in [
+            (true, RaySpace::World),
+            (false, RaySpace::World),
+            (false, NDC),
+        ] {
+            let scene = facts(blender, space);
+            let on_cpu = fast_defaults(&scene, CPU, &Flags::default());
+            let on_gpu = fast_defaults(&scene, gpu, &Flags::default());
+            let pairs = [
+                (Feature::Antialias, on_cpu.antialias, on_gpu.antialias),
+                (
+                    Feature::Appearance,
+                    on_cpu.appearance.is_some(),
+                    on_gpu.appearance.is_some(),
+                ),
+                (
+                    Feature::CameraRefinement,
+                    on_cpu.refine_cameras,
+                    on_gpu.refine_cameras,
+                ),
+                (
+                    Feature::Distortion,
+                    on_cpu.distortion > 0.0,
+                    on_gpu.distortion > 0.0,
+                ),
+            ];
+            for (feature, cpu_on, gpu_on) in pairs {
+                let said = on_gpu.notes.iter().any(|n| n.contains(feature.describe()));
+                if gpu.runs(feature) {
+                    assert_eq!(gpu_on, cpu_on, "{feature:?}");
+                } else {
+                    assert!(!gpu_on, "{feature:?}");
+                    assert_eq!(said, cpu_on, "{feature:?}: {:?}", on_gpu.notes);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn auto_goes_to_the_cpu_for_what_only_the_cpu_runs_and_says_so() {
+        let none = Flags::default();
+        assert_eq!(
+            engine_for(Device::Auto, false, &none),
+            (EngineKind::Cpu, None)
+        );
+        assert_eq!(
+            engine_for(Device::Auto, true, &none),
+            (EngineKind::Gpu, None)
+        );
+        assert_eq!(engine_for(Device::Cpu, true, &none), (CPU, None));
+        let asks = Flags {
+            antialias: Choice::On(()),
+            ..Flags::default()
+        };
+        let (kind, note) = engine_for(Device::Auto, true, &asks);
+        if EngineKind::Gpu.runs(Feature::Antialias) {
+            assert_eq!((kind, note), (EngineKind::Gpu, None));
+        } else {
+            assert_eq!(kind, EngineKind::Cpu);
+            let note = note.unwrap_or_default();
+            assert!(note.contains(Feature::Antialias.describe()), "{note}");
+        }
+        // Asked for explicitly, a device is the user's choice: `open` refuses by name.
+        assert_eq!(
+            engine_for(Device::Wgpu, true, &asks),
+            (EngineKind::Gpu, None)
+        );
+    }
+}
