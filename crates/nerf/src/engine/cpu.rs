@@ -11,7 +11,7 @@ use rayon::prelude::*;
 
 use super::{Engine, EngineOptions, EngineState, StepSpec, StepStats};
 use crate::data::Dataset;
-use crate::error::{NerfError, Result};
+use crate::error::Result;
 use crate::model::{FastModel, Model, ModelConfig, StepInput, VanillaModel, Worker};
 use crate::nn::adam::{Adam, DirtyStep};
 use crate::nn::{GradBuffer, ParamLayout};
@@ -157,15 +157,7 @@ impl<M: Model> Engine for CpuEngine<M> {
         let scale = mean_scale(totals.rays);
         let loss = (totals.sse * scale) as f32;
         if !loss.is_finite() || !finite {
-            let what = if loss.is_finite() {
-                format!("the gradients hold non-finite values (the loss was a finite {loss})")
-            } else {
-                format!("the loss is {loss}")
-            };
-            return Err(NerfError::Diverged {
-                step: step + 1,
-                what,
-            });
+            return Err(super::diverged(step, loss, None));
         }
         let rule = self.model.update_rule();
         // A frozen field is a learning rate of zero: Adam leaves every parameter before
@@ -231,22 +223,7 @@ impl<M: Model> Engine for CpuEngine<M> {
     }
 
     fn set_state(&mut self, state: EngineState) -> Result<()> {
-        let n = self.params.len();
-        let buffers = self.model.buffer_layout().total;
-        if state.params.len() != n
-            || state.adam_m.len() != n
-            || state.adam_v.len() != n
-            || state.buffers.len() != buffers
-        {
-            return Err(NerfError::Config(format!(
-                "state does not fit this model: {} parameters and {} buffer values expected, \
-                 got {} and {}",
-                n,
-                buffers,
-                state.params.len(),
-                state.buffers.len()
-            )));
-        }
+        state.check_fits(self.params.len(), self.model.buffer_layout().total)?;
         self.params = state.params;
         self.adam.m = state.adam_m;
         self.adam.v = state.adam_v;

@@ -80,6 +80,44 @@ pub struct EngineState {
     pub buffers: Vec<f32>,
 }
 
+impl EngineState {
+    /// Refuses a state whose sizes do not fit a model of `params` parameters and `buffers`
+    /// buffer values (a checkpoint of another model), before anything is replaced.
+    pub fn check_fits(&self, params: usize, buffers: usize) -> Result<()> {
+        let n = params;
+        if self.params.len() != n
+            || self.adam_m.len() != n
+            || self.adam_v.len() != n
+            || self.buffers.len() != buffers
+        {
+            return Err(crate::error::NerfError::Config(format!(
+                "state does not fit this model: {n} parameters and {buffers} buffer values \
+                 expected, got {} and {}",
+                self.params.len(),
+                self.buffers.len()
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// The error of step `step` (0-based) whose loss or gradients are not finite: `loss`, and
+/// what is known of the gradients (`Some(k)`: `k` of them are not finite; `None`: some).
+pub fn diverged(step: u64, loss: f32, bad_gradients: Option<usize>) -> crate::error::NerfError {
+    let what = if !loss.is_finite() {
+        format!("the loss is {loss}")
+    } else {
+        match bad_gradients {
+            Some(k) => format!("{k} gradients are not finite (the loss was a finite {loss})"),
+            None => format!("the gradients hold non-finite values (the loss was a finite {loss})"),
+        }
+    };
+    crate::error::NerfError::Diverged {
+        step: step + 1,
+        what,
+    }
+}
+
 /// Rays per [`Engine::render_rays`] call of a whole view, unless the engine takes more.
 pub const RENDER_SLAB: usize = 1 << 16;
 

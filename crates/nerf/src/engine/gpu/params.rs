@@ -53,15 +53,7 @@ impl DeviceParams {
         let bad = count_nonfinite(gpu, &self.grads, self.n)?;
         if !loss.is_finite() || bad > 0 {
             self.clear_grads(gpu);
-            let what = if loss.is_finite() {
-                format!("{bad} gradients are not finite (the loss was a finite {loss})")
-            } else {
-                format!("the loss is {loss}")
-            };
-            return Err(NerfError::Diverged {
-                step: step + 1,
-                what,
-            });
+            return Err(crate::engine::diverged(step, loss, Some(bad as usize)));
         }
         let update = self.adam.begin_step(lr);
         adam::step(
@@ -109,20 +101,7 @@ impl DeviceParams {
     /// model's own buffers expected).
     pub fn set_state(&mut self, gpu: &Gpu, state: &EngineState, buffers: usize) -> Result<()> {
         let n = self.n;
-        if state.params.len() != n
-            || state.adam_m.len() != n
-            || state.adam_v.len() != n
-            || state.buffers.len() != buffers
-        {
-            return Err(NerfError::Config(format!(
-                "state does not fit this model: {} parameters and {} buffer values expected, \
-                 got {} and {}",
-                n,
-                buffers,
-                state.params.len(),
-                state.buffers.len()
-            )));
-        }
+        state.check_fits(n, buffers)?;
         self.values = gpu.upload(&state.params);
         self.m = gpu.upload(&state.adam_m);
         self.v = gpu.upload(&state.adam_v);
