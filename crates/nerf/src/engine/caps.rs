@@ -36,7 +36,7 @@ const TABLE: [(Feature, bool, bool); 5] = [
     (Feature::Antialias, true, false),
     (Feature::Appearance, true, false),
     (Feature::CameraRefinement, true, false),
-    (Feature::Distortion, true, false),
+    (Feature::Distortion, true, true),
     (Feature::Mip, true, false),
 ];
 

@@ -750,9 +750,9 @@ mod tests {
         let c = config(&["--device", "cpu"], llff.path()).expect("llff");
         assert_eq!(weight(&c), Some(defaults::FORWARD_FACING_DISTORTION));
         assert!(weight(&c) > Some(0.0), "on by default");
-        // The GPU engine's kernels lack the loss: not its default there.
+        // The same default on the GPU engine, which runs the loss too.
         let c = config(&["--device", "wgpu"], llff.path()).expect("gpu");
-        assert_eq!(weight(&c), Some(0.0));
+        assert_eq!(weight(&c), Some(defaults::FORWARD_FACING_DISTORTION));
         let c = config(&["--no-distortion"], llff.path()).expect("off");
         assert_eq!(weight(&c), Some(0.0));
         let c = config(&["--no-ndc"], llff.path()).expect("world space");

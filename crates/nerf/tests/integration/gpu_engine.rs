@@ -130,6 +130,53 @@ fn fifty_gpu_steps_track_fifty_cpu_steps() {
     );
 }
 
+/// The distortion loss on both engines: ten steps (before the first occupancy refresh, so
+/// both march the same samples) with a large weight give the same losses to rounding on
+/// both, and other losses than without the term (it reached the weights).
+#[test]
+fn the_distortion_loss_trains_alike_on_both_engines() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 24);
+    let plain = config(&data, 10);
+    let mut with = plain.clone();
+    if let nerf::model::ModelConfig::Fast(m) = &mut with.model {
+        m.distortion = 1.0;
+    }
+    let train = plain
+        .open_scene(1)
+        .expect("scene")
+        .load(Split::Train, 1)
+        .expect("load");
+    let losses = |device: Device, c: &TrainConfig| -> Vec<f32> {
+        let mut t = Trainer::on(device, c.clone(), train.clone()).expect("trainer");
+        (0..10).map(|_| t.step().expect("step").loss).collect()
+    };
+    let (cpu, gpu) = (losses(Device::Cpu, &with), losses(Device::Wgpu, &with));
+    let without = losses(Device::Cpu, &plain);
+    let worst = cpu
+        .iter()
+        .zip(&gpu)
+        .map(|(a, b)| (a - b).abs() / a)
+        .fold(0.0f32, f32::max);
+    let moved = cpu
+        .iter()
+        .zip(&without)
+        .map(|(a, b)| (a - b).abs() / a)
+        .fold(0.0f32, f32::max);
+    eprintln!(
+        "worst relative loss difference cpu/gpu {worst:.1e}; with/without the term {moved:.1e}"
+    );
+    assert!(worst < 1e-3, "cpu {cpu:?}, gpu {gpu:?}");
+    assert!(
+        moved > 1e-3,
+        "the term changed nothing: {cpu:?} vs {without:?}"
+    );
+}
+
 /// A run trained on the GPU resumes on the CPU and back, through the same checkpoint
 /// file; rendering the result on either device gives the same images.
 #[test]

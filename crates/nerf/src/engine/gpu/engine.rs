@@ -22,7 +22,7 @@ use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
 use super::rays::GpuViews;
-use super::{loss, render, volume};
+use super::{distortion, loss, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
 use crate::engine::{render_in_chunks, Engine, EngineOptions, EngineState, StepSpec, StepStats};
@@ -334,6 +334,19 @@ impl Engine for GpuEngine {
             &d_sigma,
             &d_rgb,
         );
+        let config = &self.model.config;
+        if config.distortion > 0.0 {
+            distortion::add_distortion(
+                gpu,
+                &samples,
+                &positions,
+                &weights,
+                &d_sigma,
+                config.step_length(),
+                config.box_diagonal(),
+                config.distortion,
+            );
+        }
         check_device(gpu, &check, "loss.backward", "d_sigma", &d_sigma, n)?;
         check_device(gpu, &check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
         self.field.backward(

@@ -19,7 +19,8 @@
 //!   density queries (`NERF_GPU_FIELD=fused`);
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
-//! * [`loss`]: the squared error per ray and its gradient;
+//! * [`loss`]: the squared error per ray and its gradient; [`distortion`]: the distortion
+//!   loss's gradient per ray;
 //! * [`adam`]: the optimiser step over the whole parameter vector (lazy for hash tables);
 //! * [`finite`]: counting non-finite gradients before the optimiser runs;
 //! * [`rays`]: training rays made from pixel indices, with the images and cameras on the
@@ -32,6 +33,7 @@
 
 pub mod adam;
 pub mod device;
+pub mod distortion;
 pub mod engine;
 pub mod field;
 pub mod finite;
