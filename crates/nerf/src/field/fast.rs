@@ -252,6 +252,11 @@ impl FastField {
         }
     }
 
+    /// Where the appearance codes (`images x dims`) start in the parameter vector.
+    pub fn codes_offset(&self) -> Option<usize> {
+        self.codes
+    }
+
     /// The appearance codes, `images x dims` (empty without codes).
     pub fn codes<'a>(&self, params: &'a [f32]) -> &'a [f32] {
         match self.codes {

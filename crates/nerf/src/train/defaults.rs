@@ -144,6 +144,24 @@ pub fn engine_for(device: Device, has_gpu: bool, flags: &Flags) -> (EngineKind, 
 /// rules in this module's docs give.
 pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> Defaults {
     let mut notes = Vec::new();
+    // Codes and refinement: both or neither by default, so both where the engine runs
+    // both, and a note naming what it lacks where it does not.
+    let corrections = [Feature::Appearance, Feature::CameraRefinement];
+    let lacking: Vec<Feature> = corrections
+        .into_iter()
+        .filter(|&f| !engine.runs(f))
+        .collect();
+    let corrections_on = scene.real_capture() && lacking.is_empty();
+    let asked_either =
+        flags.appearance != Choice::Default || flags.refine_cameras != Choice::Default;
+    if scene.real_capture() && !lacking.is_empty() && !asked_either {
+        notes.push(format!(
+            "note: per-photo appearance codes and camera refinement (the default for real \
+             captures) are off: {} does not run {} yet (--device cpu does)",
+            engine.name(),
+            crate::engine::caps::list(&lacking)
+        ));
+    }
     let mut by_default = |feature: Feature, wanted: bool, on_note: &str| -> bool {
         if !wanted {
             return false;
@@ -169,16 +187,12 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         Choice::Default => by_default(Feature::Antialias, !scene.forward_facing(), ""),
     };
 
-    // Codes and refinement: both or neither by default.
-    let real = scene.real_capture();
-    let corrections_run =
-        engine.runs(Feature::Appearance) && engine.runs(Feature::CameraRefinement);
     let appearance = match flags.appearance {
         Choice::On(dims) => Some(dims),
         Choice::Off => None,
         Choice::Default => by_default(
             Feature::Appearance,
-            real && (corrections_run || !engine.runs(Feature::Appearance)),
+            corrections_on,
             "learning a look per photo (the default for real captures; --no-appearance \
              turns it off)",
         )
@@ -187,11 +201,7 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
     let refine_cameras = match flags.refine_cameras {
         Choice::On(()) => true,
         Choice::Off => false,
-        Choice::Default => by_default(
-            Feature::CameraRefinement,
-            real && (corrections_run || !engine.runs(Feature::CameraRefinement)),
-            "",
-        ),
+        Choice::Default => by_default(Feature::CameraRefinement, corrections_on, ""),
     };
 
     let distortion = match flags.distortion {
@@ -306,10 +316,12 @@ mod tests {
     }
 
     /// On the GPU engine each default it cannot run is left off and said, by name; the
-    /// features it runs follow the same rules as on the CPU.
+    /// features it runs follow the same rules as on the CPU (codes and refinement only
+    /// together).
     #[test]
     fn the_gpu_gets_what_it_runs_and_hears_what_it_does_not() {
         let gpu = EngineKind::Gpu;
+        let both = gpu.runs(Feature::Appearance) && gpu.runs(Feature::CameraRefinement);
         for (blender, space) in [
             (true, RaySpace::World),
             (false, RaySpace::World),
@@ -318,32 +330,38 @@ mod tests {
             let scene = facts(blender, space);
             let on_cpu = fast_defaults(&scene, CPU, &Flags::default());
             let on_gpu = fast_defaults(&scene, gpu, &Flags::default());
-            let pairs = [
+            let said = |f: Feature| {
+                on_gpu.notes.iter().any(|n| {
+                    n.contains(f.describe()) || n.contains(&crate::engine::caps::list(&[f]))
+                })
+            };
+            // Anti-aliasing and the distortion loss: as on the CPU where the GPU runs them.
+            for (feature, cpu_on, gpu_on) in [
                 (Feature::Antialias, on_cpu.antialias, on_gpu.antialias),
-                (
-                    Feature::Appearance,
-                    on_cpu.appearance.is_some(),
-                    on_gpu.appearance.is_some(),
-                ),
-                (
-                    Feature::CameraRefinement,
-                    on_cpu.refine_cameras,
-                    on_gpu.refine_cameras,
-                ),
                 (
                     Feature::Distortion,
                     on_cpu.distortion > 0.0,
                     on_gpu.distortion > 0.0,
                 ),
-            ];
-            for (feature, cpu_on, gpu_on) in pairs {
-                let said = on_gpu.notes.iter().any(|n| n.contains(feature.describe()));
+            ] {
                 if gpu.runs(feature) {
                     assert_eq!(gpu_on, cpu_on, "{feature:?}");
                 } else {
                     assert!(!gpu_on, "{feature:?}");
-                    assert_eq!(said, cpu_on, "{feature:?}: {:?}", on_gpu.notes);
+                    assert_eq!(said(feature), cpu_on, "{feature:?}: {:?}", on_gpu.notes);
                 }
+            }
+            // Codes and refinement: together, where the GPU runs both.
+            let cpu_corrections = on_cpu.appearance.is_some() && on_cpu.refine_cameras;
+            assert_eq!(on_gpu.appearance.is_some(), cpu_corrections && both);
+            assert_eq!(on_gpu.refine_cameras, cpu_corrections && both);
+            if cpu_corrections && !both {
+                let lacking = if gpu.runs(Feature::CameraRefinement) {
+                    Feature::Appearance
+                } else {
+                    Feature::CameraRefinement
+                };
+                assert!(said(lacking), "{:?}", on_gpu.notes);
             }
         }
     }

@@ -177,6 +177,94 @@ fn the_distortion_loss_trains_alike_on_both_engines() {
     );
 }
 
+/// Per-photo appearance codes on both engines: ten steps on the same samples give the
+/// same losses to rounding, and the codes (which start at zero) learn alike.
+#[test]
+fn appearance_codes_train_alike_on_both_engines() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 24);
+    let mut c = config(&data, 10);
+    let train = c
+        .open_scene(1)
+        .expect("scene")
+        .load(Split::Train, 1)
+        .expect("load");
+    let images = train.views.len();
+    if let nerf::model::ModelConfig::Fast(m) = &mut c.model {
+        m.field.appearance_dims = 4;
+        m.field.appearance_images = images;
+    }
+    let run = |device: Device| {
+        let mut t = Trainer::on(device, c.clone(), train.clone()).expect("trainer");
+        let losses: Vec<f32> = (0..10).map(|_| t.step().expect("step").loss).collect();
+        (losses, t)
+    };
+    let ((cpu, cpu_trainer), (gpu, mut gpu_trainer)) = (run(Device::Cpu), run(Device::Wgpu));
+    let (cpu_params, gpu_params) = (
+        cpu_trainer.engine.state().params,
+        gpu_trainer.engine.state().params,
+    );
+    let worst = cpu
+        .iter()
+        .zip(&gpu)
+        .map(|(a, b)| (a - b).abs() / a)
+        .fold(0.0f32, f32::max);
+    let nerf::model::ModelConfig::Fast(m) = &c.model else {
+        unreachable!("a fast configuration")
+    };
+    let field = nerf::field::FastField::new(m.field.clone());
+    let (a, b) = (field.codes(&cpu_params), field.codes(&gpu_params));
+    let largest = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let apart = a
+        .iter()
+        .zip(b)
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+    eprintln!(
+        "worst relative loss difference {worst:.1e}; codes up to {largest:.2e}, \
+         engines apart by at most {apart:.2e}"
+    );
+    assert!(worst < 1e-3, "cpu {cpu:?}, gpu {gpu:?}");
+    assert!(largest > 1e-4, "the codes did not learn");
+    assert!(apart < 0.1 * largest, "codes apart by {apart} of {largest}");
+    // The CPU's state on the GPU renders what the CPU renders, with a photo's look and
+    // with the mean one, and the looks differ.
+    gpu_trainer
+        .engine
+        .set_state(cpu_trainer.engine.state())
+        .expect("state");
+    let scene = c.open_scene(1).expect("scene");
+    let mut looks = Vec::new();
+    for appearance in [
+        nerf::stage::Appearance::Of(1),
+        nerf::stage::Appearance::Mean,
+    ] {
+        let batch = nerf::stage::RayBatch {
+            appearance,
+            ..test_view_rays(&scene)
+        };
+        let (a, b) = (
+            render(cpu_trainer.engine.as_ref(), &batch),
+            render(gpu_trainer.engine.as_ref(), &batch),
+        );
+        let apart = a
+            .iter()
+            .zip(&b)
+            .flat_map(|(x, y)| (0..3).map(move |k| (x.rgb[k] - y.rgb[k]).abs()))
+            .fold(0.0f32, f32::max);
+        assert!(apart < 1e-3, "{appearance:?}: renders apart by {apart}");
+        looks.push(a);
+    }
+    let differ = looks[0]
+        .iter()
+        .zip(&looks[1])
+        .any(|(x, y)| (x.rgb[0] - y.rgb[0]).abs() > 1e-4);
+    assert!(differ, "a photo's look renders as the mean one");
+}
+
 /// A run trained on the GPU resumes on the CPU and back, through the same checkpoint
 /// file; rendering the result on either device gives the same images.
 #[test]

@@ -16,6 +16,7 @@
 use cubecl::server::Handle;
 use rayon::prelude::*;
 
+use super::codes::SampleCodes;
 use super::device::Gpu;
 use super::field::GpuFastField;
 use super::march::{Cut, GpuMarcher, GpuRays};
@@ -86,6 +87,8 @@ struct StepRays {
     samples: volume::GpuSamples,
     positions: Handle,
     dirs: Handle,
+    /// Each sample's appearance code: its photo's.
+    codes: SampleCodes,
     targets: Handle,
     backgrounds: Handle,
 }
@@ -160,7 +163,8 @@ impl GpuEngine {
             self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
         }
         loop {
-            let (on_device, targets, backgrounds) = self.draw_rays(data, spec, &marcher, want);
+            let (on_device, views, targets, backgrounds) =
+                self.draw_rays(data, spec, &marcher, want);
             let counted = self.marcher.count(&self.gpu, &on_device);
             let cut = self
                 .marcher
@@ -169,11 +173,19 @@ impl GpuEngine {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
                     self.marcher.write(&self.gpu, &on_device, &counted, cut);
+                let codes = SampleCodes::of_rays(
+                    &self.gpu,
+                    &views,
+                    &samples.offsets,
+                    cut.rays,
+                    cut.samples,
+                );
                 return Ok(StepRays {
                     cut,
                     samples,
                     positions,
                     dirs,
+                    codes,
                     targets,
                     backgrounds,
                 });
@@ -182,16 +194,16 @@ impl GpuEngine {
         }
     }
 
-    /// Rays `0..want` of the step on the device, with their targets and backgrounds: made
-    /// there from the pixels the host picks (`rays`), or drawn whole on the host where the
-    /// views are not on the device.
+    /// Rays `0..want` of the step on the device, with the index of each one's view (its
+    /// appearance code), their targets and backgrounds: made there from the pixels the host
+    /// picks (`rays`), or drawn whole on the host where the views are not on the device.
     fn draw_rays(
         &mut self,
         data: &Dataset,
         spec: &StepSpec,
         marcher: &Marcher,
         want: usize,
-    ) -> (GpuRays, Handle, Handle) {
+    ) -> (GpuRays, Handle, Handle, Handle) {
         let gpu = &self.gpu;
         if let Some((_, Some(views))) = &self.views {
             let mut choices: Vec<PixelChoice> = (0..want as u64)
@@ -202,7 +214,10 @@ impl GpuEngine {
             // `FastModel::march_block`.
             let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
             let bound = self.model.grid.bound;
-            return views.generate(gpu, &data.space, marcher, bound, &choices, &jitter);
+            let of_view: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
+            let (rays, targets, backgrounds) =
+                views.generate(gpu, &data.space, marcher, bound, &choices, &jitter);
+            return (rays, gpu.upload_u32(&of_view), targets, backgrounds);
         }
         let rays = &mut self.rays;
         rays.draw_parallel(data, &spec.sampling, 0..want as u64);
@@ -210,7 +225,8 @@ impl GpuEngine {
         let on_device = GpuRays::new(gpu, marcher, &self.model.grid, &rays.rays, &jitter);
         let targets = gpu.upload(rays.targets.as_flattened());
         let backgrounds = gpu.upload(rays.rays.backgrounds.as_flattened());
-        (on_device, targets, backgrounds)
+        let of_view: Vec<u32> = rays.rays.pixels.iter().map(|&p| (p >> 32) as u32).collect();
+        (on_device, gpu.upload_u32(&of_view), targets, backgrounds)
     }
 
     /// Re-evaluates the occupancy grid on the device when the schedule says so, then
@@ -289,6 +305,7 @@ impl Engine for GpuEngine {
             samples,
             positions,
             dirs,
+            codes,
             targets,
             backgrounds,
         } = self.march_step(data, spec)?;
@@ -298,7 +315,7 @@ impl Engine for GpuEngine {
 
         let acts = self
             .field
-            .forward(gpu, &self.state.values, &positions, &dirs, n);
+            .forward(gpu, &self.state.values, &positions, &dirs, &codes, n);
         check_device(gpu, &check, "field.forward", "sigma", &acts.sigma, n)?;
         check_device(gpu, &check, "field.forward", "rgb", &acts.rgb, n * 3)?;
         let weights = gpu.floats(n);
@@ -354,6 +371,7 @@ impl Engine for GpuEngine {
             &self.state.values,
             &self.state.grads,
             &acts,
+            &codes,
             &d_sigma,
             &d_rgb,
         );
@@ -409,8 +427,8 @@ impl Engine for GpuEngine {
         let chunk = self.chunk_rays.max(chunk_rays);
         let marcher = self.model.marcher(rays.near, rays.far);
         let (gpu, params) = (&self.gpu, &self.state.values);
-        let field = |positions: &Handle, dirs: &Handle, n: usize| {
-            self.field.infer(gpu, params, positions, dirs, n)
+        let field = |positions: &Handle, dirs: &Handle, codes: &SampleCodes, n: usize| {
+            self.field.infer(gpu, params, positions, dirs, codes, n)
         };
         render_in_chunks(rays, out, chunk, on_progress, |part, out| {
             let rendered = render::render_rays(
@@ -419,6 +437,7 @@ impl Engine for GpuEngine {
                 &marcher,
                 &self.model.grid,
                 &field,
+                self.field.has_codes(),
                 // Both are at most MAX_DEVICE_SAMPLES (`open` refuses larger steps).
                 self.model.config.batch_samples.max(round_samples),
                 part,

@@ -7,6 +7,7 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
+use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
 use super::fused::FusedShape;
 use super::hash_grid::{GpuHashGrid, Scatter};
@@ -36,13 +37,14 @@ fn density_head(geo: &[f32], sigma: &mut [f32], g: u32, log_max: f32) {
     }
 }
 
-/// The colour network's input: the 16 spherical harmonics of the sample's unit view
-/// direction (as `encoding::spherical_harmonics::sh4`), then the geometry features.
+/// The colour network's input (rows `ci` wide): the 16 spherical harmonics of the sample's
+/// unit view direction (as `encoding::spherical_harmonics::sh4`), then the geometry
+/// features; an appearance code, if any, follows (`codes`).
 #[cube(launch_unchecked)]
-fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32) {
+fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32, ci: u32) {
     let s = ABSOLUTE_POS;
     let gw = g as usize;
-    let ci = 16 + gw - 1;
+    let ci = ci as usize;
     if s * ci < colour_in.len() {
         let x = dirs[3 * s];
         let y = dirs[3 * s + 1];
@@ -101,12 +103,13 @@ fn geo_bwd(
     d_colour_in: &[f32],
     d_geo: &mut [f32],
     g: u32,
+    ci: u32,
     log_max: f32,
 ) {
     let s = ABSOLUTE_POS;
     if s < sigma.len() {
         let gw = g as usize;
-        let ci = 16 + gw - 1;
+        let ci = ci as usize;
         d_geo[s * gw] = select(geo[s * gw] < log_max, d_sigma[s] * sigma[s], 0.0);
         for j in 1usize..gw {
             d_geo[s * gw + j] = d_colour_in[s * ci + 15 + j];
@@ -142,6 +145,8 @@ pub struct GpuFastField {
     scatter: Scatter,
     /// The one-kernel inference (`fused`), where the adapter runs it and the switch allows.
     fused: Option<FusedShape>,
+    /// Per-photo appearance codes, when the field has them.
+    codes: Option<GpuCodes>,
 }
 
 impl GpuFastField {
@@ -189,7 +194,23 @@ impl GpuFastField {
                 Scatter::CompareAndSwap
             },
             fused,
+            codes: field.codes_offset().map(|offset| GpuCodes {
+                offset,
+                dims: field.appearance_dims(),
+                images: c.appearance_images,
+            }),
         }
+    }
+
+    /// The colour network's input width, and the column its appearance code starts at.
+    fn colour_columns(&self) -> (usize, usize) {
+        let first = SH_DIMS + self.geo - 1;
+        (self.layers[2].inputs, first)
+    }
+
+    /// Whether the field has per-photo appearance codes.
+    pub fn has_codes(&self) -> bool {
+        self.codes.is_some()
     }
 
     /// Whether [`infer`](Self::infer) runs the one-kernel path.
@@ -205,6 +226,7 @@ impl GpuFastField {
         params: &Handle,
         positions: &Handle,
         dirs: &Handle,
+        codes: &SampleCodes,
         n: usize,
     ) -> (Handle, Handle) {
         match &self.fused {
@@ -218,7 +240,7 @@ impl GpuFastField {
                 n,
             ),
             None => {
-                let acts = self.forward(gpu, params, positions, dirs, n);
+                let acts = self.forward(gpu, params, positions, dirs, codes, n);
                 (acts.sigma, acts.rgb)
             }
         }
@@ -302,13 +324,15 @@ impl GpuFastField {
     }
 
     /// Density and colour of `n` samples at world `positions` seen along unit `dirs` (both
-    /// `n x 3`, one direction per sample).
+    /// `n x 3`, one direction per sample), each with its appearance code from `codes`
+    /// (ignored by a field without codes).
     pub fn forward(
         &self,
         gpu: &Gpu,
         params: &Handle,
         positions: &Handle,
         dirs: &Handle,
+        codes: &SampleCodes,
         n: usize,
     ) -> Activations {
         let mut acts = self.density(gpu, params, positions, n);
@@ -332,6 +356,18 @@ impl GpuFastField {
                 BufferArg::from_raw_parts(acts.geo.clone(), n * self.geo),
                 BufferArg::from_raw_parts(acts.colour_in.clone(), n * c0.inputs),
                 self.geo as u32,
+                c0.inputs as u32,
+            );
+        }
+        if let Some(c) = &self.codes {
+            c.write(
+                gpu,
+                params,
+                np,
+                codes,
+                &acts.colour_in,
+                self.colour_columns(),
+                n,
             );
         }
         c0.forward(gpu, params, np, &acts.colour_in, &acts.c1, n);
@@ -350,14 +386,16 @@ impl GpuFastField {
         acts
     }
 
-    /// Backward of [`forward`](Self::forward): from `d_sigma` (`n`) and `d_rgb` (`n x 3`),
-    /// adds every parameter's gradient into `grads`.
+    /// Backward of [`forward`](Self::forward) (with the same `codes`): from `d_sigma`
+    /// (`n`) and `d_rgb` (`n x 3`), adds every parameter's gradient into `grads`.
+    #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &self,
         gpu: &Gpu,
         params: &Handle,
         grads: &Handle,
         acts: &Activations,
+        codes: &SampleCodes,
         d_sigma: &Handle,
         d_rgb: &Handle,
     ) {
@@ -427,7 +465,21 @@ impl GpuFastField {
                 BufferArg::from_raw_parts(d_colour_in.clone(), n * c0.inputs),
                 BufferArg::from_raw_parts(d_geo.clone(), n * self.geo),
                 self.geo as u32,
+                c0.inputs as u32,
                 LOG_SIGMA_MAX,
+            );
+        }
+        if let Some(c) = &self.codes {
+            let columns = self.colour_columns();
+            c.backward(
+                gpu,
+                self.scatter,
+                codes,
+                &d_colour_in,
+                columns,
+                grads,
+                np,
+                n,
             );
         }
         let d_h = gpu.floats(n * d1.inputs);
@@ -490,10 +542,37 @@ pub(super) mod tests {
     /// 1e-4 relative to (1 + |value|) (sums of 700 terms in another order).
     #[test]
     fn the_field_matches_the_cpu_forward_and_backward() {
+        matches_the_cpu(&small_field(), None);
+    }
+
+    /// The same with per-photo appearance codes (3 values for 5 photos): each sample its
+    /// photo's code, the mean code for some, and every sample the same code.
+    #[test]
+    fn the_field_with_appearance_codes_matches_the_cpu() {
+        let field = FastField::new(FastFieldConfig {
+            appearance_dims: 3,
+            appearance_images: 5,
+            ..small_field().config
+        });
+        assert_eq!(field.appearance_dims(), 3);
+        let mut rng = Rng::new(8);
+        let per_sample: Vec<u32> = (0..700)
+            .map(|_| match (rng.uniform() * 6.0) as u32 {
+                5 => crate::stage::MEAN_APPEARANCE,
+                i => i,
+            })
+            .collect();
+        matches_the_cpu(&field, Some(per_sample));
+        matches_the_cpu(&field, Some(vec![2; 700]));
+        matches_the_cpu(&field, Some(vec![crate::stage::MEAN_APPEARANCE; 700]));
+    }
+
+    /// `field` on the device against the CPU, with each sample's code index
+    /// (`appearance`) where the field has codes.
+    fn matches_the_cpu(field: &FastField, appearance: Option<Vec<u32>>) {
         let Some(gpu) = super::super::device::test_gpu() else {
             return;
         };
-        let field = small_field();
         let mut rng = Rng::new(21);
         let params: Vec<f32> = (0..field.num_params())
             .map(|_| rng.range(-0.5, 0.5))
@@ -512,13 +591,23 @@ pub(super) mod tests {
             .collect();
         let d_sigma: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+        let indices = appearance.clone().unwrap_or_default();
+        let codes = |gpu: &Gpu| match &appearance {
+            // All the same: the one-index form the renderer passes.
+            Some(a) if a.iter().all(|&i| i == a[0]) => SampleCodes::all(gpu, a[0]),
+            Some(a) => SampleCodes {
+                index: gpu.upload_u32(a),
+                per_sample: true,
+            },
+            None => SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE),
+        };
 
         let mut ws = FastWorkspace::default();
         let input = FieldInput {
             positions: &pos,
             dirs: &dirs,
             samples_per_dir: 1,
-            appearance: &[],
+            appearance: &indices,
             footprints: &[],
             variances: &[],
         };
@@ -536,15 +625,17 @@ pub(super) mod tests {
                 matmul: path,
                 ..gpu.clone()
             };
-            let gf = GpuFastField::new(&gpu, &field);
+            let gf = GpuFastField::new(&gpu, field);
             let p = gpu.upload(&params);
             let g = gpu.zeros(field.num_params());
-            let acts = gf.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
+            let codes = codes(&gpu);
+            let acts = gf.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), &codes, n);
             gf.backward(
                 &gpu,
                 &p,
                 &g,
                 &acts,
+                &codes,
                 &gpu.upload(&d_sigma),
                 &gpu.upload(&d_rgb),
             );

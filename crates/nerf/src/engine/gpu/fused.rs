@@ -281,6 +281,7 @@ impl FusedShape {
 
 #[cfg(test)]
 mod tests {
+    use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst, Gpu};
     use crate::engine::gpu::field::tests::small_field;
     use crate::engine::gpu::field::GpuFastField;
@@ -329,7 +330,9 @@ mod tests {
         };
         let want = field.forward(&params, input, &mut ws);
         let p = gpu.upload(&params);
-        let (sigma, rgb) = device_field.infer(gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
+        let codes = SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE);
+        let (sigma, rgb) =
+            device_field.infer(gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), &codes, n);
         let sigma = gpu.read(&sigma, n).expect("read");
         let rgb = gpu.read(&rgb, n * 3).expect("read");
         let (e_sigma, e_rgb) = (worst(&sigma, want.sigma), worst(&rgb, want.rgb));

@@ -98,7 +98,7 @@ fn encode_fwd(params: &[f32], levels: &[u32], points: &[f32], out: &mut [f32], n
 
 /// How a backward kernel adds into a gradient slot: the slot's element type picks it.
 #[cube]
-trait ScatterAdd: CubePrimitive {
+pub(super) trait ScatterAdd: CubePrimitive {
     fn scatter_add(slot: &Atomic<Self>, v: f32);
 }
 

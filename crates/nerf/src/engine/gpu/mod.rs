@@ -16,7 +16,7 @@
 //!   multiresolution hash encoding; gradients scattered with float atomics, or a
 //!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
 //!   [`fused`]: the same field's inference in one kernel per batch, for rendering and
-//!   density queries (`NERF_GPU_FIELD=fused`);
+//!   density queries (`NERF_GPU_FIELD=fused`); [`codes`]: per-photo appearance codes;
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient; [`distortion`]: the distortion
@@ -32,6 +32,7 @@
 //! the host so both engines train on the same rays; 6 words a ray go up).
 
 pub mod adam;
+pub mod codes;
 pub mod device;
 pub mod distortion;
 pub mod engine;
@@ -140,17 +141,19 @@ mod tests {
         );
     }
 
-    /// A feature the GPU engine does not run is refused by name when the GPU is asked for,
+    /// A feature the GPU engine does not run (camera refinement, so far) is refused by name
+    /// when the GPU is asked for,
     /// with the way out, and `auto` takes the CPU engine for it.
     #[test]
     fn what_the_gpu_does_not_run_is_refused_by_name() {
-        let mut config = FastModelConfig::default();
-        config.field.appearance_dims = 4;
-        config.field.appearance_images = 3;
+        let config = FastModelConfig {
+            refine_cameras: Some(crate::model::camera_refine::CameraRefinement::new(3)),
+            ..FastModelConfig::default()
+        };
         let model = ModelConfig::Fast(config);
         let missing = caps::EngineKind::Gpu.missing(&model);
         if missing.is_empty() {
-            eprintln!("skipping: the GPU engine runs appearance codes");
+            eprintln!("skipping: the GPU engine runs camera refinement");
             return;
         }
         let options = || EngineOptions {
@@ -168,7 +171,7 @@ mod tests {
         };
         let text = e.to_string();
         assert!(
-            text.contains("--appearance") && text.contains("--device cpu"),
+            text.contains("--refine-cameras") && text.contains("--device cpu"),
             "{text}"
         );
     }

@@ -9,6 +9,7 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
+use super::codes::SampleCodes;
 use super::device::Gpu;
 use super::launch::grid;
 use super::march::{GpuMarcher, GpuRays, RoundState, STATE_WORDS};
@@ -16,7 +17,7 @@ use crate::error::Result;
 use crate::math::length;
 use crate::render::march::Marcher;
 use crate::render::occupancy::OccupancyGrid;
-use crate::stage::{RayBatch, RayOutput};
+use crate::stage::{RayBatch, RayOutput, MEAN_APPEARANCE};
 
 const GROUP: u32 = 64;
 
@@ -67,18 +68,21 @@ fn accumulate(
 }
 
 /// A field on the device: densities (`n`) and colours (`n x 3`) of `n` field-space
-/// positions and unit view directions (`n x 3` each).
-pub type DeviceFieldFn<'a> = dyn Fn(&Handle, &Handle, usize) -> (Handle, Handle) + 'a;
+/// positions and unit view directions (`n x 3` each), with each sample's appearance code.
+pub type DeviceFieldFn<'a> = dyn Fn(&Handle, &Handle, &SampleCodes, usize) -> (Handle, Handle) + 'a;
 
 /// Renders `rays` through `field`: the grid `device_grid` (a copy of `host_grid`, which
 /// gives each ray its span on the host) marched as `marcher` marches, at most about
-/// `round_samples` samples per round.
+/// `round_samples` samples per round. With `codes` the field is told each sample's
+/// appearance code (`RayBatch::appearance_of` its ray); without, every sample's is the mean.
+#[allow(clippy::too_many_arguments)]
 pub fn render_rays(
     gpu: &Gpu,
     device_grid: &GpuMarcher,
     marcher: &Marcher,
     host_grid: &OccupancyGrid,
     field: &DeviceFieldFn,
+    codes: bool,
     round_samples: usize,
     rays: &RayBatch,
 ) -> Result<Vec<RayOutput>> {
@@ -86,6 +90,10 @@ pub fn render_rays(
     if n == 0 {
         return Ok(Vec::new());
     }
+    let ray_codes = codes.then(|| {
+        let per_ray: Vec<u32> = (0..n).map(|r| rays.appearance_of(r)).collect();
+        gpu.upload_u32(&per_ray)
+    });
     // The CPU renderer's lattice: the first sample half a step into the span.
     let round = RoundState::new(
         gpu,
@@ -105,8 +113,12 @@ pub fn render_rays(
         }
         let (samples, positions, dirs) =
             device_grid.write_round(gpu, &round, &counted, cut, per_ray);
-        let (sigma, rgb) = field(&positions, &dirs, cut.samples);
         let (k, s) = (cut.rays, cut.samples);
+        let codes = match &ray_codes {
+            Some(per_ray) => SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s),
+            None => SampleCodes::all(gpu, MEAN_APPEARANCE),
+        };
+        let (sigma, rgb) = field(&positions, &dirs, &codes, s);
         // SAFETY: `offsets` holds `k + 1` slots ending at `s`, the length of every sample
         // buffer (`3s` for colours); `inv_norm` and `state` hold the `n >= k` rays.
         unsafe {
@@ -201,8 +213,8 @@ mod tests {
 
         let device_field = GpuFastField::new(&gpu, &field);
         let device_params = gpu.upload(&params);
-        let field_fn = |p: &Handle, d: &Handle, n: usize| {
-            let acts = device_field.forward(&gpu, &device_params, p, d, n);
+        let field_fn = |p: &Handle, d: &Handle, codes: &SampleCodes, n: usize| {
+            let acts = device_field.forward(&gpu, &device_params, p, d, codes, n);
             (acts.sigma, acts.rgb)
         };
         let device_grid = GpuMarcher::with_grid(&gpu, &marcher, &grid);
@@ -218,6 +230,7 @@ mod tests {
                 &marcher,
                 &grid,
                 &field_fn,
+                false,
                 round_samples,
                 &rays,
             )
