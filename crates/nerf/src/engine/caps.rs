@@ -33,7 +33,7 @@ pub enum Feature {
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
 const TABLE: [(Feature, bool, bool); 5] = [
-    (Feature::Antialias, true, false),
+    (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, false),
     (Feature::Distortion, true, true),

@@ -177,6 +177,72 @@ fn the_distortion_loss_trains_alike_on_both_engines() {
     );
 }
 
+/// Anti-aliasing on both engines: ten steps on the same samples (each with its pixel's
+/// footprint) give the same losses to rounding, other losses than point samples, and the
+/// CPU's state renders alike on the GPU.
+#[test]
+fn anti_aliasing_trains_and_renders_alike_on_both_engines() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 24);
+    let plain = config(&data, 10);
+    let scene = plain.open_scene(1).expect("scene");
+    let train = scene.load(Split::Train, 1).expect("load");
+    let mut with = plain.clone();
+    if let nerf::model::ModelConfig::Fast(m) = &mut with.model {
+        m.antialias_for(&scene.cameras(Split::Train), &scene.space);
+        assert!(m.field.antialias.is_some());
+    }
+    let run = |device: Device, c: &TrainConfig| {
+        let mut t = Trainer::on(device, c.clone(), train.clone()).expect("trainer");
+        let losses: Vec<f32> = (0..10).map(|_| t.step().expect("step").loss).collect();
+        (losses, t)
+    };
+    let ((cpu, cpu_trainer), (gpu, mut gpu_trainer)) =
+        (run(Device::Cpu, &with), run(Device::Wgpu, &with));
+    let (point, _) = run(Device::Cpu, &plain);
+    let apart = |a: &[f32], b: &[f32]| {
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs() / x)
+            .fold(0.0f32, f32::max)
+    };
+    let (worst, moved) = (apart(&cpu, &gpu), apart(&cpu, &point));
+    eprintln!(
+        "worst relative loss difference cpu/gpu {worst:.1e}; against point samples {moved:.1e}"
+    );
+    assert!(worst < 1e-3, "cpu {cpu:?}, gpu {gpu:?}");
+    assert!(moved > 1e-4, "anti-aliasing changed nothing");
+    gpu_trainer
+        .engine
+        .set_state(cpu_trainer.engine.state())
+        .expect("state");
+    let batch = nerf::views::RenderSettings::of_scene(&scene, [1.0; 3]);
+    let camera = scene.cameras(Split::Test)[0].clone();
+    let (world, cones): (Vec<_>, Vec<f32>) = (0..camera.height)
+        .flat_map(|j| (0..camera.width).map(move |i| (i, j)))
+        .map(|(i, j)| {
+            let (x, y) = (i as f32 + 0.5, j as f32 + 0.5);
+            (camera.ray_at(x, y), camera.cone_radius(x, y))
+        })
+        .unzip();
+    let batch = batch.ray_batch_with_cones(&world, &cones, 0);
+    let (a, b) = (
+        render(cpu_trainer.engine.as_ref(), &batch),
+        render(gpu_trainer.engine.as_ref(), &batch),
+    );
+    let worst_px = a
+        .iter()
+        .zip(&b)
+        .flat_map(|(x, y)| (0..3).map(move |k| (x.rgb[k] - y.rgb[k]).abs()))
+        .fold(0.0f32, f32::max);
+    eprintln!("renders apart by at most {worst_px:.1e}");
+    assert!(worst_px < 1e-3, "renders apart by {worst_px}");
+}
+
 /// Per-photo appearance codes on both engines: ten steps on the same samples give the
 /// same losses to rounding, and the codes (which start at zero) learn alike.
 #[test]

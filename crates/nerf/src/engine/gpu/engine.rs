@@ -18,12 +18,12 @@ use rayon::prelude::*;
 
 use super::codes::SampleCodes;
 use super::device::Gpu;
-use super::field::GpuFastField;
+use super::field::{DeviceInput, GpuFastField};
 use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
 use super::rays::GpuViews;
-use super::{distortion, loss, render, volume};
+use super::{antialias, distortion, loss, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
 use crate::engine::{render_in_chunks, Engine, EngineOptions, EngineState, StepSpec, StepStats};
@@ -89,6 +89,8 @@ struct StepRays {
     dirs: Handle,
     /// Each sample's appearance code: its photo's.
     codes: SampleCodes,
+    /// Each sample's footprint, for an anti-aliased field.
+    footprints: Option<Handle>,
     targets: Handle,
     backgrounds: Handle,
 }
@@ -163,7 +165,7 @@ impl GpuEngine {
             self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
         }
         loop {
-            let (on_device, views, targets, backgrounds) =
+            let (on_device, views, radii, targets, backgrounds) =
                 self.draw_rays(data, spec, &marcher, want);
             let counted = self.marcher.count(&self.gpu, &on_device);
             let cut = self
@@ -180,12 +182,25 @@ impl GpuEngine {
                     cut.rays,
                     cut.samples,
                 );
+                let footprints = radii.map(|radii| {
+                    antialias::sample_footprints(
+                        &self.gpu,
+                        &on_device,
+                        &radii,
+                        data.space.cylinders(),
+                        marcher.contract,
+                        (&samples.offsets, &samples.t),
+                        cut.rays,
+                        cut.samples,
+                    )
+                });
                 return Ok(StepRays {
                     cut,
                     samples,
                     positions,
                     dirs,
                     codes,
+                    footprints,
                     targets,
                     backgrounds,
                 });
@@ -195,15 +210,17 @@ impl GpuEngine {
     }
 
     /// Rays `0..want` of the step on the device, with the index of each one's view (its
-    /// appearance code), their targets and backgrounds: made there from the pixels the host
-    /// picks (`rays`), or drawn whole on the host where the views are not on the device.
+    /// appearance code), their cone radii (for an anti-aliased field), targets and
+    /// backgrounds: made there from the pixels the host picks (`rays`), or drawn whole on
+    /// the host where the views are not on the device.
     fn draw_rays(
         &mut self,
         data: &Dataset,
         spec: &StepSpec,
         marcher: &Marcher,
         want: usize,
-    ) -> (GpuRays, Handle, Handle, Handle) {
+    ) -> (GpuRays, Handle, Option<Handle>, Handle, Handle) {
+        let footprints = self.model.config.field.antialias.is_some();
         let gpu = &self.gpu;
         if let Some((_, Some(views))) = &self.views {
             let mut choices: Vec<PixelChoice> = (0..want as u64)
@@ -215,9 +232,24 @@ impl GpuEngine {
             let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
             let bound = self.model.grid.bound;
             let of_view: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
+            // The cone radii as the host's rays carry them (`data::pixels`).
+            let radii = footprints.then(|| {
+                let radii: Vec<f32> = choices
+                    .par_iter()
+                    .map(|c| {
+                        let view = &data.views[c.view];
+                        let w = view.image.width;
+                        let (x, y) = ((c.pixel % w) as f32 + 0.5, (c.pixel / w) as f32 + 0.5);
+                        let dir = view.camera.ray_at(x, y).dir;
+                        data.space
+                            .footprint_radius(view.camera.cone_radius(x, y), dir)
+                    })
+                    .collect();
+                gpu.upload(&radii)
+            });
             let (rays, targets, backgrounds) =
                 views.generate(gpu, &data.space, marcher, bound, &choices, &jitter);
-            return (rays, gpu.upload_u32(&of_view), targets, backgrounds);
+            return (rays, gpu.upload_u32(&of_view), radii, targets, backgrounds);
         }
         let rays = &mut self.rays;
         rays.draw_parallel(data, &spec.sampling, 0..want as u64);
@@ -226,7 +258,14 @@ impl GpuEngine {
         let targets = gpu.upload(rays.targets.as_flattened());
         let backgrounds = gpu.upload(rays.rays.backgrounds.as_flattened());
         let of_view: Vec<u32> = rays.rays.pixels.iter().map(|&p| (p >> 32) as u32).collect();
-        (on_device, gpu.upload_u32(&of_view), targets, backgrounds)
+        let radii = footprints.then(|| gpu.upload(&rays.rays.radii));
+        (
+            on_device,
+            gpu.upload_u32(&of_view),
+            radii,
+            targets,
+            backgrounds,
+        )
     }
 
     /// Re-evaluates the occupancy grid on the device when the schedule says so, then
@@ -306,6 +345,7 @@ impl Engine for GpuEngine {
             positions,
             dirs,
             codes,
+            footprints,
             targets,
             backgrounds,
         } = self.march_step(data, spec)?;
@@ -313,9 +353,14 @@ impl Engine for GpuEngine {
         let gpu = &self.gpu;
         let check = FiniteCheck::new(self.check_finite);
 
-        let acts = self
-            .field
-            .forward(gpu, &self.state.values, &positions, &dirs, &codes, n);
+        let input = DeviceInput {
+            positions: &positions,
+            dirs: &dirs,
+            codes: &codes,
+            footprints: footprints.as_ref(),
+            n,
+        };
+        let acts = self.field.forward(gpu, &self.state.values, &input);
         check_device(gpu, &check, "field.forward", "sigma", &acts.sigma, n)?;
         check_device(gpu, &check, "field.forward", "rgb", &acts.rgb, n * 3)?;
         let weights = gpu.floats(n);
@@ -427,8 +472,10 @@ impl Engine for GpuEngine {
         let chunk = self.chunk_rays.max(chunk_rays);
         let marcher = self.model.marcher(rays.near, rays.far);
         let (gpu, params) = (&self.gpu, &self.state.values);
-        let field = |positions: &Handle, dirs: &Handle, codes: &SampleCodes, n: usize| {
-            self.field.infer(gpu, params, positions, dirs, codes, n)
+        let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
+        let needs = render::FieldNeeds {
+            codes: self.field.has_codes(),
+            footprints: self.model.config.field.antialias.is_some(),
         };
         render_in_chunks(rays, out, chunk, on_progress, |part, out| {
             let rendered = render::render_rays(
@@ -437,7 +484,7 @@ impl Engine for GpuEngine {
                 &marcher,
                 &self.model.grid,
                 &field,
-                self.field.has_codes(),
+                needs,
                 // Both are at most MAX_DEVICE_SAMPLES (`open` refuses larger steps).
                 self.model.config.batch_samples.max(round_samples),
                 part,

@@ -7,6 +7,7 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
+use super::antialias::LevelWeights;
 use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
 use super::fused::FusedShape;
@@ -117,6 +118,17 @@ fn geo_bwd(
     }
 }
 
+/// One batch of samples for the field: world positions and unit view directions (`n x 3`
+/// each), each sample's appearance code (fields with codes), and each one's footprint
+/// (anti-aliased fields; `None`: the reference footprint).
+pub struct DeviceInput<'a> {
+    pub positions: &'a Handle,
+    pub dirs: &'a Handle,
+    pub codes: &'a SampleCodes,
+    pub footprints: Option<&'a Handle>,
+    pub n: usize,
+}
+
 /// The field's activations for one batch, kept by the forward for the backward.
 pub struct Activations {
     pub n: usize,
@@ -131,6 +143,8 @@ pub struct Activations {
     c2: Handle,
     /// Colours (`n x 3`).
     pub rgb: Handle,
+    /// Each sample's level weights (anti-aliased fields).
+    level_weights: Option<Handle>,
 }
 
 /// The fast field's shapes and kernels on one device.
@@ -147,6 +161,8 @@ pub struct GpuFastField {
     fused: Option<FusedShape>,
     /// Per-photo appearance codes, when the field has them.
     codes: Option<GpuCodes>,
+    /// The level weighting of an anti-aliased field.
+    antialias: Option<LevelWeights>,
 }
 
 impl GpuFastField {
@@ -167,7 +183,8 @@ impl GpuFastField {
             bound: c.bound,
         };
         // The fused kernel's colour input is the harmonics and the geometry features alone.
-        let fused = (gpu.fused_field && ci == SH_DIMS + g - 1 && shape.fits(gpu)).then_some(shape);
+        let plain = ci == SH_DIMS + g - 1 && c.antialias.is_none();
+        let fused = (gpu.fused_field && plain && shape.fits(gpu)).then_some(shape);
         let layer = |k: usize, inputs, outputs, relu| Dense {
             inputs,
             outputs,
@@ -199,6 +216,10 @@ impl GpuFastField {
                 dims: field.appearance_dims(),
                 images: c.appearance_images,
             }),
+            antialias: c.antialias.map(|aa| LevelWeights {
+                reference: aa.reference_footprint,
+                bound: c.bound,
+            }),
         }
     }
 
@@ -220,27 +241,19 @@ impl GpuFastField {
 
     /// Densities (`n`) and colours (`n x 3`) for rendering, with no activations kept: the
     /// fused kernel where it runs, else [`forward`](Self::forward).
-    pub fn infer(
-        &self,
-        gpu: &Gpu,
-        params: &Handle,
-        positions: &Handle,
-        dirs: &Handle,
-        codes: &SampleCodes,
-        n: usize,
-    ) -> (Handle, Handle) {
+    pub fn infer(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> (Handle, Handle) {
         match &self.fused {
             Some(f) => f.infer(
                 gpu,
                 &self.grid,
                 params,
                 self.n_params,
-                positions,
-                Some(dirs),
-                n,
+                input.positions,
+                Some(input.dirs),
+                input.n,
             ),
             None => {
-                let acts = self.forward(gpu, params, positions, dirs, codes, n);
+                let acts = self.forward(gpu, params, input);
                 (acts.sigma, acts.rgb)
             }
         }
@@ -259,7 +272,7 @@ impl GpuFastField {
                 f.infer(gpu, &self.grid, params, self.n_params, positions, None, n)
                     .0
             }
-            None => self.density(gpu, params, positions, n).sigma,
+            None => self.density(gpu, params, positions, None, n).sigma,
         }
     }
 
@@ -271,9 +284,17 @@ impl GpuFastField {
         grid(n, GROUP)
     }
 
-    /// Density network only, for `n` world `positions` (`n x 3`): fills everything up to
+    /// Density network only, for `n` world `positions` (`n x 3`) with their `footprints`
+    /// (anti-aliased fields; `None`: the reference footprint): fills everything up to
     /// `sigma` (the colour buffers are left empty).
-    pub fn density(&self, gpu: &Gpu, params: &Handle, positions: &Handle, n: usize) -> Activations {
+    pub fn density(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        positions: &Handle,
+        footprints: Option<&Handle>,
+        n: usize,
+    ) -> Activations {
         let [d0, d1, ..] = &self.layers;
         let acts = Activations {
             n,
@@ -286,6 +307,7 @@ impl GpuFastField {
             c1: gpu.floats(0),
             c2: gpu.floats(0),
             rgb: gpu.floats(0),
+            level_weights: None,
         };
         if n == 0 {
             return acts;
@@ -305,6 +327,10 @@ impl GpuFastField {
             );
         }
         self.grid.encode(gpu, params, &acts.unit, n, &acts.enc);
+        let mut acts = acts;
+        if let Some(aa) = &self.antialias {
+            acts.level_weights = Some(aa.forward(gpu, &self.grid, footprints, &acts.enc, n));
+        }
         d0.forward(gpu, params, np, &acts.enc, &acts.h, n);
         d1.forward(gpu, params, np, &acts.h, &acts.geo, n);
         // SAFETY: as above.
@@ -323,19 +349,16 @@ impl GpuFastField {
         acts
     }
 
-    /// Density and colour of `n` samples at world `positions` seen along unit `dirs` (both
-    /// `n x 3`, one direction per sample), each with its appearance code from `codes`
-    /// (ignored by a field without codes).
-    pub fn forward(
-        &self,
-        gpu: &Gpu,
-        params: &Handle,
-        positions: &Handle,
-        dirs: &Handle,
-        codes: &SampleCodes,
-        n: usize,
-    ) -> Activations {
-        let mut acts = self.density(gpu, params, positions, n);
+    /// Density and colour of the samples of `input`.
+    pub fn forward(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> Activations {
+        let DeviceInput {
+            positions,
+            dirs,
+            codes,
+            footprints,
+            n,
+        } = *input;
+        let mut acts = self.density(gpu, params, positions, footprints, n);
         let [_, _, c0, c1, c2] = &self.layers;
         acts.colour_in = gpu.floats(n * c0.inputs);
         acts.c1 = gpu.floats(n * c0.outputs);
@@ -504,6 +527,9 @@ impl GpuFastField {
             Some((&d_enc, false)),
             n,
         );
+        if let Some(weights) = &acts.level_weights {
+            LevelWeights::backward(gpu, weights, &d_enc, n, self.grid.n_levels);
+        }
         self.grid
             .encode_bwd(gpu, self.scatter, &acts.unit, &d_enc, n, grads);
     }
@@ -542,7 +568,22 @@ pub(super) mod tests {
     /// 1e-4 relative to (1 + |value|) (sums of 700 terms in another order).
     #[test]
     fn the_field_matches_the_cpu_forward_and_backward() {
-        matches_the_cpu(&small_field(), None);
+        matches_the_cpu(&small_field(), None, false);
+    }
+
+    /// An anti-aliased field: each sample's footprint (from well under a fine cell to
+    /// several coarse ones) weighs its levels, or the reference footprint where samples
+    /// carry none.
+    #[test]
+    fn the_anti_aliased_field_matches_the_cpu() {
+        let field = FastField::new(FastFieldConfig {
+            antialias: Some(crate::field::fast::Antialias {
+                reference_footprint: 0.02,
+            }),
+            ..small_field().config
+        });
+        matches_the_cpu(&field, None, true);
+        matches_the_cpu(&field, None, false);
     }
 
     /// The same with per-photo appearance codes (3 values for 5 photos): each sample its
@@ -562,14 +603,18 @@ pub(super) mod tests {
                 i => i,
             })
             .collect();
-        matches_the_cpu(&field, Some(per_sample));
-        matches_the_cpu(&field, Some(vec![2; 700]));
-        matches_the_cpu(&field, Some(vec![crate::stage::MEAN_APPEARANCE; 700]));
+        matches_the_cpu(&field, Some(per_sample), false);
+        matches_the_cpu(&field, Some(vec![2; 700]), false);
+        matches_the_cpu(
+            &field,
+            Some(vec![crate::stage::MEAN_APPEARANCE; 700]),
+            false,
+        );
     }
 
     /// `field` on the device against the CPU, with each sample's code index
-    /// (`appearance`) where the field has codes.
-    fn matches_the_cpu(field: &FastField, appearance: Option<Vec<u32>>) {
+    /// (`appearance`) where the field has codes, and random footprints with `footprints`.
+    fn matches_the_cpu(field: &FastField, appearance: Option<Vec<u32>>, footprints: bool) {
         let Some(gpu) = super::super::device::test_gpu() else {
             return;
         };
@@ -592,6 +637,11 @@ pub(super) mod tests {
         let d_sigma: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let indices = appearance.clone().unwrap_or_default();
+        let fp: Vec<f32> = if footprints {
+            (0..n).map(|_| 10f32.powf(rng.range(-3.5, -0.5))).collect()
+        } else {
+            Vec::new()
+        };
         let codes = |gpu: &Gpu| match &appearance {
             // All the same: the one-index form the renderer passes.
             Some(a) if a.iter().all(|&i| i == a[0]) => SampleCodes::all(gpu, a[0]),
@@ -608,7 +658,7 @@ pub(super) mod tests {
             dirs: &dirs,
             samples_per_dir: 1,
             appearance: &indices,
-            footprints: &[],
+            footprints: &fp,
             variances: &[],
         };
         let out = field.forward(&params, input, &mut ws);
@@ -629,7 +679,16 @@ pub(super) mod tests {
             let p = gpu.upload(&params);
             let g = gpu.zeros(field.num_params());
             let codes = codes(&gpu);
-            let acts = gf.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), &codes, n);
+            let (pos_h, dirs_h) = (gpu.upload(&pos), gpu.upload(&dirs));
+            let fp_h = footprints.then(|| gpu.upload(&fp));
+            let input = DeviceInput {
+                positions: &pos_h,
+                dirs: &dirs_h,
+                codes: &codes,
+                footprints: fp_h.as_ref(),
+                n,
+            };
+            let acts = gf.forward(&gpu, &p, &input);
             gf.backward(
                 &gpu,
                 &p,
@@ -657,7 +716,7 @@ pub(super) mod tests {
                 assert!(e < 1e-4, "gradient of {}: {e}", t.name);
             }
             // The density-only pass gives the same densities.
-            let alone = gf.density(&gpu, &p, &gpu.upload(&pos), n);
+            let alone = gf.density(&gpu, &p, &pos_h, fp_h.as_ref(), n);
             assert_eq!(gpu.read(&alone.sigma, n).expect("read"), sigma);
         }
     }

@@ -284,7 +284,7 @@ mod tests {
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst, Gpu};
     use crate::engine::gpu::field::tests::small_field;
-    use crate::engine::gpu::field::GpuFastField;
+    use crate::engine::gpu::field::{DeviceInput, GpuFastField};
     use crate::field::fast::FastWorkspace;
     use crate::field::{FastField, FastFieldConfig};
     use crate::rng::Rng;
@@ -331,8 +331,15 @@ mod tests {
         let want = field.forward(&params, input, &mut ws);
         let p = gpu.upload(&params);
         let codes = SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE);
-        let (sigma, rgb) =
-            device_field.infer(gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), &codes, n);
+        let (pos_h, dirs_h) = (gpu.upload(&pos), gpu.upload(&dirs));
+        let input = DeviceInput {
+            positions: &pos_h,
+            dirs: &dirs_h,
+            codes: &codes,
+            footprints: None,
+            n,
+        };
+        let (sigma, rgb) = device_field.infer(gpu, &p, &input);
         let sigma = gpu.read(&sigma, n).expect("read");
         let rgb = gpu.read(&rgb, n * 3).expect("read");
         let (e_sigma, e_rgb) = (worst(&sigma, want.sigma), worst(&rgb, want.rgb));

@@ -899,7 +899,7 @@ mod tests {
         let Some(gpu) = super::super::device::test_gpu() else {
             return;
         };
-        for contract in [None, Some(0.75)] {
+        for (contract, cylinders) in [(None, false), (Some(0.75), false), (None, true)] {
             let mut rng = Rng::new(9);
             let (res, bound) = (16, 1.5);
             let thickness: Vec<f32> = (0..res * res * res)
@@ -920,9 +920,10 @@ mod tests {
                 let target = [rng.range(-2.0, 2.0), 0.0, rng.range(-2.0, 2.0)];
                 let dir = [target[0] - origin[0], 4.0, target[2] - origin[2]];
                 let ray = crate::camera::Ray { origin, dir };
-                rays.push(ray, dir, [1.0; 3], k);
+                rays.push_with_radius(ray, dir, [1.0; 3], k, rng.range(1e-4, 1e-2));
                 jitter.push(rng.uniform());
             }
+            rays.cylinders = cylinders;
             let mut want = PackedSamples::default();
             want.clear();
             for (r, &j) in jitter.iter().enumerate() {
@@ -977,6 +978,18 @@ mod tests {
             let (packed, positions, _dirs) = gm.write(&gpu, &on_device, &counted, all);
             let t = gpu.read(&packed.t, all.samples).expect("read");
             let pos = gpu.read(&positions, 3 * all.samples).expect("read");
+            // Each sample's footprint (anti-aliasing), from the rays' cone radii.
+            let footprints = crate::engine::gpu::antialias::sample_footprints(
+                &gpu,
+                &on_device,
+                &gpu.upload(&rays.radii),
+                cylinders,
+                contract,
+                (&packed.offsets, &packed.t),
+                500,
+                all.samples,
+            );
+            let footprints = gpu.read(&footprints, all.samples).expect("read");
             let mut disagree = 0;
             for r in 0..500 {
                 let w = want.ray(r);
@@ -985,6 +998,8 @@ mod tests {
                     && w.clone().zip(got.clone()).all(|(a, b)| {
                         (want.t[a] - t[b]).abs() < 1e-4 * (1.0 + want.t[a].abs())
                             && (0..3).all(|c| (want.positions[a][c] - pos[3 * b + c]).abs() < 1e-3)
+                            && (want.footprints[a] - footprints[b]).abs()
+                                < 1e-4 * want.footprints[a]
                     });
                 if !same {
                     disagree += 1;
@@ -992,7 +1007,7 @@ mod tests {
             }
             assert!(
                 disagree * 100 <= 500,
-                "{disagree} of 500 rays disagree (contract {contract:?})"
+                "{disagree} of 500 rays disagree (contract {contract:?}, cylinders {cylinders})"
             );
             assert!(want.len() > 2000, "too few samples to test: {}", want.len());
         }

@@ -17,6 +17,7 @@
 //!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
 //!   [`fused`]: the same field's inference in one kernel per batch, for rendering and
 //!   density queries (`NERF_GPU_FIELD=fused`); [`codes`]: per-photo appearance codes;
+//!   [`antialias`]: sample footprints and the hash grid's level weights;
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient; [`distortion`]: the distortion
@@ -32,6 +33,7 @@
 //! the host so both engines train on the same rays; 6 words a ray go up).
 
 pub mod adam;
+pub mod antialias;
 pub mod codes;
 pub mod device;
 pub mod distortion;

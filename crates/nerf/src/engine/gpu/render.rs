@@ -9,8 +9,10 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
+use super::antialias::sample_footprints;
 use super::codes::SampleCodes;
 use super::device::Gpu;
+use super::field::DeviceInput;
 use super::launch::grid;
 use super::march::{GpuMarcher, GpuRays, RoundState, STATE_WORDS};
 use crate::error::Result;
@@ -67,14 +69,21 @@ fn accumulate(
     }
 }
 
-/// A field on the device: densities (`n`) and colours (`n x 3`) of `n` field-space
-/// positions and unit view directions (`n x 3` each), with each sample's appearance code.
-pub type DeviceFieldFn<'a> = dyn Fn(&Handle, &Handle, &SampleCodes, usize) -> (Handle, Handle) + 'a;
+/// A field on the device: densities (`n`) and colours (`n x 3`) of a round's samples.
+pub type DeviceFieldFn<'a> = dyn Fn(&DeviceInput) -> (Handle, Handle) + 'a;
+
+/// What a field reads besides positions and directions.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct FieldNeeds {
+    /// Each sample's appearance code (`RayBatch::appearance_of` its ray; else the mean).
+    pub codes: bool,
+    /// Each sample's footprint (from the batch's cone radii; else the reference one).
+    pub footprints: bool,
+}
 
 /// Renders `rays` through `field`: the grid `device_grid` (a copy of `host_grid`, which
 /// gives each ray its span on the host) marched as `marcher` marches, at most about
-/// `round_samples` samples per round. With `codes` the field is told each sample's
-/// appearance code (`RayBatch::appearance_of` its ray); without, every sample's is the mean.
+/// `round_samples` samples per round, the field told what it `needs`.
 #[allow(clippy::too_many_arguments)]
 pub fn render_rays(
     gpu: &Gpu,
@@ -82,7 +91,7 @@ pub fn render_rays(
     marcher: &Marcher,
     host_grid: &OccupancyGrid,
     field: &DeviceFieldFn,
-    codes: bool,
+    needs: FieldNeeds,
     round_samples: usize,
     rays: &RayBatch,
 ) -> Result<Vec<RayOutput>> {
@@ -90,7 +99,7 @@ pub fn render_rays(
     if n == 0 {
         return Ok(Vec::new());
     }
-    let ray_codes = codes.then(|| {
+    let ray_codes = needs.codes.then(|| {
         let per_ray: Vec<u32> = (0..n).map(|r| rays.appearance_of(r)).collect();
         gpu.upload_u32(&per_ray)
     });
@@ -99,6 +108,8 @@ pub fn render_rays(
         gpu,
         GpuRays::new(gpu, marcher, host_grid, rays, &vec![0.5; n]),
     );
+    // Without radii every sample takes the reference footprint, as on the CPU.
+    let radii = (needs.footprints && !rays.radii.is_empty()).then(|| gpu.upload(&rays.radii));
     let inv_norm: Vec<f32> = rays.dirs.iter().map(|&d| 1.0 / length(d)).collect();
     let inv_norm = gpu.upload(&inv_norm);
     let round_samples = round_samples.max(1);
@@ -118,7 +129,26 @@ pub fn render_rays(
             Some(per_ray) => SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s),
             None => SampleCodes::all(gpu, MEAN_APPEARANCE),
         };
-        let (sigma, rgb) = field(&positions, &dirs, &codes, s);
+        let footprints = radii.as_ref().map(|radii| {
+            let csr = (&samples.offsets, &samples.t);
+            sample_footprints(
+                gpu,
+                &round.rays,
+                radii,
+                rays.cylinders,
+                marcher.contract,
+                csr,
+                k,
+                s,
+            )
+        });
+        let (sigma, rgb) = field(&DeviceInput {
+            positions: &positions,
+            dirs: &dirs,
+            codes: &codes,
+            footprints: footprints.as_ref(),
+            n: s,
+        });
         // SAFETY: `offsets` holds `k + 1` slots ending at `s`, the length of every sample
         // buffer (`3s` for colours); `inv_norm` and `state` hold the `n >= k` rays.
         unsafe {
@@ -213,8 +243,8 @@ mod tests {
 
         let device_field = GpuFastField::new(&gpu, &field);
         let device_params = gpu.upload(&params);
-        let field_fn = |p: &Handle, d: &Handle, codes: &SampleCodes, n: usize| {
-            let acts = device_field.forward(&gpu, &device_params, p, d, codes, n);
+        let field_fn = |input: &DeviceInput| {
+            let acts = device_field.forward(&gpu, &device_params, input);
             (acts.sigma, acts.rgb)
         };
         let device_grid = GpuMarcher::with_grid(&gpu, &marcher, &grid);
@@ -230,7 +260,7 @@ mod tests {
                 &marcher,
                 &grid,
                 &field_fn,
-                false,
+                FieldNeeds::default(),
                 round_samples,
                 &rays,
             )
