@@ -37,7 +37,7 @@ const TABLE: [(Feature, bool, bool); 5] = [
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, false),
     (Feature::Distortion, true, true),
-    (Feature::Mip, true, false),
+    (Feature::Mip, true, true),
 ];
 
 impl Feature {

@@ -474,6 +474,21 @@ fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
 /// (equal to rounding), and the losses agree step by step; renders of the result agree.
 #[test]
 fn the_paper_model_trains_alike_on_both_engines() {
+    paper_model_alike("paper model", |_| {});
+}
+
+/// The same with mip-NeRF's conical frustums (the integrated encoding) and one network
+/// for both passes (`--preset mip`).
+#[test]
+fn mip_nerf_trains_alike_on_both_engines() {
+    paper_model_alike("mip-NeRF", |m| {
+        m.integrated = true;
+        m.shared_network = true;
+    });
+}
+
+/// The demo preset, changed by `tweak`, on both engines (see the tests above).
+fn paper_model_alike(label: &str, tweak: impl Fn(&mut nerf::model::VanillaModelConfig)) {
     if !gpu_available() {
         return;
     }
@@ -483,6 +498,9 @@ fn the_paper_model_trains_alike_on_both_engines() {
     let mut c = TrainConfig::from_preset(data.clone(), "demo").expect("preset");
     c.batch_rays = 128;
     c.chunk_rays = 64;
+    if let nerf::model::ModelConfig::Vanilla(m) = &mut c.model {
+        tweak(m);
+    }
     let scene = c.open_scene(1).expect("scene");
     let train = scene.load(Split::Train, 1).expect("load");
     let mut cpu = Trainer::on(Device::Cpu, c.clone(), train.clone()).expect("cpu");
@@ -500,7 +518,7 @@ fn the_paper_model_trains_alike_on_both_engines() {
         last = b.loss;
     }
     eprintln!(
-        "paper model, 12 steps: worst relative loss difference {worst:.1e}; gpu {first} -> {last}"
+        "{label}, 12 steps: worst relative loss difference {worst:.1e}; gpu {first} -> {last}"
     );
     assert!(worst < 1e-2, "losses differ by {worst}");
     assert!(

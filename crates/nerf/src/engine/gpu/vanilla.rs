@@ -76,6 +76,16 @@ impl GpuVanillaEngine {
         }
     }
 
+    /// The network of the fine pass: its own, or the coarse one when they are shared
+    /// (mip-NeRF); `None` without a fine pass (`VanillaModel::fine_pass`).
+    fn fine_net(&self) -> Option<&GpuVanillaNet> {
+        match &self.fine {
+            Some(fine) => Some(fine),
+            None if self.model.config.hierarchical() => Some(&self.coarse),
+            None => None,
+        }
+    }
+
     /// Uploads packed `samples` and runs `net` forward and compositing over `backgrounds`.
     fn pass(&self, net: &GpuVanillaNet, samples: &PackedSamples, backgrounds: &Handle) -> Pass {
         let gpu = &self.gpu;
@@ -90,10 +100,12 @@ impl GpuVanillaEngine {
             rays,
             len: n,
         };
+        let variances = (!samples.variances.is_empty()).then(|| gpu.upload(&samples.variances));
         let acts = net.forward(
             gpu,
             &self.state.values,
             &gpu.upload(samples.positions.as_flattened()),
+            variances.as_ref(),
             &gpu.upload(&dirs),
             n,
         );
@@ -183,7 +195,7 @@ impl GpuVanillaEngine {
         let backgrounds = gpu.upload(rays.backgrounds.as_flattened());
         let samples = self.model.pack_coarse(&mut ws, rays, None);
         let mut pass = self.pass(&self.coarse, samples, &backgrounds);
-        if let Some(fine) = &self.fine {
+        if let Some(fine) = self.fine_net() {
             let weights = gpu.read(&pass.weights, pass.samples.len)?;
             let samples = self.model.pack_fine(&mut ws, rays, &weights, None);
             pass = self.pass(fine, samples, &backgrounds);
@@ -241,7 +253,7 @@ impl Engine for GpuVanillaEngine {
                 self.backward(&self.coarse, &coarse, &backgrounds, &targets, &check)?;
             let mut evaluated = coarse.samples.len;
             let mut fine_sse = None;
-            if let Some(fine) = &self.fine {
+            if let Some(fine) = self.fine_net() {
                 let weights = gpu.read(&coarse.weights, coarse.samples.len)?;
                 let samples =
                     self.model
@@ -328,6 +340,7 @@ impl Engine for GpuVanillaEngine {
                 &self.gpu,
                 &self.state.values,
                 &self.gpu.upload(p),
+                None,
                 &self.gpu.upload(&dirs),
                 n,
             );

@@ -19,15 +19,21 @@ const GROUP: u32 = 256;
 
 /// `gamma(p)` of every 3-vector (`field::vanilla`'s encoding, both forms), one thread per
 /// output value. Arguments are reduced modulo 2 pi first (Cody-Waite, two constants):
-/// the highest frequency multiplies by 512, where a GPU's fast `sin` loses accuracy.
+/// the highest frequency multiplies by 512, where a GPU's fast `sin` loses accuracy. With
+/// `integrated` each point is a Gaussian's mean with the diagonal covariance `variances`,
+/// and each frequency `s` fades by `exp(-s^2 var / 2)` (mip-NeRF's integrated encoding,
+/// `encoding::integrated`).
 #[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
 fn frequency_encode(
     points: &[f32],
+    variances: &[f32],
     out: &mut [f32],
     n: u32,
     frequencies: u32,
     paper_form: u32,
     base: f32,
+    integrated: u32,
 ) {
     let idx = ABSOLUTE_POS;
     let id = 6 * frequencies as usize + select(paper_form == 1, 0usize, 3usize);
@@ -44,10 +50,15 @@ fn frequency_encode(
             let within = j % 6;
             let c = within % 3;
             // `base`: 1, or pi in the paper's form.
-            let x = f32::cast_from(1u32 << k as u32) * base * points[3 * s + c];
+            let f = f32::cast_from(1u32 << k as u32) * base;
+            let x = f * points[3 * s + c];
             let turns = f32::round(x * 0.159_154_94f32);
             let r = (x - turns * 6.281_25f32) - turns * 0.001_935_307_2f32;
-            out[idx] = select(within < 3, f32::sin(r), f32::cos(r));
+            let mut v = select(within < 3, f32::sin(r), f32::cos(r));
+            if integrated == 1 {
+                v *= f32::exp(-0.5f32 * f * f * variances[(3 * s + c) % variances.len()]);
+            }
+            out[idx] = v;
         }
     }
 }
@@ -213,9 +224,20 @@ impl GpuVanillaNet {
         }
     }
 
-    fn encode(gpu: &Gpu, e: FrequencyEncoding, points: &Handle, n: usize) -> Handle {
+    /// The encoding of `n` points (`n x 3`), integrated over Gaussians of diagonal
+    /// covariance `variances` (`n x 3`) when given.
+    fn encode(
+        gpu: &Gpu,
+        e: FrequencyEncoding,
+        points: &Handle,
+        variances: Option<&Handle>,
+        n: usize,
+    ) -> Handle {
         let out = gpu.floats(n * e.dims());
-        // SAFETY: `points` holds `n x 3` floats, `out` `n x dims`; bounds-checked.
+        let none = gpu.floats(1);
+        let (var, var_len) = variances.map_or((&none, 1), |v| (v, n * 3));
+        // SAFETY: `points` holds `n x 3` floats, `variances` as many (or one, unread), `out`
+        // `n x dims`; bounds-checked.
         unsafe {
             let (c, d) = grid(n * e.dims(), GROUP);
             frequency_encode::launch_unchecked(
@@ -223,6 +245,7 @@ impl GpuVanillaNet {
                 c,
                 d,
                 BufferArg::from_raw_parts(points.clone(), n * 3),
+                BufferArg::from_raw_parts(var.clone(), var_len),
                 BufferArg::from_raw_parts(out.clone(), n * e.dims()),
                 n as u32,
                 e.frequencies as u32,
@@ -232,6 +255,7 @@ impl GpuVanillaNet {
                 } else {
                     1.0
                 },
+                u32::from(variances.is_some()),
             );
         }
         out
@@ -277,17 +301,19 @@ impl GpuVanillaNet {
     }
 
     /// Density (`n`, after ReLU) and colour (`n x 3`) of `n` samples at `positions` seen
-    /// along unit `dirs` (both `n x 3`).
+    /// along unit `dirs` (both `n x 3`); with `variances` (`n x 3`), each sample is the
+    /// Gaussian of its conical frustum (mip-NeRF).
     pub fn forward(
         &self,
         gpu: &Gpu,
         params: &Handle,
         positions: &Handle,
+        variances: Option<&Handle>,
         dirs: &Handle,
         n: usize,
     ) -> VanillaActs {
         let (np, w, in_x) = (self.n_params, self.width, self.pe.dims());
-        let enc = GpuVanillaNet::encode(gpu, self.pe, positions, n);
+        let enc = GpuVanillaNet::encode(gpu, self.pe, positions, variances, n);
         let mut inputs = Vec::new();
         let mut h = gpu.floats(n * w);
         self.trunk[0].forward(gpu, params, np, &enc, &h, n);
@@ -314,7 +340,7 @@ impl GpuVanillaNet {
                 s.forward(gpu, params, np, &h, &sigma, n);
                 let feat = gpu.floats(n * w);
                 feature.forward(gpu, params, np, &h, &feat, n);
-                let dir_enc = GpuVanillaNet::encode(gpu, *dir, dirs, n);
+                let dir_enc = GpuVanillaNet::encode(gpu, *dir, dirs, None, n);
                 let view_in = GpuVanillaNet::concat(gpu, &feat, w, &dir_enc, dir.dims(), n);
                 let hidden = gpu.floats(n * view.outputs);
                 view.forward(gpu, params, np, &view_in, &hidden, n);
@@ -543,7 +569,12 @@ mod tests {
         let Some(gpu) = super::super::device::test_gpu() else {
             return;
         };
-        for (view, paper_form) in [(true, false), (false, true)] {
+        // The paper's network both ways, and mip-NeRF's integrated encoding.
+        for (view, paper_form, integrated) in [
+            (true, false, false),
+            (false, true, false),
+            (true, false, true),
+        ] {
             let config = VanillaConfig {
                 depth: 4,
                 width: 16,
@@ -578,6 +609,14 @@ mod tests {
                 .collect();
             let d_sigma: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
             let d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+            // Frustums from much finer than the highest frequency to coarser than a few.
+            let var: Vec<f32> = if integrated {
+                (0..n * 3)
+                    .map(|_| 10f32.powf(rng.range(-6.0, -1.0)))
+                    .collect()
+            } else {
+                Vec::new()
+            };
             let mut ws = VanillaWorkspace::default();
             let input = FieldInput {
                 positions: &pos,
@@ -585,7 +624,7 @@ mod tests {
                 samples_per_dir: spr,
                 appearance: &[],
                 footprints: &[],
-                variances: &[],
+                variances: &var,
             };
             let out = net.forward(&params, input, &mut ws);
             let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());
@@ -614,7 +653,15 @@ mod tests {
                     .collect();
                 let p = gpu.upload(&all);
                 let g = gpu.zeros(all.len());
-                let acts = gn.forward(&gpu, &p, &gpu.upload(&pos), &gpu.upload(&dirs), n);
+                let var_h = integrated.then(|| gpu.upload(&var));
+                let acts = gn.forward(
+                    &gpu,
+                    &p,
+                    &gpu.upload(&pos),
+                    var_h.as_ref(),
+                    &gpu.upload(&dirs),
+                    n,
+                );
                 gn.backward(
                     &gpu,
                     &p,
