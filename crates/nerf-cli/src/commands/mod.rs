@@ -28,5 +28,9 @@ pub fn open_run(
     if let Some(note) = nerf::train::run_scene::missing_note(&run.config) {
         eprintln!("note: {note}");
     }
+    let model = &run.config.model;
+    if let Some(note) = nerf::engine::cpu_fallback_note(device, run.engine.as_ref(), model) {
+        eprintln!("note: {note}");
+    }
     Ok(run)
 }

@@ -248,6 +248,28 @@ pub fn hardware_gpu_present() -> bool {
     false
 }
 
+/// Why a run opened on `device` runs on the CPU engine although this machine has a GPU:
+/// the features of `model` the GPU engine does not run yet (`caps`). `None` when the run
+/// is on the GPU, was sent to the CPU by name, or this machine has no GPU.
+pub fn cpu_fallback_note(
+    device: Device,
+    engine: &dyn Engine,
+    model: &ModelConfig,
+) -> Option<String> {
+    if device != Device::Auto || engine.kind() != caps::EngineKind::Cpu {
+        return None;
+    }
+    let missing = caps::EngineKind::Gpu.missing(model);
+    if missing.is_empty() || !hardware_gpu_present() {
+        return None;
+    }
+    Some(format!(
+        "on the CPU engine: {} {} not run on the GPU engine yet",
+        caps::list(&missing),
+        if missing.len() == 1 { "does" } else { "do" }
+    ))
+}
+
 /// Renders `rays` into `out` in chunks of `chunk` rays, in parallel, `render_chunk` doing
 /// one chunk; `on_progress` hears how many rays are done after each chunk. Every engine's
 /// `render_rays` is this loop around its own chunk renderer.

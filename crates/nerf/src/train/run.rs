@@ -212,6 +212,13 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         "training on {}",
         trainer.engine.describe()
     )));
+    // A new run heard this from its defaults (`defaults::engine_for`); a resumed one here.
+    if opts.resume {
+        let engine = trainer.engine.as_ref();
+        if let Some(note) = crate::engine::cpu_fallback_note(opts.device, engine, &config.model) {
+            on_event(Event::Note(&note));
+        }
+    }
     let mut elapsed_before = 0.0;
     let mut resumed_from = None;
     if opts.resume && from_checkpoint {
