@@ -76,22 +76,22 @@ pub struct TrainOptions {
     pub no_appearance: bool,
     /// Fast: weight of mip-NeRF 360's distortion loss, which gathers each ray's weight
     /// into a short stretch and so clears the thin fog that makes forward-facing and
-    /// unbounded captures slow to render (CPU engine). Default: 1e-4 for forward-facing
+    /// unbounded captures slow to render. Default: 1e-4 for forward-facing
     /// (NDC) scenes, which then render several times faster for a fraction of a dB; none
     /// for others.
     #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive_f64,
           conflicts_with = "no_distortion")]
     pub distortion: Option<f64>,
-    /// Fast: no distortion loss (the default but for forward-facing NDC scenes on the CPU
-    /// engine).
+    /// Fast: no distortion loss (the default but for forward-facing NDC scenes).
     #[arg(long)]
     pub no_distortion: bool,
     /// Fast: learn a correction of every training camera's pose with the field (after
     /// BARF), for poses that are a little off. With 16 appearance codes per photo, the
     /// default for real captures (instant-ngp / nerfstudio transforms.json, COLMAP, LLFF
     /// with --spherify) trained on the CPU engine: without codes, the poses soak up the
-    /// photos' changes of exposure. Not for Blender scenes, forward-facing (NDC) scenes or
-    /// on a GPU unless asked for (the GPU engine refuses it).
+    /// photos' changes of exposure. Not for Blender scenes or forward-facing (NDC) scenes
+    /// unless asked for; the GPU engine does not refine cameras yet (--device wgpu refuses
+    /// it, and --device auto trains such a run on the CPU, saying so).
     /// `nerf eval` then fits each test camera to the model first, as BARF evaluates.
     #[arg(long, conflicts_with = "no_refine_cameras")]
     pub refine_cameras: bool,
@@ -138,12 +138,11 @@ pub struct TrainOptions {
     pub multiscale: Option<usize>,
     /// Fast: anti-alias (after Zip-NeRF): each sample reads no hash-grid detail finer
     /// than its pixel's footprint, so views from far away or at low resolution do not
-    /// alias, nor close ones blur. The default on the CPU engine, but for forward-facing
+    /// alias, nor close ones blur. The default on both engines, but for forward-facing
     /// (NDC) captures.
     #[arg(long, conflicts_with = "no_antialias")]
     pub antialias: bool,
-    /// Fast: point samples, as Instant-NGP (the default on a GPU, whose kernels do not
-    /// anti-alias yet).
+    /// Fast: point samples, as Instant-NGP (the default for forward-facing NDC captures).
     #[arg(long)]
     pub no_antialias: bool,
     /// Area-average downscale factor of the images (default 1).
