@@ -175,13 +175,16 @@ impl GpuEngine {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
                     self.marcher.write(&self.gpu, &on_device, &counted, cut);
-                let codes = SampleCodes::of_rays(
-                    &self.gpu,
-                    &views,
-                    &samples.offsets,
-                    cut.rays,
-                    cut.samples,
-                );
+                let codes = match &views {
+                    Some(views) => SampleCodes::of_rays(
+                        &self.gpu,
+                        views,
+                        &samples.offsets,
+                        cut.rays,
+                        cut.samples,
+                    ),
+                    None => SampleCodes::all(&self.gpu, crate::stage::MEAN_APPEARANCE),
+                };
                 let footprints = radii.map(|radii| {
                     antialias::sample_footprints(
                         &self.gpu,
@@ -210,17 +213,19 @@ impl GpuEngine {
     }
 
     /// Rays `0..want` of the step on the device, with the index of each one's view (its
-    /// appearance code), their cone radii (for an anti-aliased field), targets and
-    /// backgrounds: made there from the pixels the host picks (`rays`), or drawn whole on
-    /// the host where the views are not on the device.
+    /// appearance code, for a field with codes), their cone radii (for an anti-aliased
+    /// field), targets and backgrounds: made there from the pixels the host picks (`rays`),
+    /// or drawn whole on the host where the views are not on the device.
+    #[allow(clippy::type_complexity)]
     fn draw_rays(
         &mut self,
         data: &Dataset,
         spec: &StepSpec,
         marcher: &Marcher,
         want: usize,
-    ) -> (GpuRays, Handle, Option<Handle>, Handle, Handle) {
+    ) -> (GpuRays, Option<Handle>, Option<Handle>, Handle, Handle) {
         let footprints = self.model.config.field.antialias.is_some();
+        let codes = self.field.has_codes();
         let gpu = &self.gpu;
         if let Some((_, Some(views))) = &self.views {
             let mut choices: Vec<PixelChoice> = (0..want as u64)
@@ -231,7 +236,10 @@ impl GpuEngine {
             // `FastModel::march_block`.
             let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
             let bound = self.model.grid.bound;
-            let of_view: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
+            let of_view = codes.then(|| {
+                let of_view: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
+                gpu.upload_u32(&of_view)
+            });
             // The cone radii as the host's rays carry them (`data::pixels`).
             let radii = footprints.then(|| {
                 let radii: Vec<f32> = choices
@@ -249,7 +257,7 @@ impl GpuEngine {
             });
             let (rays, targets, backgrounds) =
                 views.generate(gpu, &data.space, marcher, bound, &choices, &jitter);
-            return (rays, gpu.upload_u32(&of_view), radii, targets, backgrounds);
+            return (rays, of_view, radii, targets, backgrounds);
         }
         let rays = &mut self.rays;
         rays.draw_parallel(data, &spec.sampling, 0..want as u64);
@@ -257,15 +265,12 @@ impl GpuEngine {
         let on_device = GpuRays::new(gpu, marcher, &self.model.grid, &rays.rays, &jitter);
         let targets = gpu.upload(rays.targets.as_flattened());
         let backgrounds = gpu.upload(rays.rays.backgrounds.as_flattened());
-        let of_view: Vec<u32> = rays.rays.pixels.iter().map(|&p| (p >> 32) as u32).collect();
+        let of_view = codes.then(|| {
+            let of_view: Vec<u32> = rays.rays.pixels.iter().map(|&p| (p >> 32) as u32).collect();
+            gpu.upload_u32(&of_view)
+        });
         let radii = footprints.then(|| gpu.upload(&rays.rays.radii));
-        (
-            on_device,
-            gpu.upload_u32(&of_view),
-            radii,
-            targets,
-            backgrounds,
-        )
+        (on_device, of_view, radii, targets, backgrounds)
     }
 
     /// Re-evaluates the occupancy grid on the device when the schedule says so, then
