@@ -130,16 +130,13 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         refine_cameras: Choice::Off,
         distortion: opts.distortion.map_or(Choice::Default, Choice::On),
     };
-    let has_gpu =
-        opts.device == crate::engine::Device::Auto && crate::engine::hardware_gpu_present();
-    let (engine, engine_note) = defaults::engine_for(opts.device, has_gpu, &flags);
     let facts = defaults::SceneFacts {
         blender,
         space: data.space,
         multiscale: 1,
     };
-    let chosen = defaults::fast_defaults(&facts, engine, &flags);
-    for note in engine_note.into_iter().chain(chosen.notes) {
+    let chosen = defaults::decide(opts.device, &facts, &flags);
+    for note in chosen.notes {
         say(note);
     }
     let antialias = chosen.antialias;

@@ -107,17 +107,14 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
     ));
     let mut config = train_config(scene.clone(), opts.steps);
     // The features `nerf train` would give the built-in chair on this device.
-    let flags = crate::train::defaults::Flags::default();
-    let device = opts.device.device;
-    let has_gpu = device == crate::engine::Device::Auto && crate::engine::hardware_gpu_present();
-    let (engine, _) = crate::train::defaults::engine_for(device, has_gpu, &flags);
     let opened = config.open_scene(1)?;
     let facts = crate::train::defaults::SceneFacts {
         blender: opened.format == crate::data::scene::Format::Blender,
         space: opened.space,
         multiscale: 1,
     };
-    let chosen = crate::train::defaults::fast_defaults(&facts, engine, &flags);
+    let flags = crate::train::defaults::Flags::default();
+    let chosen = crate::train::defaults::decide(opts.device.device, &facts, &flags);
     for note in &chosen.notes {
         hooks.say(note);
     }

@@ -140,6 +140,16 @@ pub fn engine_for(device: Device, has_gpu: bool, flags: &Flags) -> (EngineKind, 
     }
 }
 
+/// The features of a run of `scene` on `device` as `flags` ask: [`engine_for`] (probing
+/// the adapters only for `auto`) and then [`fast_defaults`], the engine's note first.
+pub fn decide(device: Device, scene: &SceneFacts, flags: &Flags) -> Defaults {
+    let has_gpu = device == Device::Auto && crate::engine::hardware_gpu_present();
+    let (engine, note) = engine_for(device, has_gpu, flags);
+    let mut d = fast_defaults(scene, engine, flags);
+    d.notes.splice(0..0, note);
+    d
+}
+
 /// The fast model's features for a run of `scene` on `engine`, as `flags` ask and the
 /// rules in this module's docs give.
 pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> Defaults {

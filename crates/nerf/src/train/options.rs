@@ -329,19 +329,13 @@ impl TrainOptions {
                             .into(),
                     );
                 }
-                let flags = self.feature_flags();
-                // Probing the adapters takes a moment: once, for every default.
-                let has_gpu = self.device.device == crate::engine::Device::Auto
-                    && crate::engine::hardware_gpu_present();
-                let (engine, engine_note) =
-                    defaults::engine_for(self.device.device, has_gpu, &flags);
                 let facts = defaults::SceneFacts {
                     blender: scene.format == crate::data::scene::Format::Blender,
                     space: scene.space,
                     multiscale: c.multiscale,
                 };
-                let d = defaults::fast_defaults(&facts, engine, &flags);
-                for note in engine_note.iter().chain(&d.notes) {
+                let d = defaults::decide(self.device.device, &facts, &self.feature_flags());
+                for note in &d.notes {
                     on_notice(note);
                 }
                 if d.antialias {

@@ -9,13 +9,12 @@ use cubecl::server::Handle;
 use super::device::Gpu;
 use super::hash_grid::{Scatter, ScatterAdd};
 use super::launch::grid;
-use crate::stage::MEAN_APPEARANCE;
 
 /// Threads per workgroup.
 const GROUP: u32 = 256;
 
 /// Which code each sample takes: an index into the training photos, or
-/// [`MEAN_APPEARANCE`].
+/// [`MEAN_APPEARANCE`](crate::stage::MEAN_APPEARANCE).
 pub struct SampleCodes {
     /// `n` indices, or one for every sample.
     pub index: Handle,
@@ -23,7 +22,8 @@ pub struct SampleCodes {
 }
 
 impl SampleCodes {
-    /// Every sample the same code: photo `index`'s, or the mean ([`MEAN_APPEARANCE`]).
+    /// Every sample the same code: photo `index`'s, or the mean
+    /// ([`MEAN_APPEARANCE`](crate::stage::MEAN_APPEARANCE)).
     pub fn all(gpu: &Gpu, index: u32) -> SampleCodes {
         SampleCodes {
             index: gpu.upload_u32(&[index]),
@@ -100,65 +100,67 @@ fn mean_code(params: &[f32], mean: &mut [f32], off: u32, dims: u32, images: u32)
     }
 }
 
-/// Writes each sample's code into its colour-network input row (`ci` wide, the code from
-/// column `first`).
-#[cube(launch_unchecked)]
-#[allow(clippy::too_many_arguments)]
-fn write_codes(
-    params: &[f32],
-    mean: &[f32],
-    index: &[u32],
-    colour_in: &mut [f32],
+/// Where the codes sit and whom they serve, in the order the kernels read them.
+#[derive(CubeType, CubeLaunch, Clone, Copy)]
+struct CodeLayout {
+    /// Samples.
     n: u32,
+    /// The colour input's width, and the column its code starts at.
     ci: u32,
     first: u32,
+    /// Offset of the `images x dims` codes in the parameter vector.
     off: u32,
     dims: u32,
     images: u32,
+    /// 1: one index per sample; 0: one for every sample.
     per_sample: u32,
-) {
+}
+
+/// Thread `t`'s sample, the entry of its code it handles, and its code's index.
+#[cube]
+fn sample_code(index: &[u32], at: &CodeLayout, t: usize) -> (usize, usize, u32) {
+    let s = t / at.dims as usize;
+    let j = t % at.dims as usize;
+    let i = index[select(at.per_sample == 1, s, 0usize)];
+    (s, j, i)
+}
+
+/// Writes each sample's code into its colour-network input row.
+#[cube(launch_unchecked)]
+fn write_codes(params: &[f32], mean: &[f32], index: &[u32], colour_in: &mut [f32], at: CodeLayout) {
     let t = ABSOLUTE_POS;
-    if t < n as usize * dims as usize {
-        let s = t / dims as usize;
-        let j = t % dims as usize;
-        let i = index[select(per_sample == 1, s, 0usize)];
+    if t < at.n as usize * at.dims as usize {
+        let (s, j, i) = sample_code(index, &at, t);
+        let (off, dims, images) = (at.off as usize, at.dims as usize, at.images);
         let v = select(
             i < images,
-            params[off as usize + (i as usize % images as usize) * dims as usize + j],
+            params[off + (i as usize % images as usize) * dims + j],
             mean[j],
         );
-        colour_in[s * ci as usize + first as usize + j] = v;
+        colour_in[s * at.ci as usize + at.first as usize + j] = v;
     }
 }
 
 /// Adds each sample's code gradient (its colour-input gradient's code columns) to its
 /// photo's code, or `1 / images` of it to every code for the mean code.
 #[cube(launch_unchecked)]
-#[allow(clippy::too_many_arguments)]
 fn codes_bwd<S: ScatterAdd>(
     index: &[u32],
     d_colour_in: &[f32],
     grads: &mut [Atomic<S>],
-    n: u32,
-    ci: u32,
-    first: u32,
-    off: u32,
-    dims: u32,
-    images: u32,
-    per_sample: u32,
+    at: CodeLayout,
 ) {
     let t = ABSOLUTE_POS;
-    if t < n as usize * dims as usize {
-        let s = t / dims as usize;
-        let j = t % dims as usize;
-        let i = index[select(per_sample == 1, s, 0usize)];
-        let d = d_colour_in[s * ci as usize + first as usize + j];
+    if t < at.n as usize * at.dims as usize {
+        let (s, j, i) = sample_code(index, &at, t);
+        let (off, dims, images) = (at.off as usize, at.dims as usize, at.images);
+        let d = d_colour_in[s * at.ci as usize + at.first as usize + j];
         if i < images {
-            S::scatter_add(&grads[off as usize + i as usize * dims as usize + j], d);
+            S::scatter_add(&grads[off + i as usize * dims + j], d);
         } else {
             let share = d / f32::cast_from(images);
             for k in 0..images as usize {
-                S::scatter_add(&grads[off as usize + k * dims as usize + j], share);
+                S::scatter_add(&grads[off + k * dims + j], share);
             }
         }
     }
@@ -216,13 +218,7 @@ impl GpuCodes {
                 BufferArg::from_raw_parts(mean.clone(), self.dims),
                 BufferArg::from_raw_parts(codes.index.clone(), codes.len(n)),
                 BufferArg::from_raw_parts(colour_in.clone(), n * ci),
-                n as u32,
-                ci as u32,
-                first as u32,
-                self.offset as u32,
-                self.dims as u32,
-                self.images as u32,
-                u32::from(codes.per_sample),
+                self.layout(codes, (ci, first), n),
             );
         }
     }
@@ -245,21 +241,12 @@ impl GpuCodes {
             return;
         }
         let (count, dim) = grid(n * self.dims, GROUP);
-        let args = (
-            n as u32,
-            ci as u32,
-            first as u32,
-            self.offset as u32,
-            self.dims as u32,
-            self.images as u32,
-            u32::from(codes.per_sample),
-        );
         // SAFETY: as in `write`; `grads` holds a slot per parameter.
         unsafe {
             let index = || BufferArg::from_raw_parts(codes.index.clone(), codes.len(n));
             let d = || BufferArg::from_raw_parts(d_colour_in.clone(), n * ci);
             let g = || BufferArg::from_raw_parts(grads.clone(), n_params);
-            let (n, ci, first, off, dims, images, per) = args;
+            let at = || self.layout(codes, (ci, first), n);
             match scatter {
                 Scatter::FloatAtomic => codes_bwd::launch_unchecked::<f32>(
                     &gpu.client,
@@ -268,13 +255,7 @@ impl GpuCodes {
                     index(),
                     d(),
                     g(),
-                    n,
-                    ci,
-                    first,
-                    off,
-                    dims,
-                    images,
-                    per,
+                    at(),
                 ),
                 Scatter::CompareAndSwap => codes_bwd::launch_unchecked::<u32>(
                     &gpu.client,
@@ -283,24 +264,28 @@ impl GpuCodes {
                     index(),
                     d(),
                     g(),
-                    n,
-                    ci,
-                    first,
-                    off,
-                    dims,
-                    images,
-                    per,
+                    at(),
                 ),
             }
         }
     }
-}
 
-/// The per-sample index of a batch where every ray takes the same code.
-pub fn batch_index(appearance: crate::stage::Appearance) -> Option<u32> {
-    match appearance {
-        crate::stage::Appearance::Mean => Some(MEAN_APPEARANCE),
-        crate::stage::Appearance::Of(i) => Some(i),
-        crate::stage::Appearance::PerView => None,
+    /// The kernels' view of these codes for `n` samples of `codes`, written to columns
+    /// `first..` of `ci`-wide rows.
+    fn layout(
+        &self,
+        codes: &SampleCodes,
+        (ci, first): (usize, usize),
+        n: usize,
+    ) -> CodeLayoutLaunch {
+        CodeLayoutLaunch::new(
+            n as u32,
+            ci as u32,
+            first as u32,
+            self.offset as u32,
+            self.dims as u32,
+            self.images as u32,
+            u32::from(codes.per_sample),
+        )
     }
 }

@@ -11,6 +11,7 @@ use super::antialias::LevelWeights;
 use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
 use super::fused::FusedShape;
+use super::harmonics::sh4;
 use super::hash_grid::{GpuHashGrid, Scatter};
 use super::launch::grid;
 use super::mlp::Dense;
@@ -47,29 +48,12 @@ fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32, ci: u3
     let gw = g as usize;
     let ci = ci as usize;
     if s * ci < colour_in.len() {
-        let x = dirs[3 * s];
-        let y = dirs[3 * s + 1];
-        let z = dirs[3 * s + 2];
-        let xx = x * x;
-        let yy = y * y;
-        let zz = z * z;
         let o = s * ci;
-        colour_in[o] = 0.282_094_8f32;
-        colour_in[o + 1] = 0.0f32 - 0.488_602_5f32 * y;
-        colour_in[o + 2] = 0.488_602_5f32 * z;
-        colour_in[o + 3] = 0.0f32 - 0.488_602_5f32 * x;
-        colour_in[o + 4] = 1.092_548_4f32 * x * y;
-        colour_in[o + 5] = 0.0f32 - 1.092_548_4f32 * y * z;
-        colour_in[o + 6] = 0.946_174_7f32 * zz - 0.315_391_57f32;
-        colour_in[o + 7] = 0.0f32 - 1.092_548_4f32 * x * z;
-        colour_in[o + 8] = 0.546_274_2f32 * (xx - yy);
-        colour_in[o + 9] = 0.590_043_6f32 * y * (yy - 3.0f32 * xx);
-        colour_in[o + 10] = 2.890_611_4f32 * x * y * z;
-        colour_in[o + 11] = 0.457_045_8f32 * y * (1.0f32 - 5.0f32 * zz);
-        colour_in[o + 12] = 0.373_176_33f32 * z * (5.0f32 * zz - 3.0f32);
-        colour_in[o + 13] = 0.457_045_8f32 * x * (1.0f32 - 5.0f32 * zz);
-        colour_in[o + 14] = 1.445_305_7f32 * z * (xx - yy);
-        colour_in[o + 15] = 0.590_043_6f32 * x * (3.0f32 * yy - xx);
+        let sh = sh4(dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]);
+        #[unroll]
+        for k in 0..16usize {
+            colour_in[o + k] = sh[k];
+        }
         for j in 1usize..gw {
             colour_in[o + 15 + j] = geo[s * gw + j];
         }
@@ -624,16 +608,7 @@ pub(super) mod tests {
             .collect();
         let n = 700;
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.6, 1.6)).collect();
-        let dirs: Vec<f32> = (0..n)
-            .flat_map(|_| {
-                let d = [
-                    rng.range(-1.0, 1.0),
-                    rng.range(-1.0, 1.0),
-                    rng.range(-1.0, 1.0),
-                ];
-                crate::math::scale(d, 1.0 / crate::math::length(d))
-            })
-            .collect();
+        let dirs = rng.unit_directions(n);
         let d_sigma: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let indices = appearance.clone().unwrap_or_default();

@@ -16,7 +16,8 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::device::Gpu;
-use super::hash_grid::{cell_at, vertex, weight, GpuHashGrid, LEVEL_WORDS};
+use super::harmonics::sh4;
+use super::hash_grid::{encode_level, GpuHashGrid, LEVEL_WORDS};
 use super::launch::grid;
 use crate::encoding::hash_grid::FEATURES;
 use crate::encoding::spherical_harmonics::SH_DIMS;
@@ -128,27 +129,7 @@ fn field_infer(
         let uz = (positions[3 * s + 2] + bound) * scale;
         let mut enc = Array::<f32>::new(e);
         for l in 0..n_levels {
-            let res = levels[4 * l];
-            let entries = levels[4 * l + 1];
-            let dense_level = levels[4 * l + 2];
-            let offset = levels[4 * l + 3] as usize;
-            let (cx, cy, cz, fx, fy, fz) = cell_at(ux, uy, uz, res);
-            let mut f0 = 0.0f32;
-            let mut f1 = 0.0f32;
-            #[unroll]
-            for k in 0..8u32 {
-                let wk = weight(k, fx, fy, fz);
-                let v = vertex(
-                    cx + (k & 1),
-                    cy + ((k >> 1) & 1),
-                    cz + ((k >> 2) & 1),
-                    res,
-                    entries,
-                    dense_level,
-                );
-                f0 += wk * params[offset + 2 * v];
-                f1 += wk * params[offset + 2 * v + 1];
-            }
+            let (f0, f1) = encode_level(params, levels, l, ux, uy, uz);
             enc[2 * l] = f0;
             enc[2 * l + 1] = f1;
         }
@@ -158,29 +139,12 @@ fn field_infer(
         dense(&h, &mut g, &w, w_d1, hidden, geo, false);
         sigma[s] = f32::exp(f32::min(g[0], log_max));
         if colour {
-            let x = dirs[3 * s];
-            let y = dirs[3 * s + 1];
-            let z = dirs[3 * s + 2];
-            let xx = x * x;
-            let yy = y * y;
-            let zz = z * z;
             let mut c_in = Array::<f32>::new(ci);
-            c_in[0] = 0.282_094_8f32;
-            c_in[1] = 0.0f32 - 0.488_602_5f32 * y;
-            c_in[2] = 0.488_602_5f32 * z;
-            c_in[3] = 0.0f32 - 0.488_602_5f32 * x;
-            c_in[4] = 1.092_548_4f32 * x * y;
-            c_in[5] = 0.0f32 - 1.092_548_4f32 * y * z;
-            c_in[6] = 0.946_174_7f32 * zz - 0.315_391_57f32;
-            c_in[7] = 0.0f32 - 1.092_548_4f32 * x * z;
-            c_in[8] = 0.546_274_2f32 * (xx - yy);
-            c_in[9] = 0.590_043_6f32 * y * (yy - 3.0f32 * xx);
-            c_in[10] = 2.890_611_4f32 * x * y * z;
-            c_in[11] = 0.457_045_8f32 * y * (1.0f32 - 5.0f32 * zz);
-            c_in[12] = 0.373_176_33f32 * z * (5.0f32 * zz - 3.0f32);
-            c_in[13] = 0.457_045_8f32 * x * (1.0f32 - 5.0f32 * zz);
-            c_in[14] = 1.445_305_7f32 * z * (xx - yy);
-            c_in[15] = 0.590_043_6f32 * x * (3.0f32 * yy - xx);
+            let sh = sh4(dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]);
+            #[unroll]
+            for k in 0..16usize {
+                c_in[k] = sh[k];
+            }
             #[unroll]
             for j in 1..geo {
                 c_in[15 + j] = g[j];
@@ -309,16 +273,7 @@ mod tests {
         let pos: Vec<f32> = (0..n * 3)
             .map(|_| rng.range(-1.05 * bound, 1.05 * bound))
             .collect();
-        let dirs: Vec<f32> = (0..n)
-            .flat_map(|_| {
-                let d = [
-                    rng.range(-1.0, 1.0),
-                    rng.range(-1.0, 1.0),
-                    rng.range(-1.0, 1.0),
-                ];
-                crate::math::scale(d, 1.0 / crate::math::length(d))
-            })
-            .collect();
+        let dirs = rng.unit_directions(n);
         let mut ws = FastWorkspace::default();
         let input = FieldInput {
             positions: &pos,

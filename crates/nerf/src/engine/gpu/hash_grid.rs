@@ -20,7 +20,7 @@ pub(super) const LEVEL_WORDS: usize = 4;
 
 /// Table index of grid vertex `(x, y, z)` of a level.
 #[cube]
-pub(super) fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
+fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
     let s = res + 1;
     let indexed = x + s * (y + s * z);
     // u32 products wrap on every backend, as `wrapping_mul` does on the CPU.
@@ -37,7 +37,7 @@ fn cell(points: &[f32], s: usize, res: u32) -> (u32, u32, u32, f32, f32, f32) {
 
 /// [`cell`] of the unit-cube point `(x, y, z)`.
 #[cube]
-pub(super) fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, f32, f32) {
+fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, f32, f32) {
     let rf = f32::cast_from(res);
     let px = f32::clamp(x, 0.0, 1.0) * rf;
     let py = f32::clamp(y, 0.0, 1.0) * rf;
@@ -57,11 +57,46 @@ pub(super) fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, 
 
 /// Trilinear weight of corner `k` (bit 0: +x, bit 1: +y, bit 2: +z).
 #[cube]
-pub(super) fn weight(k: u32, fx: f32, fy: f32, fz: f32) -> f32 {
+fn weight(k: u32, fx: f32, fy: f32, fz: f32) -> f32 {
     let wx = select((k & 1) == 1, fx, 1.0 - fx);
     let wy = select(((k >> 1) & 1) == 1, fy, 1.0 - fy);
     let wz = select(((k >> 2) & 1) == 1, fz, 1.0 - fz);
     wx * wy * wz
+}
+
+/// The two features of level `l` (of the table `levels`) at the unit-cube point
+/// `(x, y, z)`: the trilinear blend of its cell's eight corners.
+#[cube]
+pub(super) fn encode_level(
+    params: &[f32],
+    levels: &[u32],
+    l: usize,
+    x: f32,
+    y: f32,
+    z: f32,
+) -> (f32, f32) {
+    let res = levels[4 * l];
+    let entries = levels[4 * l + 1];
+    let dense = levels[4 * l + 2];
+    let offset = levels[4 * l + 3] as usize;
+    let (cx, cy, cz, fx, fy, fz) = cell_at(x, y, z, res);
+    let mut f0 = 0.0f32;
+    let mut f1 = 0.0f32;
+    #[unroll]
+    for k in 0..8u32 {
+        let w = weight(k, fx, fy, fz);
+        let v = vertex(
+            cx + (k & 1),
+            cy + ((k >> 1) & 1),
+            cz + ((k >> 2) & 1),
+            res,
+            entries,
+            dense,
+        );
+        f0 += w * params[offset + 2 * v];
+        f1 += w * params[offset + 2 * v + 1];
+    }
+    (f0, f1)
 }
 
 #[cube(launch_unchecked)]
@@ -70,27 +105,8 @@ fn encode_fwd(params: &[f32], levels: &[u32], points: &[f32], out: &mut [f32], n
     let s = ABSOLUTE_POS / nl;
     let l = ABSOLUTE_POS % nl;
     if s * 3 < points.len() {
-        let res = levels[4 * l];
-        let entries = levels[4 * l + 1];
-        let dense = levels[4 * l + 2];
-        let offset = levels[4 * l + 3] as usize;
-        let (cx, cy, cz, fx, fy, fz) = cell(points, s, res);
-        let mut f0 = 0.0f32;
-        let mut f1 = 0.0f32;
-        #[unroll]
-        for k in 0..8u32 {
-            let w = weight(k, fx, fy, fz);
-            let v = vertex(
-                cx + (k & 1),
-                cy + ((k >> 1) & 1),
-                cz + ((k >> 2) & 1),
-                res,
-                entries,
-                dense,
-            );
-            f0 += w * params[offset + 2 * v];
-            f1 += w * params[offset + 2 * v + 1];
-        }
+        let (x, y, z) = (points[3 * s], points[3 * s + 1], points[3 * s + 2]);
+        let (f0, f1) = encode_level(params, levels, l, x, y, z);
         out[(s * nl + l) * 2] = f0;
         out[(s * nl + l) * 2 + 1] = f1;
     }

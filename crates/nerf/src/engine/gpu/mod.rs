@@ -17,7 +17,8 @@
 //!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
 //!   [`fused`]: the same field's inference in one kernel per batch, for rendering and
 //!   density queries (`NERF_GPU_FIELD=fused`); [`codes`]: per-photo appearance codes;
-//!   [`antialias`]: sample footprints and the hash grid's level weights;
+//!   [`antialias`]: sample footprints and the hash grid's level weights; [`harmonics`]: the
+//!   view direction's spherical harmonics;
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient; [`distortion`]: the distortion
@@ -42,6 +43,7 @@ pub mod field;
 pub mod finite;
 pub mod fused;
 pub mod gemm;
+pub mod harmonics;
 pub mod hash_grid;
 pub mod launch;
 pub mod loss;

@@ -103,6 +103,8 @@ pub fn render_rays(
         let per_ray: Vec<u32> = (0..n).map(|r| rays.appearance_of(r)).collect();
         gpu.upload_u32(&per_ray)
     });
+    // What a field without codes is given, once for every round.
+    let mean_codes = SampleCodes::all(gpu, MEAN_APPEARANCE);
     // The CPU renderer's lattice: the first sample half a step into the span.
     let round = RoundState::new(
         gpu,
@@ -125,10 +127,9 @@ pub fn render_rays(
         let (samples, positions, dirs) =
             device_grid.write_round(gpu, &round, &counted, cut, per_ray);
         let (k, s) = (cut.rays, cut.samples);
-        let codes = match &ray_codes {
-            Some(per_ray) => SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s),
-            None => SampleCodes::all(gpu, MEAN_APPEARANCE),
-        };
+        let round_codes = ray_codes
+            .as_ref()
+            .map(|per_ray| SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s));
         let footprints = radii.as_ref().map(|radii| {
             let csr = (&samples.offsets, &samples.t);
             sample_footprints(
@@ -145,7 +146,7 @@ pub fn render_rays(
         let (sigma, rgb) = field(&DeviceInput {
             positions: &positions,
             dirs: &dirs,
-            codes: &codes,
+            codes: round_codes.as_ref().unwrap_or(&mean_codes),
             footprints: footprints.as_ref(),
             n: s,
         });
