@@ -59,6 +59,24 @@ impl Rng {
 }
 
 #[cfg(test)]
+impl Rng {
+    /// `n` unit directions (`n x 3`), each a point uniform in the cube `[-1, 1)^3`
+    /// normalised: what the field tests look along.
+    pub(crate) fn unit_directions(&mut self, n: usize) -> Vec<f32> {
+        (0..n)
+            .flat_map(|_| {
+                let d = [
+                    self.range(-1.0, 1.0),
+                    self.range(-1.0, 1.0),
+                    self.range(-1.0, 1.0),
+                ];
+                crate::math::scale(d, 1.0 / crate::math::length(d))
+            })
+            .collect()
+    }
+}
+
+#[cfg(test)]
 mod tests {
     use super::*;
 

@@ -899,16 +899,7 @@ mod tests {
             .collect();
         let n = 6;
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
-        let dirs: Vec<f32> = (0..n)
-            .flat_map(|_| {
-                let d = [
-                    rng.range(-1.0, 1.0),
-                    rng.range(-1.0, 1.0),
-                    rng.range(-1.0, 1.0),
-                ];
-                crate::math::scale(d, 1.0 / crate::math::length(d))
-            })
-            .collect();
+        let dirs = rng.unit_directions(n);
         let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
         let loss = |p: &[f32]| -> f64 {

@@ -130,6 +130,35 @@ fn fifty_gpu_steps_track_fifty_cpu_steps() {
     );
 }
 
+/// `steps` training steps of `c` on `device` from fresh weights: the losses, and the
+/// trainer to look at or render with.
+fn train_steps(
+    device: Device,
+    c: &TrainConfig,
+    train: &nerf::data::Dataset,
+    steps: usize,
+) -> (Vec<f32>, Trainer) {
+    let mut t = Trainer::on(device, c.clone(), train.clone()).expect("trainer");
+    let losses = (0..steps).map(|_| t.step().expect("step").loss).collect();
+    (losses, t)
+}
+
+/// The largest difference of two loss curves, relative to the first.
+fn relative_apart(a: &[f32], b: &[f32]) -> f32 {
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs() / x)
+        .fold(0.0f32, f32::max)
+}
+
+/// The largest difference of two renders' colours.
+fn rgb_apart(a: &[nerf::stage::RayOutput], b: &[nerf::stage::RayOutput]) -> f32 {
+    a.iter()
+        .zip(b)
+        .flat_map(|(x, y)| (0..3).map(move |k| (x.rgb[k] - y.rgb[k]).abs()))
+        .fold(0.0f32, f32::max)
+}
+
 /// The distortion loss on both engines: ten steps (before the first occupancy refresh, so
 /// both march the same samples) with a large weight give the same losses to rounding on
 /// both, and other losses than without the term (it reached the weights).
@@ -151,22 +180,10 @@ fn the_distortion_loss_trains_alike_on_both_engines() {
         .expect("scene")
         .load(Split::Train, 1)
         .expect("load");
-    let losses = |device: Device, c: &TrainConfig| -> Vec<f32> {
-        let mut t = Trainer::on(device, c.clone(), train.clone()).expect("trainer");
-        (0..10).map(|_| t.step().expect("step").loss).collect()
-    };
-    let (cpu, gpu) = (losses(Device::Cpu, &with), losses(Device::Wgpu, &with));
-    let without = losses(Device::Cpu, &plain);
-    let worst = cpu
-        .iter()
-        .zip(&gpu)
-        .map(|(a, b)| (a - b).abs() / a)
-        .fold(0.0f32, f32::max);
-    let moved = cpu
-        .iter()
-        .zip(&without)
-        .map(|(a, b)| (a - b).abs() / a)
-        .fold(0.0f32, f32::max);
+    let (cpu, _) = train_steps(Device::Cpu, &with, &train, 10);
+    let (gpu, _) = train_steps(Device::Wgpu, &with, &train, 10);
+    let (without, _) = train_steps(Device::Cpu, &plain, &train, 10);
+    let (worst, moved) = (relative_apart(&cpu, &gpu), relative_apart(&cpu, &without));
     eprintln!(
         "worst relative loss difference cpu/gpu {worst:.1e}; with/without the term {moved:.1e}"
     );
@@ -196,21 +213,10 @@ fn anti_aliasing_trains_and_renders_alike_on_both_engines() {
         m.antialias_for(&scene.cameras(Split::Train), &scene.space);
         assert!(m.field.antialias.is_some());
     }
-    let run = |device: Device, c: &TrainConfig| {
-        let mut t = Trainer::on(device, c.clone(), train.clone()).expect("trainer");
-        let losses: Vec<f32> = (0..10).map(|_| t.step().expect("step").loss).collect();
-        (losses, t)
-    };
-    let ((cpu, cpu_trainer), (gpu, mut gpu_trainer)) =
-        (run(Device::Cpu, &with), run(Device::Wgpu, &with));
-    let (point, _) = run(Device::Cpu, &plain);
-    let apart = |a: &[f32], b: &[f32]| {
-        a.iter()
-            .zip(b)
-            .map(|(x, y)| (x - y).abs() / x)
-            .fold(0.0f32, f32::max)
-    };
-    let (worst, moved) = (apart(&cpu, &gpu), apart(&cpu, &point));
+    let (cpu, cpu_trainer) = train_steps(Device::Cpu, &with, &train, 10);
+    let (gpu, mut gpu_trainer) = train_steps(Device::Wgpu, &with, &train, 10);
+    let (point, _) = train_steps(Device::Cpu, &plain, &train, 10);
+    let (worst, moved) = (relative_apart(&cpu, &gpu), relative_apart(&cpu, &point));
     eprintln!(
         "worst relative loss difference cpu/gpu {worst:.1e}; against point samples {moved:.1e}"
     );
@@ -234,11 +240,7 @@ fn anti_aliasing_trains_and_renders_alike_on_both_engines() {
         render(cpu_trainer.engine.as_ref(), &batch),
         render(gpu_trainer.engine.as_ref(), &batch),
     );
-    let worst_px = a
-        .iter()
-        .zip(&b)
-        .flat_map(|(x, y)| (0..3).map(move |k| (x.rgb[k] - y.rgb[k]).abs()))
-        .fold(0.0f32, f32::max);
+    let worst_px = rgb_apart(&a, &b);
     eprintln!("renders apart by at most {worst_px:.1e}");
     assert!(worst_px < 1e-3, "renders apart by {worst_px}");
 }
@@ -264,21 +266,13 @@ fn appearance_codes_train_alike_on_both_engines() {
         m.field.appearance_dims = 4;
         m.field.appearance_images = images;
     }
-    let run = |device: Device| {
-        let mut t = Trainer::on(device, c.clone(), train.clone()).expect("trainer");
-        let losses: Vec<f32> = (0..10).map(|_| t.step().expect("step").loss).collect();
-        (losses, t)
-    };
-    let ((cpu, cpu_trainer), (gpu, mut gpu_trainer)) = (run(Device::Cpu), run(Device::Wgpu));
+    let (cpu, cpu_trainer) = train_steps(Device::Cpu, &c, &train, 10);
+    let (gpu, mut gpu_trainer) = train_steps(Device::Wgpu, &c, &train, 10);
     let (cpu_params, gpu_params) = (
         cpu_trainer.engine.state().params,
         gpu_trainer.engine.state().params,
     );
-    let worst = cpu
-        .iter()
-        .zip(&gpu)
-        .map(|(a, b)| (a - b).abs() / a)
-        .fold(0.0f32, f32::max);
+    let worst = relative_apart(&cpu, &gpu);
     let nerf::model::ModelConfig::Fast(m) = &c.model else {
         unreachable!("a fast configuration")
     };
@@ -316,11 +310,7 @@ fn appearance_codes_train_alike_on_both_engines() {
             render(cpu_trainer.engine.as_ref(), &batch),
             render(gpu_trainer.engine.as_ref(), &batch),
         );
-        let apart = a
-            .iter()
-            .zip(&b)
-            .flat_map(|(x, y)| (0..3).map(move |k| (x.rgb[k] - y.rgb[k]).abs()))
-            .fold(0.0f32, f32::max);
+        let apart = rgb_apart(&a, &b);
         assert!(apart < 1e-3, "{appearance:?}: renders apart by {apart}");
         looks.push(a);
     }
