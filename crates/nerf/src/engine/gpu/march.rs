@@ -3,13 +3,15 @@
 //! unbounded scenes), one thread per ray, in three passes:
 //!
 //! 1. count: each ray marches and counts its samples;
-//! 2. scan: an exclusive prefix sum of the counts gives every ray its first slot (blocked:
-//!    a serial scan per block of [`SCAN_BLOCK`] rays, one over the block totals, then the
-//!    block offsets added), and one thread finds where the step's sample budget is reached;
+//! 2. scan: an exclusive prefix sum of the counts gives every ray its first slot (a
+//!    workgroup per block of [`SCAN_BLOCK`] rays, one workgroup over the block totals, then
+//!    the block offsets added; rays with samples are counted on the way), and one thread
+//!    finds where the step's sample budget is reached;
 //! 3. write: the kept rays march again and write their samples (depth, step length,
 //!    field-space position, unit view direction) at their slots, packed with no gaps.
 //!
-//! The host reads back two numbers (rays kept, samples) and never sees the samples.
+//! The host reads back four numbers (rays kept, samples, whether the budget cut them, rays
+//! with samples) and never sees the samples.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
@@ -26,8 +28,6 @@ use crate::render::occupancy::OccupancyGrid;
 use crate::stage::RayBatch;
 
 const GROUP: u32 = 64;
-/// Rays per block of the scan's first pass.
-pub const SCAN_BLOCK: usize = 256;
 
 /// The marcher's constants, in the order the kernels read them.
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
@@ -285,53 +285,131 @@ fn march_round(
     }
 }
 
-/// Scan, pass 1: per block of `SCAN_BLOCK` counts, the exclusive prefix sums within the
-/// block (into `offsets`) and the block's total.
-#[cube(launch_unchecked)]
-fn scan_blocks(counts: &[u32], offsets: &mut [u32], totals: &mut [u32], n: u32, block: u32) {
-    let b = ABSOLUTE_POS;
-    let first = b * block as usize;
-    if first < n as usize {
-        let last = usize::min(first + block as usize, n as usize);
-        let mut sum = 0u32;
-        for i in first..last {
-            offsets[i] = sum;
-            sum += counts[i];
+/// Threads per workgroup of the scan; each takes `SCAN_ITEMS` consecutive counts.
+const SCAN_THREADS: usize = 256;
+const SCAN_ITEMS: usize = 4;
+/// Hillis-Steele steps over `SCAN_THREADS` values.
+const SCAN_STEPS: usize = 8;
+/// Rays per block of the scan's first pass (one workgroup each).
+pub const SCAN_BLOCK: usize = SCAN_THREADS * SCAN_ITEMS;
+
+/// Inclusive prefix sums of the workgroup's `sums` and `alive` (one value per thread, `t`
+/// this thread's), in place: log2 steps, each thread adding the value `d` before its own.
+#[cube]
+fn scan_workgroup(sums: &mut [u32], alive: &mut [u32], t: usize) {
+    let mut d = 1usize;
+    #[unroll]
+    for _ in 0..SCAN_STEPS {
+        let mut add = 0u32;
+        let mut add_alive = 0u32;
+        if t >= d {
+            add = sums[t - d];
+            add_alive = alive[t - d];
         }
-        totals[b] = sum;
+        sync_cube();
+        sums[t] += add;
+        alive[t] += add_alive;
+        sync_cube();
+        d *= 2;
     }
 }
 
-/// Scan, pass 2 (one thread): the exclusive prefix sums of the block totals, in place,
-/// with the grand total after them.
+/// Scan, pass 1: per block of `SCAN_BLOCK` counts (one workgroup), the exclusive prefix
+/// sums within the block (into `offsets`), the block's total and its rays with samples.
 #[cube(launch_unchecked)]
-fn scan_totals(totals: &mut [u32], blocks: u32) {
-    if ABSOLUTE_POS == 0 {
-        let mut sum = 0u32;
-        for b in 0..blocks as usize {
-            let v = totals[b];
-            totals[b] = sum;
-            sum += v;
+fn scan_blocks(counts: &[u32], offsets: &mut [u32], totals: &mut [u32], live: &mut [u32], n: u32) {
+    let mut sums = Shared::<[u32]>::new_slice(SCAN_THREADS);
+    let mut alive = Shared::<[u32]>::new_slice(SCAN_THREADS);
+    let t = UNIT_POS as usize;
+    let block = CUBE_POS as usize;
+    let first = block * SCAN_BLOCK + t * SCAN_ITEMS;
+    let mut sum = 0u32;
+    let mut lives = 0u32;
+    #[unroll]
+    for k in 0..SCAN_ITEMS {
+        let i = first + k;
+        if i < n as usize {
+            let c = counts[i];
+            sum += c;
+            lives += select(c > 0, 1u32, 0u32);
         }
-        totals[blocks as usize] = sum;
+    }
+    sums[t] = sum;
+    alive[t] = lives;
+    sync_cube();
+    scan_workgroup(&mut sums, &mut alive, t);
+    let mut run = sums[t] - sum;
+    #[unroll]
+    for k in 0..SCAN_ITEMS {
+        let i = first + k;
+        if i < n as usize {
+            offsets[i] = run;
+            run += counts[i];
+        }
+    }
+    if t == SCAN_THREADS - 1 {
+        totals[block] = sums[t];
+        live[block] = alive[t];
+    }
+}
+
+/// Scan, pass 2 (one workgroup): the exclusive prefix sums of the `blocks` block totals,
+/// in place, with the grand total after them; the same slot of `live` gets the rays with
+/// samples.
+#[cube(launch_unchecked)]
+fn scan_totals(totals: &mut [u32], live: &mut [u32], blocks: u32) {
+    let mut sums = Shared::<[u32]>::new_slice(SCAN_THREADS);
+    let mut alive = Shared::<[u32]>::new_slice(SCAN_THREADS);
+    let t = UNIT_POS as usize;
+    let blocks = blocks as usize;
+    let per = (blocks + SCAN_THREADS - 1) / SCAN_THREADS;
+    let first = usize::min(t * per, blocks);
+    let last = usize::min(first + per, blocks);
+    let mut sum = 0u32;
+    let mut lives = 0u32;
+    for b in first..last {
+        sum += totals[b];
+        lives += live[b];
+    }
+    sums[t] = sum;
+    alive[t] = lives;
+    sync_cube();
+    scan_workgroup(&mut sums, &mut alive, t);
+    let mut run = sums[t] - sum;
+    for b in first..last {
+        let v = totals[b];
+        totals[b] = run;
+        run += v;
+    }
+    if t == SCAN_THREADS - 1 {
+        totals[blocks] = sums[t];
+        live[blocks] = alive[t];
     }
 }
 
 /// Scan, pass 3: each ray's block offset added.
 #[cube(launch_unchecked)]
-fn scan_add(offsets: &mut [u32], totals: &[u32], n: u32, block: u32) {
+fn scan_add(offsets: &mut [u32], totals: &[u32], n: u32) {
     let i = ABSOLUTE_POS;
     if i < n as usize {
-        offsets[i] += totals[i / block as usize];
+        offsets[i] += totals[i / SCAN_BLOCK];
     }
 }
 
 /// The cut (one thread): the rays a step keeps, as the CPU engine keeps them: up to and
 /// including the first ray at which the running sample count reaches `budget`, or
-/// `max_rays` rays. Writes `[rays kept, their samples, 1 if the cut was found]`; without
-/// a cut (too few rays marched) `[n, all samples, 0]`.
+/// `max_rays` rays. Writes `[rays kept, their samples, 1 if the cut was found, rays with
+/// samples]`; without a cut (too few rays marched) `[n, all samples, 0, ...]`.
 #[cube(launch_unchecked)]
-fn find_cut(offsets: &[u32], counts: &[u32], cut: &mut [u32], n: u32, budget: u32, max_rays: u32) {
+fn find_cut(
+    offsets: &[u32],
+    counts: &[u32],
+    live: &[u32],
+    cut: &mut [u32],
+    n: u32,
+    budget: u32,
+    max_rays: u32,
+) {
     if ABSOLUTE_POS == 0 {
         // The inclusive sums grow with the ray index: the first one >= budget by bisection.
         let mut lo = 0u32;
@@ -361,6 +439,7 @@ fn find_cut(offsets: &[u32], counts: &[u32], cut: &mut [u32], n: u32, budget: u3
             cut[1] = offsets[(kept - 1) as usize] + counts[(kept - 1) as usize];
         }
         cut[2] = found;
+        cut[3] = live[(n as usize - 1) / SCAN_BLOCK + 1];
     }
 }
 
@@ -452,12 +531,16 @@ pub struct Cut {
     pub samples: usize,
     /// False when the rays marched ran out before the budget (or the ray cap) was reached.
     pub found: bool,
+    /// Rays marched that have samples, kept or not (a ray without any is done).
+    pub live: usize,
 }
 
 /// Rays marched and counted, with their slots: what [`GpuMarcher::write`] packs.
 pub struct Counted {
     counts: Handle,
     offsets: Handle,
+    /// Rays with samples: per scan block, then the total (`blocks + 1` slots).
+    live: Handle,
 }
 
 /// The occupancy grid on the device and the marcher's constants.
@@ -542,8 +625,7 @@ impl GpuMarcher {
                 );
             }
         }
-        let offsets = scan(gpu, &counts, n);
-        Counted { counts, offsets }
+        scan(gpu, counts, n)
     }
 
     fn cells(&self) -> usize {
@@ -551,7 +633,7 @@ impl GpuMarcher {
     }
 
     /// Where the budget of `budget` samples (or `max_rays` rays) cuts `n` counted rays;
-    /// reads back three numbers.
+    /// reads back four numbers.
     pub fn cut(
         &self,
         gpu: &Gpu,
@@ -565,10 +647,12 @@ impl GpuMarcher {
                 rays: 0,
                 samples: 0,
                 found: max_rays == 0,
+                live: 0,
             });
         }
-        let cut = gpu.upload_u32(&[0, 0, 0]);
-        // SAFETY: `offsets` and `counts` hold `n` values; `cut` three.
+        let cut = gpu.zeros_u32(4);
+        let blocks = n.div_ceil(SCAN_BLOCK);
+        // SAFETY: `offsets` and `counts` hold `n` values, `live` `blocks + 1`; `cut` four.
         unsafe {
             let (c, d) = grid(1, 1);
             find_cut::launch_unchecked(
@@ -577,17 +661,19 @@ impl GpuMarcher {
                 d,
                 BufferArg::from_raw_parts(counted.offsets.clone(), n),
                 BufferArg::from_raw_parts(counted.counts.clone(), n),
-                BufferArg::from_raw_parts(cut.clone(), 3),
+                BufferArg::from_raw_parts(counted.live.clone(), blocks + 1),
+                BufferArg::from_raw_parts(cut.clone(), 4),
                 n as u32,
                 budget.min(u32::MAX as usize) as u32,
                 max_rays.min(u32::MAX as usize) as u32,
             );
         }
-        let v = gpu.read_u32(&cut, 3)?;
+        let v = gpu.read_u32(&cut, 4)?;
         Ok(Cut {
             rays: v[0] as usize,
             samples: v[1] as usize,
             found: v[2] == 1,
+            live: v[3] as usize,
         })
     }
 
@@ -704,8 +790,7 @@ impl GpuMarcher {
                 );
             }
         }
-        let offsets = scan(gpu, &counts, n);
-        Counted { counts, offsets }
+        scan(gpu, counts, n)
     }
 
     /// A rendering round, pass 3: the first `cut.rays` rays write their samples (packed as
@@ -828,50 +913,52 @@ impl PackOutputs {
 }
 
 /// The exclusive prefix sums of `n` counts (passes 1 to 3 of the scan).
-fn scan(gpu: &Gpu, counts: &Handle, n: usize) -> Handle {
+/// Scans `counts` (`n`) into the rays' slots, counting the rays with samples.
+fn scan(gpu: &Gpu, counts: Handle, n: usize) -> Counted {
     let offsets = gpu.zeros_u32(n);
-    if n == 0 {
-        return offsets;
-    }
     let blocks = n.div_ceil(SCAN_BLOCK);
     let totals = gpu.zeros_u32(blocks + 1);
-    // SAFETY: `counts` and `offsets` hold `n` values, `totals` `blocks + 1`; each pass
-    // bounds-checks its index against `n` or `blocks`.
-    unsafe {
-        let (c, d) = grid(blocks, GROUP);
-        scan_blocks::launch_unchecked(
-            &gpu.client,
-            c,
-            d,
-            BufferArg::from_raw_parts(counts.clone(), n),
-            BufferArg::from_raw_parts(offsets.clone(), n),
-            BufferArg::from_raw_parts(totals.clone(), blocks + 1),
-            n as u32,
-            SCAN_BLOCK as u32,
-        );
-        let (c, d) = grid(1, 1);
-        scan_totals::launch_unchecked(
-            &gpu.client,
-            c,
-            d,
-            BufferArg::from_raw_parts(totals.clone(), blocks + 1),
-            blocks as u32,
-        );
-        let (c, d) = grid(n, GROUP);
-        scan_add::launch_unchecked(
-            &gpu.client,
-            c,
-            d,
-            BufferArg::from_raw_parts(offsets.clone(), n),
-            BufferArg::from_raw_parts(totals.clone(), blocks + 1),
-            n as u32,
-            SCAN_BLOCK as u32,
-        );
+    let live = gpu.zeros_u32(blocks + 1);
+    if n > 0 {
+        // SAFETY: `counts` and `offsets` hold `n` values, `totals` and `live` a slot per
+        // block and one for the total; a block's workgroup touches only its own rays.
+        unsafe {
+            scan_blocks::launch_unchecked(
+                &gpu.client,
+                grid(blocks, 1).0,
+                CubeDim::new_1d(SCAN_THREADS as u32),
+                BufferArg::from_raw_parts(counts.clone(), n),
+                BufferArg::from_raw_parts(offsets.clone(), n),
+                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+                BufferArg::from_raw_parts(live.clone(), blocks + 1),
+                n as u32,
+            );
+            scan_totals::launch_unchecked(
+                &gpu.client,
+                CubeCount::Static(1, 1, 1),
+                CubeDim::new_1d(SCAN_THREADS as u32),
+                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+                BufferArg::from_raw_parts(live.clone(), blocks + 1),
+                blocks as u32,
+            );
+            let (c, d) = grid(n, GROUP);
+            scan_add::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(offsets.clone(), n),
+                BufferArg::from_raw_parts(totals.clone(), blocks + 1),
+                n as u32,
+            );
+        }
     }
-    offsets
+    Counted {
+        counts,
+        offsets,
+        live,
+    }
 }
 
-/// The kept rays' slots followed by the total: the CSR offsets compositing reads.
 #[cube(launch_unchecked)]
 fn csr_offsets(slots: &[u32], offsets: &mut [u32], kept: u32, total: u32) {
     let i = ABSOLUTE_POS;
@@ -957,7 +1044,8 @@ mod tests {
                 Cut {
                     rays: first + 1,
                     samples: running,
-                    found: true
+                    found: true,
+                    live: counts.iter().filter(|&&c| c > 0).count(),
                 }
             );
             assert!(
@@ -974,6 +1062,7 @@ mod tests {
                 rays: 500,
                 samples: sum as usize,
                 found: true,
+                live: 0,
             };
             let (packed, positions, _dirs) = gm.write(&gpu, &on_device, &counted, all);
             let t = gpu.read(&packed.t, all.samples).expect("read");
@@ -1010,6 +1099,53 @@ mod tests {
                 "{disagree} of 500 rays disagree (contract {contract:?}, cylinders {cylinders})"
             );
             assert!(want.len() > 2000, "too few samples to test: {}", want.len());
+        }
+    }
+
+    /// The workgroup scan against a serial one: sizes around the block and past
+    /// `SCAN_THREADS` blocks (where each thread of the totals' pass takes several), counts
+    /// with zeros among them (rays without samples are not live).
+    #[test]
+    fn the_scan_matches_a_serial_prefix_sum() {
+        let Some(gpu) = super::super::device::test_gpu() else {
+            return;
+        };
+        let mut rng = Rng::new(5);
+        for n in [1, 5, SCAN_BLOCK, SCAN_BLOCK + 1, 300 * SCAN_BLOCK + 17] {
+            let counts: Vec<u32> = (0..n)
+                .map(|_| {
+                    if rng.uniform() < 0.3 {
+                        0
+                    } else {
+                        (rng.uniform() * 64.0) as u32
+                    }
+                })
+                .collect();
+            let counted = scan(&gpu, gpu.upload_u32(&counts), n);
+            let slots = gpu.read_u32(&counted.offsets, n).expect("read");
+            let mut sum = 0;
+            for (r, (c, s)) in counts.iter().zip(&slots).enumerate() {
+                assert_eq!(*s, sum, "ray {r} of {n}");
+                sum += c;
+            }
+            let gm = GpuMarcher::with_grid(
+                &gpu,
+                &Marcher {
+                    dt: 0.1,
+                    max_samples: 64,
+                    near: 0.0,
+                    far: 1.0,
+                    contract: None,
+                },
+                &OccupancyGrid::from_thickness(2, 1.0, vec![1.0; 8], 0.5),
+            );
+            let cut = gm.cut(&gpu, &counted, n, usize::MAX, n).expect("cut");
+            assert_eq!(cut.samples, sum as usize, "{n} rays");
+            assert_eq!(
+                cut.live,
+                counts.iter().filter(|&&c| c > 0).count(),
+                "{n} rays"
+            );
         }
     }
 }

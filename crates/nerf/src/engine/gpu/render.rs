@@ -115,8 +115,10 @@ pub fn render_rays(
     let inv_norm: Vec<f32> = rays.dirs.iter().map(|&d| 1.0 / length(d)).collect();
     let inv_norm = gpu.upload(&inv_norm);
     let round_samples = round_samples.max(1);
-    // As many samples per ray as spread the first round's budget over every ray, doubled
-    // each round (rays terminate, so fewer share it), as the CPU renderer does.
+    // As many samples per ray as spread a round's budget over the rays still marching: all
+    // of them at first, then those that had samples in the round before (no more can have
+    // any now), so that after the first round the budget cuts no ray short, and no ray
+    // is marched in a count pass only to be marched again in the next one.
     let mut per_ray = (round_samples / n).clamp(1, MAX_PER_RAY);
     loop {
         let counted = device_grid.count_round(gpu, &round, per_ray);
@@ -168,7 +170,7 @@ pub fn render_rays(
                 k as u32,
             );
         }
-        per_ray = (per_ray * 2).min(MAX_PER_RAY);
+        per_ray = (round_samples / cut.live.max(1)).clamp(1, MAX_PER_RAY);
     }
     let state = gpu.read(&round.state, STATE_WORDS * n)?;
     Ok(state
