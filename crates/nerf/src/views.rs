@@ -8,7 +8,7 @@ use crate::camera::ray_space::RaySpace;
 use crate::camera::{Camera, Ray};
 use crate::data::scene::Scene;
 use crate::data::Dataset;
-use crate::engine::Engine;
+use crate::engine::{Engine, PixelRays};
 use crate::stage::{Appearance, RayBatch, RayOutput};
 
 /// How to render: marching bounds, background colour, and the space rays are marched in
@@ -139,6 +139,19 @@ pub fn render_pixels(
             return None;
         }
         let first = k * slab;
+        let pixels = PixelRays {
+            camera,
+            pixels: first..first + part.len(),
+            space: settings.space,
+            near: settings.near,
+            far: settings.far,
+            background: settings.background,
+            appearance: settings.appearance,
+        };
+        if engine.render_pixels(&pixels, part) {
+            on_progress(first + part.len());
+            continue;
+        }
         let (world, cones): (Vec<Ray>, Vec<f32>) = (first..first + part.len())
             .into_par_iter()
             .map(|p| {

@@ -16,13 +16,15 @@ pub mod gpu;
 
 use serde::{Deserialize, Serialize};
 
+use crate::camera::ray_space::RaySpace;
+use crate::camera::Camera;
 use crate::data::pixels::PixelSampling;
 use crate::data::Dataset;
 use crate::error::Result;
 use crate::model::ModelConfig;
 use crate::nn::adam::AdamConfig;
 use crate::nn::ParamLayout;
-use crate::stage::{RayBatch, RayOutput};
+use crate::stage::{Appearance, RayBatch, RayOutput};
 
 /// How an engine is set up for a run.
 #[derive(Clone, Copy, Debug)]
@@ -121,6 +123,19 @@ pub fn diverged(step: u64, loss: f32, bad_gradients: Option<usize>) -> crate::er
 /// Rays per [`Engine::render_rays`] call of a whole view, unless the engine takes more.
 pub const RENDER_SLAB: usize = 1 << 16;
 
+/// A camera's pixels to render, for an engine that casts their rays itself
+/// ([`Engine::render_pixels`]); `views::render_pixels` makes the same rays on the host.
+pub struct PixelRays<'a> {
+    pub camera: &'a Camera,
+    /// Row-major pixel indices.
+    pub pixels: std::ops::Range<usize>,
+    pub space: RaySpace,
+    pub near: f32,
+    pub far: f32,
+    pub background: [f32; 3],
+    pub appearance: Appearance,
+}
+
 /// A model behind an engine.
 pub trait Engine: Send + Sync {
     /// Which engine and device, for logs ("cpu, 2 threads").
@@ -150,6 +165,13 @@ pub trait Engine: Send + Sync {
         out: &mut [RayOutput],
         on_progress: &(dyn Fn(usize) + Sync),
     );
+
+    /// Renders `pixels` into `out` (one per pixel), casting their rays itself; false,
+    /// leaving `out` as it was, where this engine does not (then the caller makes the rays
+    /// and calls [`render_rays`](Self::render_rays)).
+    fn render_pixels(&self, _pixels: &PixelRays, _out: &mut [RayOutput]) -> bool {
+        false
+    }
 
     /// Rays a whole view hands to [`render_rays`](Self::render_rays) at a time: bounds the
     /// memory of big views (a 4K frame is 8 M rays) while keeping the device busy.

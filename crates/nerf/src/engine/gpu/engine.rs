@@ -23,10 +23,12 @@ use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
 use super::rays::GpuViews;
-use super::{antialias, distortion, loss, render, volume};
+use super::{antialias, distortion, loss, rays, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
-use crate::engine::{render_in_chunks, Engine, EngineOptions, EngineState, StepSpec, StepStats};
+use crate::engine::{
+    render_in_chunks, Engine, EngineOptions, EngineState, PixelRays, StepSpec, StepStats,
+};
 use crate::error::Result;
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
 use crate::nn::ParamLayout;
@@ -34,7 +36,7 @@ use crate::render::loss::mean_scale;
 use crate::render::march::Marcher;
 use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
-use crate::stage::{RayBatch, RayOutput};
+use crate::stage::{Appearance, RayBatch, RayOutput, MEAN_APPEARANCE};
 
 /// The most samples one device call takes, in a training step or a rendering round: at
 /// 2^20 a 64-wide activation (256 MiB) overflows the largest storage binding of common
@@ -47,11 +49,11 @@ pub const MAX_FUSED_ROUND: usize = 1 << 22;
 
 /// Rays per rendering chunk and samples per round of the renderer. A software adapter
 /// takes small ones (2^14 rays, 2^16 samples: 70 MB of activations per chunk in flight),
-/// where a round trip costs little beside the field. On a hardware GPU every round waits
-/// for the device once and passes over all of its chunk's rays, so chunks of a few ten
-/// thousand rays render a frame fastest (docs/benchmarks.md has the sizes measured):
-/// 2^15 rays and rounds of 2^18 samples layer by layer (whose activations cap a round at
-/// [`MAX_DEVICE_SAMPLES`]), 2^16 rays and 2^20 samples fused.
+/// where a round trip costs little beside the field. On a hardware GPU a camera's rays are
+/// cast on the device and every round waits for it once, so large chunks with full rounds
+/// render a frame fastest (docs/benchmarks.md has the sizes measured): 2^19 rays and
+/// rounds of 2^19 samples layer by layer (whose activations cap a round at
+/// [`MAX_DEVICE_SAMPLES`]), 2^20 rays and 2^22 samples fused.
 /// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays and
 /// the round cap.
 fn render_sizes(gpu: &Gpu, fused: bool) -> (usize, usize) {
@@ -71,8 +73,8 @@ fn render_sizes(gpu: &Gpu, fused: bool) -> (usize, usize) {
     match from_env {
         Some(sizes) => sizes,
         None if gpu.software => (1 << 14, 1 << 16),
-        None if fused => (1 << 16, 1 << 20),
-        None => (1 << 15, 1 << 18),
+        None if fused => (1 << 20, 1 << 22),
+        None => (1 << 19, 1 << 19),
     }
 }
 
@@ -119,6 +121,14 @@ pub struct GpuEngine {
 }
 
 impl GpuEngine {
+    /// What the field reads besides positions and directions.
+    fn field_needs(&self) -> render::FieldNeeds {
+        render::FieldNeeds {
+            codes: self.field.has_codes(),
+            footprints: self.model.config.field.antialias.is_some(),
+        }
+    }
+
     pub fn new(gpu: Gpu, config: FastModelConfig, options: EngineOptions, seed: u64) -> Self {
         let model = FastModel::new(config.clone());
         let field = GpuFastField::new(&gpu, &model.field);
@@ -478,10 +488,7 @@ impl Engine for GpuEngine {
         let marcher = self.model.marcher(rays.near, rays.far);
         let (gpu, params) = (&self.gpu, &self.state.values);
         let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
-        let needs = render::FieldNeeds {
-            codes: self.field.has_codes(),
-            footprints: self.model.config.field.antialias.is_some(),
-        };
+        let needs = self.field_needs();
         render_in_chunks(rays, out, chunk, on_progress, |part, out| {
             let rendered = render::render_rays(
                 gpu,
@@ -499,6 +506,54 @@ impl Engine for GpuEngine {
                 Err(e) => fail_rays(&e, out),
             }
         });
+    }
+
+    /// A pinhole camera's pixels: rays cast on the device, the whole slab rendered in one
+    /// pass of rounds.
+    fn render_pixels(&self, pixels: &PixelRays, out: &mut [RayOutput]) -> bool {
+        let marcher = self.model.marcher(pixels.near, pixels.far);
+        let bound = self.model.grid.bound;
+        let range = pixels.pixels.clone();
+        let Some(cast) = rays::camera_rays(
+            &self.gpu,
+            pixels.camera,
+            &pixels.space,
+            &marcher,
+            bound,
+            range,
+        ) else {
+            return false;
+        };
+        let code = match pixels.appearance {
+            Appearance::Of(i) => i,
+            Appearance::Mean | Appearance::PerView => MEAN_APPEARANCE,
+        };
+        let batch = render::DeviceBatch {
+            rays: cast.rays,
+            inv_norm: cast.inv_norm,
+            radii: Some(cast.radii),
+            cylinders: pixels.space.cylinders(),
+            codes: render::RayCodes::All(code),
+        };
+        let (_, round_samples) = render_sizes(&self.gpu, self.field.is_fused());
+        let (gpu, params) = (&self.gpu, &self.state.values);
+        let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
+        let rendered = render::render_batch(
+            gpu,
+            &self.marcher,
+            &marcher,
+            &field,
+            self.field_needs(),
+            self.model.config.batch_samples.max(round_samples),
+            &batch,
+        );
+        match rendered {
+            Ok(state) => {
+                out.copy_from_slice(&render::ray_outputs(&state, |_| pixels.background));
+            }
+            Err(e) => fail_rays(&e, out),
+        }
+        true
     }
 
     /// A view goes to the device in chunks as large as its rendering takes (fewer calls,

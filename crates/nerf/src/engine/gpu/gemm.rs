@@ -89,6 +89,122 @@ fn gemm_tiled(a: &[f32], b: &[f32], bias: &[f32], mask: &[f32], c: &mut [f32], g
     }
 }
 
+/// Rows of `C` each thread of the blocked kernel computes, `TILE` apart (and columns, for
+/// products with more than [`NARROW`] of them).
+const PER_THREAD: usize = 4;
+/// The blocked kernel's output tile height: `TILE * PER_THREAD` rows.
+pub const BLOCK: usize = TILE * PER_THREAD;
+/// Products with at most this many output columns take one column per thread.
+pub const NARROW: usize = 2 * TILE;
+
+/// `gemm_tiled` with each thread computing `PER_THREAD` rows (`ty + 16 i`) by `cols`
+/// columns (`tx + 16 j`) of a 64 x `16 cols` tile: per value staged in workgroup memory,
+/// several multiply-adds instead of one, which the tiled kernel's loop is bound by.
+#[cube(launch_unchecked)]
+fn gemm_blocked(
+    a: &[f32],
+    b: &[f32],
+    bias: &[f32],
+    mask: &[f32],
+    c: &mut [f32],
+    g: Gemm,
+    #[comptime] cols: usize,
+) {
+    let tx = UNIT_POS_X as usize;
+    let ty = UNIT_POS_Y as usize;
+    let width = TILE * cols;
+    let col0 = CUBE_POS_X as usize * width;
+    let row0 = CUBE_POS_Y as usize * BLOCK;
+    let part = CUBE_POS_Z as usize;
+    let (m, n) = (g.m as usize, g.n as usize);
+    let first = part * g.k_part as usize;
+    let last = usize::min(first + g.k_part as usize, g.k as usize);
+    // A's 64 rows by 16 reduced indices, B's 16 by `width` columns.
+    let mut a_tile = Shared::<[f32]>::new_slice(BLOCK * TILE);
+    let mut b_tile = Shared::<[f32]>::new_slice(TILE * width);
+    let mut acc = Array::<f32>::new(PER_THREAD * cols);
+    #[unroll]
+    for q in 0..PER_THREAD * cols {
+        acc[q] = 0.0;
+    }
+    let mut a_reg = Array::<f32>::new(PER_THREAD);
+    let mut b_reg = Array::<f32>::new(cols);
+    let mut l0 = first;
+    while l0 < last {
+        // Each thread stages `PER_THREAD` values of A and `cols` of B; zeros past the edges.
+        let la = l0 + tx;
+        #[unroll]
+        for q in 0..PER_THREAD {
+            let r = ty + TILE * q;
+            let row = row0 + r;
+            let mut av = 0.0f32;
+            if row < m && la < last {
+                av = a[g.a_off as usize + row * g.a_si as usize + la * g.a_sl as usize];
+            }
+            a_tile[r * TILE + tx] = av;
+        }
+        let lb = l0 + ty;
+        #[unroll]
+        for q in 0..cols {
+            let cc = tx + TILE * q;
+            let col = col0 + cc;
+            let mut bv = 0.0f32;
+            if col < n && lb < last {
+                bv = b[g.b_off as usize + lb * g.b_sl as usize + col * g.b_sj as usize];
+            }
+            b_tile[ty * width + cc] = bv;
+        }
+        sync_cube();
+        for kk in 0..TILE {
+            #[unroll]
+            for q in 0..PER_THREAD {
+                a_reg[q] = a_tile[(ty + TILE * q) * TILE + kk];
+            }
+            #[unroll]
+            for q in 0..cols {
+                b_reg[q] = b_tile[kk * width + tx + TILE * q];
+            }
+            #[unroll]
+            for i in 0..PER_THREAD {
+                #[unroll]
+                for j in 0..cols {
+                    acc[i * cols + j] += a_reg[i] * b_reg[j];
+                }
+            }
+        }
+        sync_cube();
+        l0 += TILE;
+    }
+    #[unroll]
+    for i in 0..PER_THREAD {
+        #[unroll]
+        for j in 0..cols {
+            let row = row0 + ty + TILE * i;
+            let col = col0 + tx + TILE * j;
+            if row < m && col < n {
+                let mut v = acc[i * cols + j];
+                if g.has_bias == 1 {
+                    v += bias[g.bias_off as usize + col];
+                }
+                if g.relu == 1 {
+                    v = f32::max(v, 0.0);
+                }
+                if g.has_mask == 1 && mask[row * n + col] <= 0.0 {
+                    v = 0.0;
+                }
+                c[g.c_part as usize * part + row * n + col] = v;
+            }
+        }
+    }
+}
+
+/// Whether products run the blocked kernel (the default) or, with `NERF_GPU_GEMM=tiled`,
+/// the 16 x 16 one (to compare them).
+fn blocked_on() -> bool {
+    static TILED_ONLY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    !*TILED_ONLY.get_or_init(|| std::env::var("NERF_GPU_GEMM").is_ok_and(|v| v == "tiled"))
+}
+
 /// A strided operand: element (outer index `i`, reduced index `l`) at
 /// `buf[off + i outer + l reduce]`; `i` is `A`'s row or `B`'s column.
 #[derive(Clone, Copy, Debug)]
@@ -124,8 +240,28 @@ pub fn matmul(
     k_part: usize,
     epilogue: Epilogue,
 ) -> bool {
+    launch(gpu, (m, n, k), a, b, c, k_part, epilogue, blocked_on())
+}
+
+/// [`matmul`] through the blocked kernel or the 16 x 16 one.
+#[allow(clippy::too_many_arguments)]
+fn launch(
+    gpu: &Gpu,
+    (m, n, k): (usize, usize, usize),
+    a: View,
+    b: View,
+    c: &Handle,
+    k_part: usize,
+    epilogue: Epilogue,
+    blocked: bool,
+) -> bool {
     let parts = k.div_ceil(k_part.max(1)).max(1);
-    let (gx, gy) = (n.div_ceil(TILE), m.div_ceil(TILE));
+    let cols = if n > NARROW { PER_THREAD } else { 1 };
+    let (gx, gy) = if blocked {
+        (n.div_ceil(TILE * cols), m.div_ceil(BLOCK))
+    } else {
+        (n.div_ceil(TILE), m.div_ceil(TILE))
+    };
     if gy > 65535 || parts > 65535 || m == 0 || n == 0 {
         return m == 0 || n == 0;
     }
@@ -153,17 +289,128 @@ pub fn matmul(
     // forms stays below them for the shapes given (the callers build the views from the
     // layer's shapes); rows and columns past `m` and `n` are never read or written.
     unsafe {
-        gemm_tiled::launch_unchecked(
-            &gpu.client,
-            CubeCount::Static(gx as u32, gy as u32, parts as u32),
-            CubeDim::new_2d(TILE as u32, TILE as u32),
+        let count = CubeCount::Static(gx as u32, gy as u32, parts as u32);
+        let dim = CubeDim::new_2d(TILE as u32, TILE as u32);
+        let args = (
             BufferArg::from_raw_parts(a.buf.clone(), a.len),
             BufferArg::from_raw_parts(b.buf.clone(), b.len),
             BufferArg::from_raw_parts(bias.clone(), bias_len),
             BufferArg::from_raw_parts(mask.clone(), mask_len),
             BufferArg::from_raw_parts(c.clone(), parts * m * n),
-            g,
         );
+        if blocked {
+            gemm_blocked::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                args.0,
+                args.1,
+                args.2,
+                args.3,
+                args.4,
+                g,
+                cols,
+            );
+        } else {
+            gemm_tiled::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                args.0,
+                args.1,
+                args.2,
+                args.3,
+                args.4,
+                g,
+            );
+        }
     }
     true
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::engine::gpu::device::{test_gpu, worst};
+    use crate::rng::Rng;
+
+    /// Both kernels against a host product on shapes that end mid-tile, with the
+    /// reduction split into parts, `A` transposed (as weight gradients read it), and each
+    /// epilogue.
+    #[test]
+    fn both_kernels_match_a_host_product() {
+        let Some(gpu) = test_gpu() else {
+            return;
+        };
+        let mut rng = Rng::new(11);
+        for (m, n, k, k_part, transposed) in [
+            (200, 64, 31, 31, false),
+            (130, 48, 64, 64, false),
+            (70, 37, 150, 64, true),
+            (150, 16, 64, 64, false),
+            (90, 3, 33, 16, true),
+        ] {
+            let av: Vec<f32> = (0..m * k).map(|_| rng.range(-1.0, 1.0)).collect();
+            let bv: Vec<f32> = (0..k * n).map(|_| rng.range(-1.0, 1.0)).collect();
+            let bias: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+            let mask: Vec<f32> = (0..m * n).map(|_| rng.range(-1.0, 1.0)).collect();
+            // A(i, l): row-major, or stored as its transpose (`k x m`).
+            let (outer, reduce) = if transposed { (1, m) } else { (k, 1) };
+            let parts = k.div_ceil(k_part);
+            let mut want = vec![0.0f32; parts * m * n];
+            for p in 0..parts {
+                for i in 0..m {
+                    for j in 0..n {
+                        let mut acc = 0.0;
+                        for l in p * k_part..((p + 1) * k_part).min(k) {
+                            acc += av[i * outer + l * reduce] * bv[l * n + j];
+                        }
+                        if parts == 1 {
+                            acc = (acc + bias[j]).max(0.0);
+                            if mask[i * n + j] <= 0.0 {
+                                acc = 0.0;
+                            }
+                        }
+                        want[p * m * n + i * n + j] = acc;
+                    }
+                }
+            }
+            let (a, b) = (gpu.upload(&av), gpu.upload(&bv));
+            let (bias_h, mask_h) = (gpu.upload(&bias), gpu.upload(&mask));
+            for blocked in [false, true] {
+                let c = gpu.floats(parts * m * n);
+                let epilogue = if parts == 1 {
+                    Epilogue {
+                        bias: Some((&bias_h, n, 0)),
+                        relu: true,
+                        mask: Some((&mask_h, m * n)),
+                    }
+                } else {
+                    Epilogue::default()
+                };
+                let a_view = View {
+                    buf: &a,
+                    len: m * k,
+                    off: 0,
+                    outer,
+                    reduce,
+                };
+                let b_view = View {
+                    buf: &b,
+                    len: k * n,
+                    off: 0,
+                    outer: 1,
+                    reduce: n,
+                };
+                let (mnk, part) = ((m, n, k), k_part);
+                assert!(launch(
+                    &gpu, mnk, a_view, b_view, &c, part, epilogue, blocked
+                ));
+                let got = gpu.read(&c, parts * m * n).expect("read");
+                let err = worst(&got, &want);
+                eprintln!("{m}x{n}x{k} in {parts} parts, blocked {blocked}: {err:.1e}");
+                assert!(err < 1e-4, "{m}x{n}x{k}, blocked {blocked}: {err}");
+            }
+        }
+    }
 }

@@ -321,7 +321,7 @@ fn scan_blocks(counts: &[u32], offsets: &mut [u32], totals: &mut [u32], live: &m
     let mut sums = Shared::<[u32]>::new_slice(SCAN_THREADS);
     let mut alive = Shared::<[u32]>::new_slice(SCAN_THREADS);
     let t = UNIT_POS as usize;
-    let block = CUBE_POS as usize;
+    let block = CUBE_POS;
     let first = block * SCAN_BLOCK + t * SCAN_ITEMS;
     let mut sum = 0u32;
     let mut lives = 0u32;
@@ -357,6 +357,7 @@ fn scan_blocks(counts: &[u32], offsets: &mut [u32], totals: &mut [u32], live: &m
 /// in place, with the grand total after them; the same slot of `live` gets the rays with
 /// samples.
 #[cube(launch_unchecked)]
+#[allow(clippy::manual_div_ceil)] // kernels have no `div_ceil`
 fn scan_totals(totals: &mut [u32], live: &mut [u32], blocks: u32) {
     let mut sums = Shared::<[u32]>::new_slice(SCAN_THREADS);
     let mut alive = Shared::<[u32]>::new_slice(SCAN_THREADS);
@@ -503,20 +504,41 @@ pub const STATE_WORDS: usize = 6;
 /// Rays being rendered in rounds on the device: the rays (whose `start` is each ray's resume
 /// depth, advanced by every round), each ray's running result (`STATE_WORDS` floats,
 /// transmittance first) and its samples so far.
-pub struct RoundState {
-    pub rays: GpuRays,
+pub struct RoundState<'a> {
+    pub rays: &'a GpuRays,
     pub state: Handle,
     pub taken: Handle,
 }
 
-impl RoundState {
-    /// Rays that have taken no samples yet: transmittance 1, the rest 0.
-    pub fn new(gpu: &Gpu, rays: GpuRays) -> Self {
+/// Each of `rays` rays' running result before its first sample: transmittance 1, the
+/// rest 0.
+#[cube(launch_unchecked)]
+#[allow(clippy::manual_is_multiple_of)] // kernels have no `is_multiple_of`
+fn fresh_state(state: &mut [f32], rays: u32) {
+    let i = ABSOLUTE_POS;
+    if i < rays as usize * STATE_WORDS {
+        state[i] = select(i % STATE_WORDS == 0, 1.0f32, 0.0f32);
+    }
+}
+
+impl<'a> RoundState<'a> {
+    /// Rays that have taken no samples yet.
+    pub fn new(gpu: &Gpu, rays: &'a GpuRays) -> Self {
         let n = rays.len;
-        let mut state = vec![0.0; STATE_WORDS * n.max(1)];
-        state.iter_mut().step_by(STATE_WORDS).for_each(|t| *t = 1.0);
+        let state = gpu.floats(STATE_WORDS * n.max(1));
+        // SAFETY: `state` holds `STATE_WORDS` floats for each of the `n` rays.
+        unsafe {
+            let (c, d) = grid(STATE_WORDS * n, GROUP);
+            fresh_state::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(state.clone(), STATE_WORDS * n.max(1)),
+                n as u32,
+            );
+        }
         RoundState {
-            state: gpu.upload(&state),
+            state,
             taken: gpu.zeros_u32(n),
             rays,
         }

@@ -18,6 +18,7 @@ use cubecl::server::Handle;
 use super::device::Gpu;
 use super::launch::grid;
 use super::march::GpuRays;
+use crate::camera::footprint::PIXEL_RADIUS;
 use crate::camera::ray_space::RaySpace;
 use crate::camera::Camera;
 use crate::data::pixels::PixelChoice;
@@ -53,9 +54,123 @@ pub struct RayGenParams {
     contract: u32,
 }
 
-/// One thread per ray: see the module docs. Outputs as `GpuRays` holds them (warped
-/// origin, unit direction, unit view direction, span start with its jitter, span end) and
-/// the target colour (`rays x 3`).
+/// A vector in a kernel.
+#[derive(CubeType, Clone, Copy)]
+struct V3 {
+    x: f32,
+    y: f32,
+    z: f32,
+}
+
+/// The world direction of camera `c`'s (in `cams`) ray through normalised, undistorted
+/// image coordinates `(u, w)`: `(u, -w, -1)` in camera axes (looking down -z, y up).
+#[cube]
+fn world_dir(cams: &[f32], c: usize, u: f32, w: f32) -> V3 {
+    let m = c + 4;
+    V3 {
+        x: cams[m] * u - cams[m + 1] * w - cams[m + 2],
+        y: cams[m + 4] * u - cams[m + 5] * w - cams[m + 6],
+        z: cams[m + 8] * u - cams[m + 9] * w - cams[m + 10],
+    }
+}
+
+/// Casts camera `c`'s ray through `(u, w)` (see [`world_dir`]), warps it into the ray
+/// space (`RaySpace::warp`), clips it to the marcher's span (`Marcher::span`) and writes it
+/// as ray `r` of a [`GpuRays`] (warped origin, unit direction, unit view direction, span
+/// start `jitter` of a step in, span end). Returns the warped direction's length.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn cast(
+    cams: &[f32],
+    c: usize,
+    u: f32,
+    w: f32,
+    jitter: f32,
+    r: usize,
+    origins: &mut [f32],
+    dirs: &mut [f32],
+    views: &mut [f32],
+    start: &mut [f32],
+    end: &mut [f32],
+    p: RayGenParams,
+) -> f32 {
+    let world = world_dir(cams, c, u, w);
+    let wx = world.x;
+    let wy = world.y;
+    let wz = world.z;
+    let m = c + 4;
+    let mut ox = cams[m + 3];
+    let mut oy = cams[m + 7];
+    let mut oz = cams[m + 11];
+    let mut dx = wx;
+    let mut dy = wy;
+    let mut dz = wz;
+    if p.ndc == 1 {
+        if wz >= -1e-6f32 {
+            // Not heading into the frustum: a ray that misses everything.
+            ox = 0.0f32;
+            oy = 0.0f32;
+            oz = 10.0f32;
+            dx = 0.0f32;
+            dy = 0.0f32;
+            dz = 1.0f32;
+        } else {
+            let n = p.ndc_near;
+            let t = -(n + oz) / wz;
+            let px = ox + t * wx;
+            let py = oy + t * wy;
+            let pz = oz + t * wz;
+            ox = -p.ax * px / pz;
+            oy = -p.ay * py / pz;
+            oz = 1.0 + 2.0 * n / pz;
+            dx = -p.ax * (wx / wz - px / pz);
+            dy = -p.ay * (wy / wz - py / pz);
+            dz = -2.0f32 * n / pz;
+        }
+    }
+    let norm = f32::sqrt(dx * dx + dy * dy + dz * dz);
+    let inv = 1.0 / norm;
+    let ux = dx * inv;
+    let uy = dy * inv;
+    let uz = dz * inv;
+    let view_inv = 1.0 / f32::sqrt(wx * wx + wy * wy + wz * wz);
+    // The span: the box between near and far (`render::occupancy::ray_box`), or all of
+    // near..far in contracted space.
+    let mut t0 = p.near * norm;
+    let mut t1 = p.far * norm;
+    if p.contract == 0 {
+        let b = p.bound;
+        let near_x = slab_near(ox, ux, b);
+        let far_x = slab_far(ox, ux, b);
+        t0 = select(near_x > t0, near_x, t0);
+        t1 = select(far_x < t1, far_x, t1);
+        let near_y = slab_near(oy, uy, b);
+        let far_y = slab_far(oy, uy, b);
+        t0 = select(near_y > t0, near_y, t0);
+        t1 = select(far_y < t1, far_y, t1);
+        let near_z = slab_near(oz, uz, b);
+        let far_z = slab_far(oz, uz, b);
+        t0 = select(near_z > t0, near_z, t0);
+        t1 = select(far_z < t1, far_z, t1);
+    }
+    let hit = t0 < t1;
+    let k = 3 * r;
+    origins[k] = ox;
+    origins[k + 1] = oy;
+    origins[k + 2] = oz;
+    dirs[k] = ux;
+    dirs[k + 1] = uy;
+    dirs[k + 2] = uz;
+    views[k] = wx * view_inv;
+    views[k + 1] = wy * view_inv;
+    views[k + 2] = wz * view_inv;
+    start[r] = select(hit, t0 + jitter * p.dt, 0.0f32);
+    end[r] = select(hit, t1, 0.0f32);
+    norm
+}
+
+/// One thread per ray: see the module docs. Outputs as `GpuRays` holds them and the
+/// target colour (`rays x 3`).
 #[cube(launch_unchecked)]
 #[allow(clippy::too_many_arguments)]
 fn generate(
@@ -94,83 +209,75 @@ fn generate(
         let at = select(lens, table as usize + 2 * pix as usize, 0usize);
         let u = select(lens, tables[at], pinhole_u);
         let w = select(lens, tables[at + 1], pinhole_w);
-        // The camera looks down -z with y up: (u, -w, -1) in camera axes, to world.
-        let m = c + 4;
-        let wx = cams[m] * u - cams[m + 1] * w - cams[m + 2];
-        let wy = cams[m + 4] * u - cams[m + 5] * w - cams[m + 6];
-        let wz = cams[m + 8] * u - cams[m + 9] * w - cams[m + 10];
-        let mut ox = cams[m + 3];
-        let mut oy = cams[m + 7];
-        let mut oz = cams[m + 11];
-        let mut dx = wx;
-        let mut dy = wy;
-        let mut dz = wz;
-        if p.ndc == 1 {
-            if wz >= -1e-6f32 {
-                // Not heading into the frustum: a ray that misses everything.
-                ox = 0.0f32;
-                oy = 0.0f32;
-                oz = 10.0f32;
-                dx = 0.0f32;
-                dy = 0.0f32;
-                dz = 1.0f32;
-            } else {
-                let n = p.ndc_near;
-                let t = -(n + oz) / wz;
-                let px = ox + t * wx;
-                let py = oy + t * wy;
-                let pz = oz + t * wz;
-                ox = -p.ax * px / pz;
-                oy = -p.ay * py / pz;
-                oz = 1.0 + 2.0 * n / pz;
-                dx = -p.ax * (wx / wz - px / pz);
-                dy = -p.ay * (wy / wz - py / pz);
-                dz = -2.0f32 * n / pz;
-            }
-        }
-        let norm = f32::sqrt(dx * dx + dy * dy + dz * dz);
-        let inv = 1.0 / norm;
-        let ux = dx * inv;
-        let uy = dy * inv;
-        let uz = dz * inv;
-        let view_inv = 1.0 / f32::sqrt(wx * wx + wy * wy + wz * wz);
-        // The span: the box between near and far (`render::occupancy::ray_box`), or all of
-        // near..far in contracted space.
-        let mut t0 = p.near * norm;
-        let mut t1 = p.far * norm;
-        if p.contract == 0 {
-            let b = p.bound;
-            let near_x = slab_near(ox, ux, b);
-            let far_x = slab_far(ox, ux, b);
-            t0 = select(near_x > t0, near_x, t0);
-            t1 = select(far_x < t1, far_x, t1);
-            let near_y = slab_near(oy, uy, b);
-            let far_y = slab_far(oy, uy, b);
-            t0 = select(near_y > t0, near_y, t0);
-            t1 = select(far_y < t1, far_y, t1);
-            let near_z = slab_near(oz, uz, b);
-            let far_z = slab_far(oz, uz, b);
-            t0 = select(near_z > t0, near_z, t0);
-            t1 = select(far_z < t1, far_z, t1);
-        }
-        let hit = t0 < t1;
+        cast(
+            cams, c, u, w, jitter[r], r, origins, dirs, views, start, end, p,
+        );
         let k = 3 * r;
-        origins[k] = ox;
-        origins[k + 1] = oy;
-        origins[k + 2] = oz;
-        dirs[k] = ux;
-        dirs[k + 1] = uy;
-        dirs[k + 2] = uz;
-        views[k] = wx * view_inv;
-        views[k + 1] = wy * view_inv;
-        views[k + 2] = wz * view_inv;
-        start[r] = select(hit, t0 + jitter[r] * p.dt, 0.0f32);
-        end[r] = select(hit, t1, 0.0f32);
         let q = image + 4 * pix as usize;
         let clear = 1.0 - images[q + 3];
         targets[k] = images[q] + backgrounds[k] * clear;
         targets[k + 1] = images[q + 1] + backgrounds[k + 1] * clear;
         targets[k + 2] = images[q + 2] + backgrounds[k + 2] * clear;
+    }
+}
+
+/// The distance between two unit vectors' directions `a / |a|` and `b / |b|`.
+#[cube]
+fn unit_apart(a: V3, b: V3) -> f32 {
+    let ia = 1.0 / f32::sqrt(a.x * a.x + a.y * a.y + a.z * a.z);
+    let ib = 1.0 / f32::sqrt(b.x * b.x + b.y * b.y + b.z * b.z);
+    let x = a.x * ia - b.x * ib;
+    let y = a.y * ia - b.y * ib;
+    let z = a.z * ia - b.z * ib;
+    f32::sqrt(x * x + y * y + z * z)
+}
+
+/// One thread per pixel `first + r` of a pinhole camera (`cams`: one camera, `width`
+/// pixels a row): its ray as [`cast`] writes it, lattice jitter one half (the renderer's),
+/// the inverse length of its warped direction (`inv_norm`, depth's scale) and its
+/// footprint radius (`Camera::cone_radius` then `RaySpace::footprint_radius`).
+#[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
+fn cast_camera_rays(
+    cams: &[f32],
+    origins: &mut [f32],
+    dirs: &mut [f32],
+    views: &mut [f32],
+    start: &mut [f32],
+    end: &mut [f32],
+    inv_norm: &mut [f32],
+    radii: &mut [f32],
+    first: u32,
+    width: u32,
+    rays: u32,
+    p: RayGenParams,
+) {
+    let r = ABSOLUTE_POS;
+    if r < rays as usize {
+        let pix = first + r as u32;
+        let fx = cams[0];
+        let fy = cams[1];
+        let ndc = p.ndc;
+        let ndc_area = p.ax * p.ay;
+        let u = (f32::cast_from(pix % width) + 0.5 - cams[2]) / fx;
+        let w = (f32::cast_from(pix / width) + 0.5 - cams[3]) / fy;
+        let norm = cast(
+            cams, 0usize, u, w, 0.5f32, r, origins, dirs, views, start, end, p,
+        );
+        inv_norm[r] = 1.0 / norm;
+        let across = unit_apart(
+            world_dir(cams, 0usize, u + 1.0 / fx, w),
+            world_dir(cams, 0usize, u, w),
+        );
+        let down = unit_apart(
+            world_dir(cams, 0usize, u, w + 1.0 / fy),
+            world_dir(cams, 0usize, u, w),
+        );
+        let here = world_dir(cams, 0usize, u, w);
+        let cone = PIXEL_RADIUS * f32::sqrt(across * down);
+        let len = f32::sqrt(here.x * here.x + here.y * here.y + here.z * here.z);
+        let ndc_cone = f32::sqrt(ndc_area) * cone * len / f32::max(f32::abs(here.z), 1e-6);
+        radii[r] = select(ndc == 1, ndc_cone, cone);
     }
 }
 
@@ -191,6 +298,91 @@ fn slab_far(o: f32, d: f32, b: f32) -> f32 {
     let ta = (-b - o) * inv;
     let tb = (b - o) * inv;
     select(ta > tb, ta, tb)
+}
+
+/// The kernels' view of the ray space and the marcher over a box of half-extent `bound`.
+fn gen_params(space: &RaySpace, marcher: &Marcher, bound: f32) -> RayGenParamsLaunch {
+    let (ndc, ax, ay, ndc_near) = match space {
+        RaySpace::World => (0, 1.0, 1.0, 1.0),
+        RaySpace::Ndc(p) => (1, p.ax, p.ay, p.near),
+    };
+    RayGenParamsLaunch::new(
+        ndc,
+        ax,
+        ay,
+        ndc_near,
+        marcher.near,
+        marcher.far,
+        bound,
+        marcher.dt,
+        u32::from(marcher.contract.is_some()),
+    )
+}
+
+/// Rays of a camera's pixels made on the device, ready to render: the rays, each one's
+/// inverse direction length (depth's scale) and footprint radius.
+pub struct CameraRays {
+    pub rays: GpuRays,
+    pub inv_norm: Handle,
+    pub radii: Handle,
+}
+
+/// The rays of `camera`'s `pixels` (row-major indices) in `space`, through `marcher` and
+/// a grid of half-extent `bound`, as `views::render_pixels` makes them on the host; `None`
+/// for a camera with lens distortion (its undistortion runs on the host).
+pub fn camera_rays(
+    gpu: &Gpu,
+    camera: &Camera,
+    space: &RaySpace,
+    marcher: &Marcher,
+    bound: f32,
+    pixels: std::ops::Range<usize>,
+) -> Option<CameraRays> {
+    if !camera.distortion.is_pinhole() || camera.width == 0 || pixels.end > u32::MAX as usize {
+        return None;
+    }
+    let n = pixels.len();
+    let (origins, dirs, views) = (gpu.floats(3 * n), gpu.floats(3 * n), gpu.floats(3 * n));
+    let (start, end) = (gpu.floats(n), gpu.floats(n));
+    let (inv_norm, radii) = (gpu.floats(n), gpu.floats(n));
+    if n > 0 {
+        let mut cam = vec![camera.fx, camera.fy, camera.cx, camera.cy];
+        cam.extend(camera.c2w.iter().flatten());
+        // SAFETY: every output holds `n` rays (`3n` floats for vectors); `cams` one camera.
+        unsafe {
+            let (c, d) = grid(n, GROUP);
+            cast_camera_rays::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(gpu.upload(&cam), CAM_WORDS),
+                BufferArg::from_raw_parts(origins.clone(), 3 * n),
+                BufferArg::from_raw_parts(dirs.clone(), 3 * n),
+                BufferArg::from_raw_parts(views.clone(), 3 * n),
+                BufferArg::from_raw_parts(start.clone(), n),
+                BufferArg::from_raw_parts(end.clone(), n),
+                BufferArg::from_raw_parts(inv_norm.clone(), n),
+                BufferArg::from_raw_parts(radii.clone(), n),
+                pixels.start as u32,
+                camera.width as u32,
+                n as u32,
+                gen_params(space, marcher, bound),
+            );
+        }
+    }
+    let rays = GpuRays {
+        origins,
+        dirs,
+        views,
+        start,
+        end,
+        len: n,
+    };
+    Some(CameraRays {
+        rays,
+        inv_norm,
+        radii,
+    })
 }
 
 /// The training views of one dataset on the device.
@@ -281,21 +473,7 @@ impl GpuViews {
         let (origins, dirs, unit_views) = (gpu.floats(3 * n), gpu.floats(3 * n), gpu.floats(3 * n));
         let (start, end, targets) = (gpu.floats(n), gpu.floats(n), gpu.floats(3 * n));
         if n > 0 {
-            let (ndc, ax, ay, ndc_near) = match space {
-                RaySpace::World => (0, 1.0, 1.0, 1.0),
-                RaySpace::Ndc(p) => (1, p.ax, p.ay, p.near),
-            };
-            let params = RayGenParamsLaunch::new(
-                ndc,
-                ax,
-                ay,
-                ndc_near,
-                marcher.near,
-                marcher.far,
-                bound,
-                marcher.dt,
-                u32::from(marcher.contract.is_some()),
-            );
+            let params = gen_params(space, marcher, bound);
             let [meta, cams, tables, images] = self.lens;
             // SAFETY: every buffer holds the length given with it; views and pixels index
             // the uploaded views and their images (drawn from this dataset), and a view's
@@ -461,5 +639,120 @@ mod tests {
                 "{name} backgrounds"
             );
         }
+    }
+
+    /// A camera's rays cast on the device against the ones `views::render_pixels` makes on
+    /// the host (`Camera::ray_at` and `cone_radius`, `RenderSettings::ray_batch_with_cones`,
+    /// then `GpuRays::new` with the renderer's half-step jitter): a range of pixels not
+    /// starting at the first, world and NDC ray spaces, bounded and contracted marching.
+    /// A camera with lens distortion is left to the host.
+    #[test]
+    fn camera_rays_are_the_views_rays() {
+        let Some(gpu) = test_gpu() else {
+            return;
+        };
+        let opts = SynthOptions {
+            size: 20,
+            supersample: 1,
+            ..Default::default()
+        };
+        let data = synth::dataset(&opts, Split::Test, 2);
+        let camera = &data.views[1].camera;
+        let ndc = RaySpace::Ndc(Ndc {
+            ax: 2.0,
+            ay: 2.0,
+            near: 1.0,
+        });
+        let pixels = 37..camera.width * camera.height - 5;
+        let n = pixels.len();
+        for (name, space, contract) in [
+            ("world", RaySpace::World, None),
+            ("ndc", ndc, None),
+            ("contracted", RaySpace::World, Some(0.75)),
+        ] {
+            let (near, far) = if name == "ndc" {
+                (0.0, 1.0)
+            } else {
+                (data.near, data.far)
+            };
+            let marcher = Marcher {
+                dt: 0.01,
+                max_samples: 64,
+                near,
+                far,
+                contract,
+            };
+            let grid = OccupancyGrid::new(8, 1.5);
+            let got = camera_rays(&gpu, camera, &space, &marcher, grid.bound, pixels.clone())
+                .expect("a pinhole camera");
+            let settings = crate::views::RenderSettings {
+                near,
+                far,
+                background: [1.0; 3],
+                space,
+                appearance: crate::stage::Appearance::Mean,
+            };
+            let (world, cones): (Vec<_>, Vec<f32>) = pixels
+                .clone()
+                .map(|p| {
+                    let w = camera.width;
+                    let (x, y) = ((p % w) as f32 + 0.5, (p / w) as f32 + 0.5);
+                    (camera.ray_at(x, y), camera.cone_radius(x, y))
+                })
+                .unzip();
+            let batch = settings.ray_batch_with_cones(&world, &cones, pixels.start);
+            let want = GpuRays::new(&gpu, &marcher, &grid, &batch, &vec![0.5; n]);
+            let inv_norm: Vec<f32> = batch
+                .dirs
+                .iter()
+                .map(|&d| 1.0 / crate::math::length(d))
+                .collect();
+            let read = |h: &Handle, len: usize| gpu.read(h, len).expect("read");
+            for (what, a, b) in [
+                (
+                    "origins",
+                    read(&got.rays.origins, 3 * n),
+                    read(&want.origins, 3 * n),
+                ),
+                ("dirs", read(&got.rays.dirs, 3 * n), read(&want.dirs, 3 * n)),
+                (
+                    "views",
+                    read(&got.rays.views, 3 * n),
+                    read(&want.views, 3 * n),
+                ),
+                ("start", read(&got.rays.start, n), read(&want.start, n)),
+                ("end", read(&got.rays.end, n), read(&want.end, n)),
+                ("inv_norm", read(&got.inv_norm, n), inv_norm),
+            ] {
+                let err = worst(&a, &b);
+                eprintln!("{name} {what}: worst difference {err:.1e}");
+                assert!(err < 1e-4, "{name} {what}: {err}");
+            }
+            // Radii are small (about a thousandth): compared relative to their size.
+            let radii = read(&got.radii, n);
+            let rel = radii
+                .iter()
+                .zip(&batch.radii)
+                .map(|(a, b)| (a - b).abs() / b.abs())
+                .fold(0.0f32, f32::max);
+            eprintln!("{name} radii: worst relative difference {rel:.1e}");
+            assert!(rel < 1e-3, "{name} radii: {rel}");
+            let end = read(&want.end, n);
+            assert!(end.iter().any(|&e| e > 0.0), "{name}: no ray hits the box");
+        }
+        let mut distorted = camera.clone();
+        distorted.distortion = Distortion {
+            model: LensModel::Opencv,
+            k: [0.1, 0.0, 0.0, 0.0],
+            p: [0.0, 0.0],
+        };
+        let marcher = Marcher {
+            dt: 0.01,
+            max_samples: 64,
+            near: data.near,
+            far: data.far,
+            contract: None,
+        };
+        assert!(camera_rays(&gpu, &distorted, &RaySpace::World, &marcher, 1.5, 0..4).is_none());
     }
 }

@@ -8,6 +8,7 @@
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
+use rayon::prelude::*;
 
 use super::antialias::sample_footprints;
 use super::codes::SampleCodes;
@@ -19,12 +20,9 @@ use crate::error::Result;
 use crate::math::length;
 use crate::render::march::Marcher;
 use crate::render::occupancy::OccupancyGrid;
-use crate::stage::{RayBatch, RayOutput, MEAN_APPEARANCE};
+use crate::stage::{Appearance, RayBatch, RayOutput, MEAN_APPEARANCE};
 
 const GROUP: u32 = 64;
-
-/// Most samples a ray takes in one round (the CPU renderer's cap as well).
-const MAX_PER_RAY: usize = 64;
 
 /// Adds each of the first `rays` rays' round samples (CSR `offsets`) to its running result
 /// in `state` (`render::volume::Accumulator::add`, depth along the camera direction).
@@ -81,9 +79,53 @@ pub struct FieldNeeds {
     pub footprints: bool,
 }
 
-/// Renders `rays` through `field`: the grid `device_grid` (a copy of `host_grid`, which
-/// gives each ray its span on the host) marched as `marcher` marches, at most about
-/// `round_samples` samples per round, the field told what it `needs`.
+/// Each ray's appearance code on the device.
+pub enum RayCodes {
+    /// One code for every ray (the mean code, or one photo's).
+    All(u32),
+    /// A code per ray.
+    PerRay(Handle),
+}
+
+/// Rays on the device to render, with what a field may read besides them.
+pub struct DeviceBatch {
+    pub rays: GpuRays,
+    /// One over the length of each ray's direction in its space: depth's scale.
+    pub inv_norm: Handle,
+    /// Each ray's cone radius, for footprints; without them every sample takes the
+    /// reference footprint, as on the CPU.
+    pub radii: Option<Handle>,
+    /// Footprints constant along rays (`RayBatch::cylinders`).
+    pub cylinders: bool,
+    pub codes: RayCodes,
+}
+
+impl DeviceBatch {
+    /// The host's `rays` on the device, as the renderer's lattice starts them (the first
+    /// sample half a step into each span), through `marcher` and `grid` (which give each
+    /// ray its span on the host).
+    pub fn upload(gpu: &Gpu, marcher: &Marcher, grid: &OccupancyGrid, rays: &RayBatch) -> Self {
+        let n = rays.len();
+        let codes = match rays.appearance {
+            Appearance::Mean => RayCodes::All(MEAN_APPEARANCE),
+            Appearance::Of(i) => RayCodes::All(i),
+            Appearance::PerView => {
+                let per_ray: Vec<u32> = (0..n).map(|r| rays.appearance_of(r)).collect();
+                RayCodes::PerRay(gpu.upload_u32(&per_ray))
+            }
+        };
+        let inv_norm: Vec<f32> = rays.dirs.par_iter().map(|&d| 1.0 / length(d)).collect();
+        DeviceBatch {
+            rays: GpuRays::new(gpu, marcher, grid, rays, &vec![0.5; n]),
+            inv_norm: gpu.upload(&inv_norm),
+            radii: (!rays.radii.is_empty()).then(|| gpu.upload(&rays.radii)),
+            cylinders: rays.cylinders,
+            codes,
+        }
+    }
+}
+
+/// Renders the host's `rays` through `field`: see [`render_batch`].
 #[allow(clippy::too_many_arguments)]
 pub fn render_rays(
     gpu: &Gpu,
@@ -95,31 +137,76 @@ pub fn render_rays(
     round_samples: usize,
     rays: &RayBatch,
 ) -> Result<Vec<RayOutput>> {
-    let n = rays.len();
+    if rays.is_empty() {
+        return Ok(Vec::new());
+    }
+    let batch = DeviceBatch::upload(gpu, marcher, host_grid, rays);
+    let state = render_batch(
+        gpu,
+        device_grid,
+        marcher,
+        field,
+        needs,
+        round_samples,
+        &batch,
+    )?;
+    Ok(ray_outputs(&state, |r| rays.backgrounds[r]))
+}
+
+/// Each ray's result from its running state (`STATE_WORDS` floats a ray) over its
+/// `background`.
+pub fn ray_outputs(state: &[f32], background: impl Fn(usize) -> [f32; 3] + Sync) -> Vec<RayOutput> {
+    state
+        .par_chunks_exact(STATE_WORDS)
+        .enumerate()
+        .map(|(r, s)| {
+            let (opacity, bg) = (s[5], background(r));
+            RayOutput {
+                rgb: [0, 1, 2].map(|c| s[1 + c] + (1.0 - opacity) * bg[c]),
+                depth: s[4],
+                opacity,
+            }
+        })
+        .collect()
+}
+
+/// Renders `batch` through `field`: the grid `device_grid` marched as `marcher` marches,
+/// at most about `round_samples` samples per round, the field told what it `needs`.
+/// Returns each ray's running state at the end (`STATE_WORDS` floats a ray: transmittance,
+/// rgb, depth, opacity, before any background).
+pub fn render_batch(
+    gpu: &Gpu,
+    device_grid: &GpuMarcher,
+    marcher: &Marcher,
+    field: &DeviceFieldFn,
+    needs: FieldNeeds,
+    round_samples: usize,
+    batch: &DeviceBatch,
+) -> Result<Vec<f32>> {
+    let n = batch.rays.len;
     if n == 0 {
         return Ok(Vec::new());
     }
-    let ray_codes = needs.codes.then(|| {
-        let per_ray: Vec<u32> = (0..n).map(|r| rays.appearance_of(r)).collect();
-        gpu.upload_u32(&per_ray)
-    });
-    // What a field without codes is given, once for every round.
-    let mean_codes = SampleCodes::all(gpu, MEAN_APPEARANCE);
-    // The CPU renderer's lattice: the first sample half a step into the span.
-    let round = RoundState::new(
-        gpu,
-        GpuRays::new(gpu, marcher, host_grid, rays, &vec![0.5; n]),
-    );
-    // Without radii every sample takes the reference footprint, as on the CPU.
-    let radii = (needs.footprints && !rays.radii.is_empty()).then(|| gpu.upload(&rays.radii));
-    let inv_norm: Vec<f32> = rays.dirs.iter().map(|&d| 1.0 / length(d)).collect();
-    let inv_norm = gpu.upload(&inv_norm);
+    // The codes a field reads: each sample its ray's, or one for all (made once).
+    let all_codes = match (&batch.codes, needs.codes) {
+        (RayCodes::All(code), true) => SampleCodes::all(gpu, *code),
+        _ => SampleCodes::all(gpu, MEAN_APPEARANCE),
+    };
+    let ray_codes = match (&batch.codes, needs.codes) {
+        (RayCodes::PerRay(codes), true) => Some(codes),
+        _ => None,
+    };
+    let radii = batch.radii.as_ref().filter(|_| needs.footprints);
+    let round = RoundState::new(gpu, &batch.rays);
     let round_samples = round_samples.max(1);
     // As many samples per ray as spread a round's budget over the rays still marching: all
     // of them at first, then those that had samples in the round before (no more can have
     // any now), so that after the first round the budget cuts no ray short, and no ray
-    // is marched in a count pass only to be marched again in the next one.
-    let mut per_ray = (round_samples / n).clamp(1, MAX_PER_RAY);
+    // is marched in a count pass only to be marched again in the next one. The budget
+    // bounds a round's memory, so unlike the CPU renderer (64) a ray's share has no cap
+    // of its own: the last few rays finish in one round, not in many round trips.
+    let most = marcher.max_samples.max(1);
+    let mut per_ray = (round_samples / n).clamp(1, most);
     loop {
         let counted = device_grid.count_round(gpu, &round, per_ray);
         let cut = device_grid.cut(gpu, &counted, n, round_samples, n)?;
@@ -129,16 +216,15 @@ pub fn render_rays(
         let (samples, positions, dirs) =
             device_grid.write_round(gpu, &round, &counted, cut, per_ray);
         let (k, s) = (cut.rays, cut.samples);
-        let round_codes = ray_codes
-            .as_ref()
-            .map(|per_ray| SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s));
-        let footprints = radii.as_ref().map(|radii| {
+        let round_codes =
+            ray_codes.map(|per_ray| SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s));
+        let footprints = radii.map(|radii| {
             let csr = (&samples.offsets, &samples.t);
             sample_footprints(
                 gpu,
-                &round.rays,
+                round.rays,
                 radii,
-                rays.cylinders,
+                batch.cylinders,
                 marcher.contract,
                 csr,
                 k,
@@ -148,7 +234,7 @@ pub fn render_rays(
         let (sigma, rgb) = field(&DeviceInput {
             positions: &positions,
             dirs: &dirs,
-            codes: round_codes.as_ref().unwrap_or(&mean_codes),
+            codes: round_codes.as_ref().unwrap_or(&all_codes),
             footprints: footprints.as_ref(),
             n: s,
         });
@@ -165,26 +251,14 @@ pub fn render_rays(
                 BufferArg::from_raw_parts(samples.dt.clone(), s),
                 BufferArg::from_raw_parts(sigma, s),
                 BufferArg::from_raw_parts(rgb, 3 * s),
-                BufferArg::from_raw_parts(inv_norm.clone(), n),
+                BufferArg::from_raw_parts(batch.inv_norm.clone(), n),
                 BufferArg::from_raw_parts(round.state.clone(), STATE_WORDS * n),
                 k as u32,
             );
         }
-        per_ray = (round_samples / cut.live.max(1)).clamp(1, MAX_PER_RAY);
+        per_ray = (round_samples / cut.live.max(1)).clamp(1, most);
     }
-    let state = gpu.read(&round.state, STATE_WORDS * n)?;
-    Ok(state
-        .chunks_exact(STATE_WORDS)
-        .zip(&rays.backgrounds)
-        .map(|(s, bg)| {
-            let opacity = s[5];
-            RayOutput {
-                rgb: [0, 1, 2].map(|c| s[1 + c] + (1.0 - opacity) * bg[c]),
-                depth: s[4],
-                opacity,
-            }
-        })
-        .collect())
+    gpu.read(&round.state, STATE_WORDS * n)
 }
 
 #[cfg(test)]
