@@ -76,17 +76,60 @@ fn gemm_tiled(a: &[f32], b: &[f32], bias: &[f32], mask: &[f32], c: &mut [f32], g
         l0 += 16;
     }
     if row < m && col < n {
-        if g.has_bias == 1 {
-            acc += bias[g.bias_off as usize + col];
-        }
-        if g.relu == 1 {
-            acc = f32::max(acc, 0.0);
-        }
-        if g.has_mask == 1 && mask[row * n + col] <= 0.0 {
-            acc = 0.0;
-        }
-        c[g.c_part as usize * part + row * n + col] = acc;
+        let at = g.c_part as usize * part;
+        let e = Epi::new(g.has_bias, g.bias_off, g.relu, g.has_mask, g.n);
+        store(acc, row, col, at, bias, mask, c, e);
     }
+}
+
+/// The epilogue's flags and the output's width, as [`store`] reads them.
+#[derive(CubeType, Clone, Copy)]
+struct Epi {
+    has_bias: u32,
+    bias_off: u32,
+    relu: u32,
+    has_mask: u32,
+    n: u32,
+}
+
+#[cube]
+impl Epi {
+    fn new(has_bias: u32, bias_off: u32, relu: u32, has_mask: u32, n: u32) -> Epi {
+        Epi {
+            has_bias,
+            bias_off,
+            relu,
+            has_mask,
+            n,
+        }
+    }
+}
+
+/// Writes the sum `v` of `C(row, col)` through the epilogue `e` into `c` from `at`.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn store(
+    v: f32,
+    row: usize,
+    col: usize,
+    at: usize,
+    bias: &[f32],
+    mask: &[f32],
+    c: &mut [f32],
+    e: Epi,
+) {
+    let n = e.n as usize;
+    let mut v = v;
+    if e.has_bias == 1 {
+        v += bias[e.bias_off as usize + col];
+    }
+    if e.relu == 1 {
+        v = f32::max(v, 0.0);
+    }
+    if e.has_mask == 1 && mask[row * n + col] <= 0.0 {
+        v = 0.0;
+    }
+    c[at + row * n + col] = v;
 }
 
 /// Rows of `C` each thread of the blocked kernel computes, `TILE` apart (and columns, for
@@ -182,17 +225,9 @@ fn gemm_blocked(
             let row = row0 + ty + TILE * i;
             let col = col0 + tx + TILE * j;
             if row < m && col < n {
-                let mut v = acc[i * cols + j];
-                if g.has_bias == 1 {
-                    v += bias[g.bias_off as usize + col];
-                }
-                if g.relu == 1 {
-                    v = f32::max(v, 0.0);
-                }
-                if g.has_mask == 1 && mask[row * n + col] <= 0.0 {
-                    v = 0.0;
-                }
-                c[g.c_part as usize * part + row * n + col] = v;
+                let at = g.c_part as usize * part;
+                let e = Epi::new(g.has_bias, g.bias_off, g.relu, g.has_mask, g.n);
+                store(acc[i * cols + j], row, col, at, bias, mask, c, e);
             }
         }
     }
