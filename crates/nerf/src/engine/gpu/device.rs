@@ -11,8 +11,10 @@ use crate::error::{NerfError, Result};
 pub enum Path {
     /// One thread per output value, a dot product from global memory.
     Plain,
-    /// Tiled products through workgroup memory (`gemm`).
+    /// Products in 16 x 16 tiles through workgroup memory, an output a thread (`gemm`).
     Tiled,
+    /// The same with a block of outputs a thread (`gemm`'s blocked kernel).
+    Blocked,
 }
 
 /// An opened adapter.
@@ -24,9 +26,9 @@ pub struct Gpu {
     /// A software adapter (lavapipe, llvmpipe, WARP): correct, but slower than the CPU
     /// engine.
     pub software: bool,
-    /// The dense layers' kernels: tiled through workgroup memory on a hardware GPU, plain
-    /// on a software adapter (where lavapipe runs a workgroup's barriers as separate loops
-    /// and the tiled kernels measured slower); `NERF_GPU_MATMUL=plain|tiled` overrides.
+    /// The dense layers' kernels: blocked products, the fastest measured on a hardware
+    /// GPU and on lavapipe alike (docs/benchmarks.md); `NERF_GPU_MATMUL=plain|tiled|blocked`
+    /// overrides, for measuring.
     pub matmul: Path,
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
     /// scattered with a compare-and-swap loop on their bits.
@@ -52,8 +54,7 @@ impl Gpu {
         let matmul = match std::env::var("NERF_GPU_MATMUL").as_deref() {
             Ok("plain") => Path::Plain,
             Ok("tiled") => Path::Tiled,
-            _ if software => Path::Plain,
-            _ => Path::Tiled,
+            _ => Path::Blocked,
         };
         let fused_field = std::env::var("NERF_GPU_FIELD").as_deref() == Ok("fused");
         Gpu {

@@ -645,7 +645,7 @@ pub(super) mod tests {
         };
         field.backward(&params, &mut ws, d, &mut grads.all());
 
-        for path in [Path::Plain, Path::Tiled] {
+        for path in [Path::Plain, Path::Tiled, Path::Blocked] {
             let gpu = Gpu {
                 matmul: path,
                 ..gpu.clone()

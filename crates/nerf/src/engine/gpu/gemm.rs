@@ -233,13 +233,6 @@ fn gemm_blocked(
     }
 }
 
-/// Whether products run the blocked kernel (the default) or, with `NERF_GPU_GEMM=tiled`,
-/// the 16 x 16 one (to compare them).
-fn blocked_on() -> bool {
-    static TILED_ONLY: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    !*TILED_ONLY.get_or_init(|| std::env::var("NERF_GPU_GEMM").is_ok_and(|v| v == "tiled"))
-}
-
 /// A strided operand: element (outer index `i`, reduced index `l`) at
 /// `buf[off + i outer + l reduce]`; `i` is `A`'s row or `B`'s column.
 #[derive(Clone, Copy, Debug)]
@@ -263,24 +256,11 @@ pub struct Epilogue<'a> {
 }
 
 /// `C = A B` (`m x k` by `k x n`) into `c` (`parts x m x n` when the reduction is split
-/// into `parts` of `k_part`), through `epilogue`. Returns false (launching nothing) when the
-/// grid would exceed 65535 tiles down `m`: the caller takes its plain kernel then.
+/// into `parts` of `k_part`), through `epilogue`, by the blocked kernel or the 16 x 16 one.
+/// Returns false (launching nothing) when the grid would exceed 65535 tiles down `m`: the
+/// caller takes its plain kernel then.
 #[allow(clippy::too_many_arguments)]
 pub fn matmul(
-    gpu: &Gpu,
-    (m, n, k): (usize, usize, usize),
-    a: View,
-    b: View,
-    c: &Handle,
-    k_part: usize,
-    epilogue: Epilogue,
-) -> bool {
-    launch(gpu, (m, n, k), a, b, c, k_part, epilogue, blocked_on())
-}
-
-/// [`matmul`] through the blocked kernel or the 16 x 16 one.
-#[allow(clippy::too_many_arguments)]
-fn launch(
     gpu: &Gpu,
     (m, n, k): (usize, usize, usize),
     a: View,
@@ -438,7 +418,7 @@ mod tests {
                     reduce: n,
                 };
                 let (mnk, part) = ((m, n, k), k_part);
-                assert!(launch(
+                assert!(matmul(
                     &gpu, mnk, a_view, b_view, &c, part, epilogue, blocked
                 ));
                 let got = gpu.read(&c, parts * m * n).expect("read");

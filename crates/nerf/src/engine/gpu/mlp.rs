@@ -3,11 +3,12 @@
 //! model's parameter vector exactly as the CPU lays them out (`in x out`, row-major, the
 //! bias after them), so one offset names a layer.
 //!
-//! Work mapping: on a hardware GPU the forward, the input gradient and the weight gradient
-//! are tiled products (`gemm`: 16 x 16 output tiles staged through workgroup memory); the
-//! plain kernels here (one thread per output value, a dot product from global memory) are
-//! the reference the tiled path is tested against, the fallback for grids too tall for one
-//! launch, and the choice on software adapters (`Gpu::matmul`). The weight gradient `dW = x^T dy` is a reduction over samples: it is split
+//! Work mapping: the forward, the input gradient and the weight gradient are tiled
+//! products (`gemm`: output tiles staged through workgroup memory, a block of outputs a
+//! thread or one); the plain kernels here (one thread per output value, a dot product from
+//! global memory) are the reference the tiled paths are tested against and the fallback
+//! for grids too tall for one launch (`Gpu::matmul` chooses). The weight gradient
+//! `dW = x^T dy` is a reduction over samples: it is split
 //! into slices of [`ROWS_PER_PARTIAL`] samples, each writing a partial sum, and a second
 //! kernel adds the partials into the gradient buffer in a fixed order, so a step's
 //! gradients do not depend on thread timing.
@@ -176,7 +177,7 @@ impl Dense {
         if n == 0 {
             return;
         }
-        if path == Path::Tiled {
+        if path != Path::Plain {
             let (ni, no) = (self.inputs, self.outputs);
             let a = View {
                 buf: x,
@@ -197,7 +198,8 @@ impl Dense {
                 relu: self.relu,
                 mask: None,
             };
-            if gemm::matmul(gpu, (n, no, ni), a, b, y, ni, epilogue) {
+            let blocked = path == Path::Blocked;
+            if gemm::matmul(gpu, (n, no, ni), a, b, y, ni, epilogue, blocked) {
                 return;
             }
         }
@@ -274,7 +276,7 @@ impl Dense {
             outer: 1,
             reduce: no,
         };
-        let tiled = path == Path::Tiled
+        let tiled = path != Path::Plain
             && gemm::matmul(
                 gpu,
                 (ni, no, n),
@@ -283,6 +285,7 @@ impl Dense {
                 &partial_w,
                 ROWS_PER_PARTIAL,
                 Epilogue::default(),
+                path == Path::Blocked,
             );
         // SAFETY: shapes as in `forward`; the partial buffers hold `parts x ni x no` and
         // `parts x no` floats, and each kernel bounds-checks the buffer it writes.
@@ -330,7 +333,7 @@ impl Dense {
             }
         }
         let Some((dx, relu_in)) = dx else { return };
-        if path == Path::Tiled {
+        if path != Path::Plain {
             let a = View {
                 buf: dy,
                 len: n * no,
@@ -349,7 +352,8 @@ impl Dense {
                 mask: relu_in.then_some((x, n * ni)),
                 ..Epilogue::default()
             };
-            if gemm::matmul(gpu, (n, ni, no), a, b, dx, no, epilogue) {
+            let blocked = path == Path::Blocked;
+            if gemm::matmul(gpu, (n, ni, no), a, b, dx, no, epilogue, blocked) {
                 return;
             }
         }
@@ -437,7 +441,7 @@ mod tests {
         }
 
         let (p, xh, dyh) = (gpu.upload(&params), gpu.upload(&x), gpu.upload(&dy));
-        for path in [Path::Plain, Path::Tiled] {
+        for path in [Path::Plain, Path::Tiled, Path::Blocked] {
             let (y, dx) = (gpu.floats(n * no), gpu.floats(n * ni));
             // Gradients start non-zero: the layer adds into them.
             let start: Vec<f32> = (0..n_params).map(|i| i as f32 * 0.01).collect();
