@@ -15,7 +15,7 @@ use nerf_view::protocol::{FrameHeader, ServerMessage, HEADER_BYTES};
 use nerf_view::{start, Running, Viewer};
 use tokio_tungstenite::tungstenite::Message;
 
-use crate::common::{trained_run, LOUD_PHOTO};
+use crate::common::{trained_run, LOUD_PHOTO, TRAINED_STEPS};
 
 const LOCAL: IpAddr = IpAddr::V4(Ipv4Addr::LOCALHOST);
 
@@ -123,7 +123,7 @@ fn the_viewer_serves_its_run_and_only_its_run() {
     assert_eq!(status, 200);
     let scene: serde_json::Value = serde_json::from_slice(&scene).expect("json");
     assert_eq!(scene["cameras"].as_array().map(Vec::len), Some(12));
-    assert_eq!(scene["step"], 60);
+    assert_eq!(scene["step"], TRAINED_STEPS);
     assert_eq!(scene["appearance_photos"], 12);
     // A training photo by index, and clear refusals for anything else.
     let (status, jpeg) = get(addr, "/api/photo/2");
