@@ -660,3 +660,78 @@ fn device_flag_trains_on_the_gpu_engine_and_names_missing_devices() {
     ));
     assert!(text.contains("training on wgpu"), "{text}");
 }
+
+/// `--train-views` keeps the views it names (a list) or spreads a count over the split;
+/// `nerf train` says which, the run's config keeps the choice, `metrics.json` records the
+/// views, and a list naming a view past the split is refused by name.
+#[test]
+fn train_views_are_chosen_said_and_recorded() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let d = dir.path();
+    let synth = [
+        "synth",
+        "--scene",
+        "table",
+        "--out",
+        "scene",
+        "--size",
+        "16",
+        "--train-views",
+        "9",
+        "--val-views",
+        "1",
+        "--test-views",
+        "1",
+    ];
+    ok(&nerf(&synth, d));
+    let train = |views: &str, out: &str| {
+        nerf(
+            &[
+                "--threads",
+                "2",
+                "train",
+                "--data",
+                "scene",
+                "--out",
+                out,
+                "--steps",
+                "2",
+                "--samples",
+                "2048",
+                "--val-every",
+                "0",
+                "--train-views",
+                views,
+            ],
+            d,
+        )
+    };
+    let text = ok(&train("6,1", "listed"));
+    assert!(
+        text.contains("training on 2 of the 9 training views (--train-views 6,1): 1, 6"),
+        "{text}"
+    );
+    let config = read_json(&d.join("listed/config.json"));
+    assert_eq!(config["train_views"], serde_json::json!([6, 1]));
+    ok(&nerf(&["eval", "--run", "listed"], d));
+    let metrics = read_json(&d.join("listed/eval_test/metrics.json"));
+    assert_eq!(metrics["train_views"], serde_json::json!([1, 6]));
+
+    let text = ok(&train("3", "spread"));
+    assert!(
+        text.contains("training on 3 of the 9 training views (--train-views 3): 0, 4, 8"),
+        "{text}"
+    );
+    assert_eq!(
+        read_json(&d.join("spread/config.json"))["train_views"],
+        serde_json::json!({"spread": 3})
+    );
+
+    let out = train("2,9", "past");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "a view past the split was accepted");
+    assert!(
+        err.contains("view 9 is past the training split's 9 views"),
+        "{err}"
+    );
+}

@@ -94,6 +94,10 @@ pub struct EvalReport {
     /// What fitting the split's cameras did (`--refine-test-poses`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub test_pose_refinement: Option<TestPoseReport>,
+    /// The training views the run trained on (indices into the training split), when it
+    /// kept only some (`--train-views`): few-view scores are not full ones.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub train_views: Option<Vec<usize>>,
     /// Models with appearance codes: which look the views were rendered with.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub looks: Option<EvalLook>,
@@ -156,6 +160,11 @@ pub fn evaluate(
     let cfg = &run.config;
     let (split, every) = (options.split, options.every.max(1));
     let scene = cfg.open_scene(1)?;
+    let train_total = scene.indices(Split::Train).len();
+    let train_views = match &cfg.train_views {
+        Some(v) if v.is_subset(train_total) => Some(cfg.kept_train_views(train_total)?),
+        _ => None,
+    };
     let mut data = scene.load(split, every)?;
     // Picked where the scene puts the cameras, before any alignment, as the training
     // photos' are.
@@ -274,6 +283,7 @@ pub fn evaluate(
         pose_error: run_cameras.as_ref().map(RunCameras::error),
         cameras: cameras.map(str::to_string),
         test_pose_refinement,
+        train_views,
         looks: looks.is_some().then_some(options.looks),
         views,
     };

@@ -81,10 +81,11 @@ pub fn looks_of(
 /// split, or the views `--train-views` kept of it.
 fn trained_photos(config: &TrainConfig, scene: &Scene) -> Vec<usize> {
     let train = scene.indices(crate::data::Split::Train);
-    crate::data::evenly_kept(train.len(), config.train_views.unwrap_or(0))
-        .into_iter()
-        .map(|i| train[i])
-        .collect()
+    // A trained run's list was checked against this split when it trained.
+    let kept = config
+        .kept_train_views(train.len())
+        .unwrap_or_else(|_| (0..train.len()).collect());
+    kept.into_iter().map(|i| train[i]).collect()
 }
 
 /// The look of one training photo (`--appearance-of`): `which` is its index among the

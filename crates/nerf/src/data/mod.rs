@@ -17,6 +17,7 @@ pub mod reader;
 pub mod scene;
 pub mod snapshot;
 pub mod synth;
+pub mod train_views;
 pub mod transforms;
 
 use serde::{Deserialize, Serialize};
@@ -47,24 +48,19 @@ pub struct Dataset {
     pub space: crate::camera::ray_space::RaySpace,
 }
 
-/// The indices `Dataset::keep_evenly` keeps of `total` views (`--train-views n`), in
-/// order: all of them when `n` is 0 or at least `total`.
-pub fn evenly_kept(total: usize, n: usize) -> Vec<usize> {
-    if n == 0 || n >= total {
-        return (0..total).collect();
-    }
-    (0..n).map(|k| k * total / n).collect()
-}
+pub use train_views::{evenly_kept, TrainViews};
 
 impl Dataset {
-    /// Keeps `n` views spread evenly over the split (the paper's 25 / 50 image ablations).
-    pub fn keep_evenly(&mut self, n: usize) {
-        let kept = evenly_kept(self.views.len(), n);
-        let views = std::mem::take(&mut self.views);
-        self.views = views
+    /// Keeps the views at `kept` (indices into the split, as `TrainViews::indices` gives
+    /// them), in that order.
+    pub fn keep(&mut self, kept: &[usize]) {
+        let mut views: Vec<Option<View>> = std::mem::take(&mut self.views)
             .into_iter()
-            .enumerate()
-            .filter_map(|(i, v)| kept.binary_search(&i).is_ok().then_some(v))
+            .map(Some)
+            .collect();
+        self.views = kept
+            .iter()
+            .filter_map(|&i| views.get_mut(i)?.take())
             .collect();
     }
 

@@ -70,8 +70,8 @@ pub struct TrainConfig {
     /// 1/2, ..., `1 / 2^(multiscale - 1)` of its resolution (1: the images alone).
     #[serde(default = "one", skip_serializing_if = "is_one")]
     pub multiscale: usize,
-    /// Keep this many training views, spread evenly (`None`: all).
-    pub train_views: Option<usize>,
+    /// The training views kept (`--train-views`; `None`: all).
+    pub train_views: Option<crate::data::TrainViews>,
     pub seed: u64,
     /// Rays per work unit (bounds memory: activations of one chunk per thread).
     pub chunk_rays: usize,
@@ -124,7 +124,7 @@ impl TrainConfig {
             background: Background::White,
             downscale: 1,
             multiscale: 1,
-            train_views,
+            train_views: train_views.map(crate::data::TrainViews::Evenly),
             seed: 0,
             chunk_rays: 64,
             val_every: 1000,
@@ -175,12 +175,21 @@ impl TrainConfig {
         run_scene::open(self, self.downscale.max(1) * extra_downscale.max(1))
     }
 
+    /// The indices of the training views this run trains on, of a split of `total`.
+    pub fn kept_train_views(&self, total: usize) -> Result<Vec<usize>> {
+        match &self.train_views {
+            Some(v) => v.indices(total),
+            None => Ok((0..total).collect()),
+        }
+    }
+
     /// The training split as the run trains on it: the views kept, and the poses moved by
     /// `perturb_poses` when set.
     pub fn training_data(&self) -> Result<Dataset> {
         let mut data = self.open_scene(1)?.load(crate::data::Split::Train, 1)?;
-        if let Some(n) = self.train_views {
-            data.keep_evenly(n);
+        if self.train_views.is_some() {
+            let kept = self.kept_train_views(data.views.len())?;
+            data.keep(&kept);
         }
         if let Some(p) = &self.perturb_poses {
             let mut poses: Vec<&mut crate::camera::Pose> =

@@ -113,6 +113,11 @@ pub struct TrainOptions {
     /// rate starts over where it ends.
     #[arg(long, value_parser = crate::model::camera_refine::parse_perturbation)]
     pub perturb_poses: Option<crate::model::camera_refine::PosePerturbation>,
+    /// Train on some of the training views: a count (`3`: the first, the last and the
+    /// rest evenly between, RegNeRF's and FreeNeRF's choice) or indices into the training
+    /// split (`1,10,19`; a single index as `5,`). `nerf train` and `metrics.json` say which.
+    #[arg(long, value_name = "N|LIST", value_parser = crate::data::train_views::parse_train_views)]
+    pub train_views: Option<crate::data::TrainViews>,
     /// Vanilla: rays per step (default 1024; paper: 4096).
     #[arg(long)]
     pub batch: Option<usize>,
@@ -413,6 +418,9 @@ impl TrainOptions {
         c.checkpoint_every = self.checkpoint_every.unwrap_or(c.checkpoint_every);
         c.chunk_rays = self.chunk.unwrap_or(c.chunk_rays);
         c.perturb_poses = self.perturb_poses;
+        if self.train_views.is_some() {
+            c.train_views = self.train_views.clone();
+        }
         Ok(c)
     }
 
@@ -569,6 +577,14 @@ impl TrainOptions {
             "--chunk",
             self.chunk.map(|v| v.to_string()),
             saved.chunk_rays.to_string(),
+        );
+        check(
+            "--train-views",
+            self.train_views.as_ref().map(|v| v.to_string()),
+            saved
+                .train_views
+                .as_ref()
+                .map_or_else(|| "all".to_string(), |v| v.to_string()),
         );
         if self.paper_pe
             || self.no_contract

@@ -18,7 +18,7 @@ use super::folder::LoadedRun;
 use super::TrainConfig;
 use crate::camera::Pose;
 use crate::data::poses::{fit_similarity_of_poses, origin, rotation_error_degrees, Similarity};
-use crate::data::{evenly_kept, Split};
+use crate::data::Split;
 use crate::error::Result;
 use crate::math::{length, sub};
 use crate::model::camera_refine::{corrected, corrections, Frame, PER_CAMERA};
@@ -128,7 +128,7 @@ impl StartingCameras {
         let scene = config.open_scene(1)?;
         let all = scene.cameras(Split::Train);
         // The views the run trained on (`--train-views`): correction k belongs to the k-th.
-        let kept = evenly_kept(all.len(), config.train_views.unwrap_or(0));
+        let kept = config.kept_train_views(all.len())?;
         let given: Vec<Pose> = kept.iter().map(|&i| all[i].c2w).collect();
         let mut start = given.clone();
         if let Some(p) = &config.perturb_poses {

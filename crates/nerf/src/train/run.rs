@@ -199,6 +199,24 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     }
 
     let data = config.training_data()?;
+    if let Some(kept) = &config.train_views {
+        let total = config
+            .open_scene(1)?
+            .indices(crate::data::Split::Train)
+            .len();
+        if kept.is_subset(total) {
+            let list: Vec<String> = config
+                .kept_train_views(total)?
+                .iter()
+                .map(|i| i.to_string())
+                .collect();
+            on_event(Event::Note(&format!(
+                "training on {} of the {total} training views (--train-views {kept}): {}",
+                list.len(),
+                list.join(", ")
+            )));
+        }
+    }
     let val_view = validation_view(&config)?;
     let (width, height) = data.image_size();
     let views = data.views.len();

@@ -186,9 +186,8 @@ fn every_preset_trains_a_step() {
         c.batch_rays = 8;
         c.chunk_rays = 4;
         let mut d = data.clone();
-        if let Some(n) = c.train_views {
-            d.keep_evenly(n);
-        }
+        let kept = c.kept_train_views(d.views.len()).expect("views");
+        d.keep(&kept);
         let mut t = Trainer::new(c, d).expect("trainer");
         let before = t.engine.state().params;
         let s = t.step().expect("step");

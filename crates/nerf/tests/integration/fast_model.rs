@@ -230,7 +230,7 @@ fn looks_follow_the_views_trained() {
     let data = dir.path().join("chair");
     small_scene(&data, 16);
     let mut config = fast_config(&data, 1);
-    config.train_views = Some(8);
+    config.train_views = Some(nerf::data::TrainViews::Evenly(8));
     if let nerf::model::ModelConfig::Fast(m) = &mut config.model {
         m.field.appearance_dims = 4;
         m.field.appearance_images = 8;
@@ -269,7 +269,7 @@ fn pose_errors_are_measured_on_the_views_trained() {
     let data = dir.path().join("chair");
     small_scene(&data, 16);
     let mut config = fast_config(&data, 1);
-    config.train_views = Some(7);
+    config.train_views = Some(nerf::data::TrainViews::Evenly(7));
     config.perturb_poses = Some(PosePerturbation {
         sigma: 0.05,
         seed: 3,
