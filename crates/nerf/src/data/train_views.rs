@@ -22,10 +22,14 @@ pub enum TrainViews {
 
 impl TrainViews {
     /// The indices kept of a split of `total` views, ascending; an error naming the index
-    /// when a list names one past the split, twice, or none.
+    /// when a list names one past the split, twice, or none, or naming the count when it
+    /// asks for more views than the split holds.
     pub fn indices(&self, total: usize) -> Result<Vec<usize>> {
         match self {
             TrainViews::Evenly(n) => Ok(evenly_kept(total, *n)),
+            TrainViews::Spread { spread } if *spread > total => Err(NerfError::Config(format!(
+                "--train-views {spread}: the training split holds only {total} views"
+            ))),
             TrainViews::Spread { spread } => Ok(spread_kept(total, *spread)),
             TrainViews::List(list) => {
                 let bad = |what: String| NerfError::Config(format!("--train-views: {what}"));
@@ -157,6 +161,17 @@ mod tests {
         let twice = TrainViews::List(vec![2, 2]).indices(30).expect_err("twice");
         assert!(twice.to_string().contains("named twice"), "{twice}");
         assert!(TrainViews::Spread { spread: 3 }.is_subset(30));
+        let many = TrainViews::Spread { spread: 31 }
+            .indices(30)
+            .expect_err("too many");
+        assert!(many.to_string().contains("holds only 30 views"), "{many}");
+        assert_eq!(
+            TrainViews::Spread { spread: 30 }
+                .indices(30)
+                .expect("all")
+                .len(),
+            30
+        );
         assert!(!TrainViews::Evenly(30).is_subset(30));
     }
 
