@@ -3,7 +3,7 @@
 use std::path::Path;
 use std::process::{Command, Output};
 
-use crate::common::ok;
+use crate::common::{ok, synth_args, train_args};
 
 fn nerf(args: &[&str], cwd: &Path) -> Output {
     Command::new(env!("CARGO_BIN_EXE_nerf"))
@@ -44,24 +44,7 @@ fn points_from_two_views(d: &Path, every: &str, min_opacity: &str) {
 fn synth_train_eval_render() {
     let dir = tempfile::tempdir().expect("tempdir");
     let d = dir.path();
-    ok(&nerf(
-        &[
-            "synth",
-            "--scene",
-            "table",
-            "--out",
-            "scene",
-            "--size",
-            "16",
-            "--train-views",
-            "10",
-            "--val-views",
-            "1",
-            "--test-views",
-            "4",
-        ],
-        d,
-    ));
+    ok(&nerf(&synth_args("table", ["10", "1", "4"]), d));
     assert!(
         d.join("scene/transforms_test.json").exists()
             && d.join("scene/train/r_9_depth.png").exists()
@@ -668,44 +651,8 @@ fn device_flag_trains_on_the_gpu_engine_and_names_missing_devices() {
 fn train_views_are_chosen_said_and_recorded() {
     let dir = tempfile::tempdir().expect("tempdir");
     let d = dir.path();
-    let synth = [
-        "synth",
-        "--scene",
-        "table",
-        "--out",
-        "scene",
-        "--size",
-        "16",
-        "--train-views",
-        "9",
-        "--val-views",
-        "1",
-        "--test-views",
-        "1",
-    ];
-    ok(&nerf(&synth, d));
-    let train = |views: &str, out: &str| {
-        nerf(
-            &[
-                "--threads",
-                "2",
-                "train",
-                "--data",
-                "scene",
-                "--out",
-                out,
-                "--steps",
-                "2",
-                "--samples",
-                "2048",
-                "--val-every",
-                "0",
-                "--train-views",
-                views,
-            ],
-            d,
-        )
-    };
+    ok(&nerf(&synth_args("table", ["9", "1", "1"]), d));
+    let train = |views: &str, out: &str| nerf(&train_args(out, "2", &["--train-views", views]), d);
     let text = ok(&train("6,1", "listed"));
     assert!(
         text.contains("training on 2 of the 9 training views (--train-views 6,1): 1, 6"),

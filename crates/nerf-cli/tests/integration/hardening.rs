@@ -6,7 +6,7 @@ use std::path::Path;
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use crate::common::{ok, text};
+use crate::common::{ok, synth_args, text, train_args};
 
 fn cmd(args: &[&str], cwd: &Path) -> Command {
     let mut c = Command::new(env!("CARGO_BIN_EXE_nerf"));
@@ -51,47 +51,7 @@ fn fails(out: &Output, want: &[&str]) -> String {
 
 /// A 16-pixel built-in scene in `d/scene`.
 fn scene(d: &Path) {
-    ok(&nerf(
-        &[
-            "synth",
-            "--scene",
-            "lamp",
-            "--out",
-            "scene",
-            "--size",
-            "16",
-            "--train-views",
-            "6",
-            "--val-views",
-            "1",
-            "--test-views",
-            "2",
-        ],
-        d,
-    ));
-}
-
-/// A quick fast-model training command into `d/<out>`.
-fn train_args<'a>(out: &'a str, steps: &'a str, more: &[&'a str]) -> Vec<&'a str> {
-    let mut a = vec![
-        "--threads",
-        "2",
-        "train",
-        "--data",
-        "scene",
-        "--out",
-        out,
-        "--steps",
-        steps,
-        "--samples",
-        "1024",
-        "--table-log2",
-        "10",
-        "--val-every",
-        "3",
-    ];
-    a.extend_from_slice(more);
-    a
+    ok(&nerf(&synth_args("lamp", ["6", "1", "2"]), d));
 }
 
 fn trained(d: &Path) {
