@@ -109,9 +109,9 @@ pub fn evenly_kept(total: usize, n: usize) -> Vec<usize> {
     (0..n).map(|k| k * total / n).collect()
 }
 
-/// `round(linspace(0, total - 1, n))` (halves away from zero, as NumPy's `round` would not:
-/// the linspace's values are never exact halves for the sizes this meets); all views when
-/// `n` is at least `total`.
+/// `round(linspace(0, total - 1, n))`, halves to even as Python's and NumPy's `round`
+/// take them (`linspace(0, 5, 3)` holds 2.5: view 2); all views when `n` is at least
+/// `total`.
 fn spread_kept(total: usize, n: usize) -> Vec<usize> {
     if n >= total {
         return (0..total).collect();
@@ -121,7 +121,7 @@ fn spread_kept(total: usize, n: usize) -> Vec<usize> {
     }
     let last = (total - 1) as f64;
     (0..n)
-        .map(|k| (k as f64 * last / (n - 1) as f64).round() as usize)
+        .map(|k| (k as f64 * last / (n - 1) as f64).round_ties_even() as usize)
         .collect()
 }
 
@@ -142,6 +142,9 @@ mod tests {
         assert_eq!(spread_kept(100, 9).len(), 9);
         assert_eq!(spread_kept(4, 9), vec![0, 1, 2, 3]);
         assert_eq!(spread_kept(10, 1), vec![0]);
+        // Exact halves round to even, as in RegNeRF's Python.
+        assert_eq!(spread_kept(6, 3), vec![0, 2, 5]);
+        assert_eq!(spread_kept(4, 3), vec![0, 2, 3]);
     }
 
     #[test]
