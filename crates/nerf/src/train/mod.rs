@@ -186,9 +186,15 @@ impl TrainConfig {
     /// The training split as the run trains on it: the views kept, and the poses moved by
     /// `perturb_poses` when set.
     pub fn training_data(&self) -> Result<Dataset> {
+        Ok(self.training_split()?.0)
+    }
+
+    /// [`training_data`](Self::training_data) and how many views the whole split holds.
+    pub fn training_split(&self) -> Result<(Dataset, usize)> {
         let mut data = self.open_scene(1)?.load(crate::data::Split::Train, 1)?;
+        let total = data.views.len();
         if self.train_views.is_some() {
-            let kept = self.kept_train_views(data.views.len())?;
+            let kept = self.kept_train_views(total)?;
             data.keep(&kept);
         }
         if let Some(p) = &self.perturb_poses {
@@ -197,7 +203,7 @@ impl TrainConfig {
             p.apply(&mut poses);
         }
         data.add_scales(self.multiscale)?;
-        Ok(data)
+        Ok((data, total))
     }
 
     /// Rejects settings that cannot run, naming the field. Every command checks a

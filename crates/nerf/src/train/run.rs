@@ -198,12 +198,8 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         remove_if_present(&metrics_path)?;
     }
 
-    let data = config.training_data()?;
+    let (data, total) = config.training_split()?;
     if let Some(kept) = &config.train_views {
-        let total = config
-            .open_scene(1)?
-            .indices(crate::data::Split::Train)
-            .len();
         if kept.is_subset(total) {
             let list: Vec<String> = config
                 .kept_train_views(total)?

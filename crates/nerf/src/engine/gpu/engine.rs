@@ -121,6 +121,14 @@ pub struct GpuEngine {
 }
 
 impl GpuEngine {
+    /// Samples per rendering round: the renderer's size, or a training step's when larger
+    /// (each within what a round holds: `open` refuses larger steps, `render_sizes` larger
+    /// rounds).
+    fn round_samples(&self) -> usize {
+        let (_, round) = render_sizes(&self.gpu, self.field.is_fused());
+        self.model.config.batch_samples.max(round)
+    }
+
     /// What the field reads besides positions and directions.
     fn field_needs(&self) -> render::FieldNeeds {
         render::FieldNeeds {
@@ -483,7 +491,7 @@ impl Engine for GpuEngine {
         on_progress: &(dyn Fn(usize) + Sync),
     ) {
         // Few, large device calls: every round of the renderer is a round trip.
-        let (chunk_rays, round_samples) = render_sizes(&self.gpu, self.field.is_fused());
+        let (chunk_rays, _) = render_sizes(&self.gpu, self.field.is_fused());
         let chunk = self.chunk_rays.max(chunk_rays);
         let marcher = self.model.marcher(rays.near, rays.far);
         let (gpu, params) = (&self.gpu, &self.state.values);
@@ -497,8 +505,7 @@ impl Engine for GpuEngine {
                 &self.model.grid,
                 &field,
                 needs,
-                // Both are at most MAX_DEVICE_SAMPLES (`open` refuses larger steps).
-                self.model.config.batch_samples.max(round_samples),
+                self.round_samples(),
                 part,
             );
             match rendered {
@@ -535,7 +542,6 @@ impl Engine for GpuEngine {
             cylinders: pixels.space.cylinders(),
             codes: render::RayCodes::All(code),
         };
-        let (_, round_samples) = render_sizes(&self.gpu, self.field.is_fused());
         let (gpu, params) = (&self.gpu, &self.state.values);
         let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
         let rendered = render::render_batch(
@@ -544,7 +550,7 @@ impl Engine for GpuEngine {
             &marcher,
             &field,
             self.field_needs(),
-            self.model.config.batch_samples.max(round_samples),
+            self.round_samples(),
             &batch,
         );
         match rendered {
