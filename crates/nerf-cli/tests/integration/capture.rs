@@ -73,59 +73,21 @@ fn capture_recovers_the_true_cameras_up_to_a_similarity() {
             .collect();
         save_rgb_png(&photos.join(format!("{k:02}.png")), size, size, &rgb).expect("png");
     }
-    let out = nerf_with_path(
-        &[
-            "capture",
-            "--images",
-            "photos",
-            "--out",
-            "scene",
-            "--camera-model",
-            "PINHOLE",
-        ],
-        dir.path(),
-        None,
-    );
-    let text = format!(
-        "{}{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    assert!(out.status.success(), "capture failed:\n{text}");
-    eprintln!("{text}");
-
-    let captured = Scene::open(&dir.path().join("scene"), &SceneOptions::default(), 1)
-        .expect("open the captured scene");
-    assert_eq!(captured.format, Format::Transforms);
-    let registered = captured.frames.len();
-    assert!(
-        registered >= 27,
-        "only {registered} of 30 photos registered:\n{text}"
-    );
-    let (truth, found): (Vec<_>, Vec<_>) = captured
-        .frames
-        .iter()
-        .map(|f| {
-            let k: usize = f.name.trim_start_matches("images/")[..2]
-                .parse()
-                .expect("frame name");
-            (cameras[k].c2w, f.camera.c2w)
-        })
-        .unzip();
-    let (sim, rms) = fit_similarity(
-        &truth.iter().map(origin).collect::<Vec<_>>(),
-        &found.iter().map(origin).collect::<Vec<_>>(),
-    );
-    let rotation = truth
-        .iter()
-        .zip(&found)
-        .map(|(t, f)| rotation_error_degrees(&sim.apply_pose(t), f))
-        .fold(0.0f32, f32::max);
-    // Captured cameras sit at RMS radius 1, so `rms` is relative to the ring's radius.
-    eprintln!(
-        "capture: {registered}/30 registered; camera centres off by {:.3}% of the radius (RMS), rotations by at most {rotation:.3} degrees",
-        100.0 * rms
-    );
+    // COLMAP's mapper is not deterministic, and about one run in tens (seen under CI's
+    // load) it folds this mostly planar scene into a wrong reconstruction with every photo
+    // registered. What this test checks is our side (running COLMAP, reading its model,
+    // converting its conventions), so a grossly wrong first model gets one more try; a
+    // conversion error would be wrong both times.
+    let mut attempt = recover_cameras(dir.path(), "scene", &cameras);
+    if attempt.rms > 0.2 || attempt.rotation > 10.0 {
+        eprintln!("COLMAP's first model is grossly off; mapping once more");
+        attempt = recover_cameras(dir.path(), "scene_again", &cameras);
+    }
+    let Recovered {
+        captured,
+        rms,
+        rotation,
+    } = attempt;
     // Measured: 0.6% and 0.9 degrees; the margins allow for COLMAP's randomness.
     assert!(rms < 0.02, "centres off by {rms} (radius 1)");
     assert!(rotation < 2.0, "rotations off by {rotation} degrees");
@@ -184,4 +146,75 @@ fn capture_recovers_the_true_cameras_up_to_a_similarity() {
     let video =
         Scene::open(&dir.path().join("video_scene"), &SceneOptions::default(), 1).expect("open");
     assert!(video.frames.len() >= 27, "{text}");
+}
+
+/// A capture's scene and how far its cameras are from the true ones, up to a similarity.
+struct Recovered {
+    captured: Scene,
+    /// RMS distance of the camera centres, relative to the ring's radius.
+    rms: f32,
+    /// The worst camera's rotation error, in degrees.
+    rotation: f32,
+}
+
+/// Runs `nerf capture` on `dir/photos` into `dir/out` and compares its cameras with `truth`.
+fn recover_cameras(dir: &Path, out: &str, truth: &[Camera]) -> Recovered {
+    let output = nerf_with_path(
+        &[
+            "capture",
+            "--images",
+            "photos",
+            "--out",
+            out,
+            "--camera-model",
+            "PINHOLE",
+        ],
+        dir,
+        None,
+    );
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(output.status.success(), "capture failed:\n{text}");
+    eprintln!("{text}");
+
+    let captured =
+        Scene::open(&dir.join(out), &SceneOptions::default(), 1).expect("open the captured scene");
+    assert_eq!(captured.format, Format::Transforms);
+    let registered = captured.frames.len();
+    assert!(
+        registered >= 27,
+        "only {registered} of 30 photos registered:\n{text}"
+    );
+    let (truth, found): (Vec<_>, Vec<_>) = captured
+        .frames
+        .iter()
+        .map(|f| {
+            let k: usize = f.name.trim_start_matches("images/")[..2]
+                .parse()
+                .expect("frame name");
+            (truth[k].c2w, f.camera.c2w)
+        })
+        .unzip();
+    let (sim, rms) = fit_similarity(
+        &truth.iter().map(origin).collect::<Vec<_>>(),
+        &found.iter().map(origin).collect::<Vec<_>>(),
+    );
+    let rotation = truth
+        .iter()
+        .zip(&found)
+        .map(|(t, f)| rotation_error_degrees(&sim.apply_pose(t), f))
+        .fold(0.0f32, f32::max);
+    // Captured cameras sit at RMS radius 1, so `rms` is relative to the ring's radius.
+    eprintln!(
+        "capture: {registered}/30 registered; camera centres off by {:.3}% of the radius (RMS), rotations by at most {rotation:.3} degrees",
+        100.0 * rms
+    );
+    Recovered {
+        captured,
+        rms,
+        rotation,
+    }
 }
