@@ -96,6 +96,8 @@ pub fn refine_test_poses(
         field_restart: None,
         // Moving from the first step: the field is trained.
         delay: 0.0,
+        // Fitted by their gradient alone (no training run checks them).
+        recover_stuck: false,
     };
     let mut fit_model = model.clone();
     fit_model.refine_cameras = Some(refinement);

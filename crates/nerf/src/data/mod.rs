@@ -46,6 +46,9 @@ pub struct Dataset {
     pub far: f32,
     /// The space rays are marched in.
     pub space: crate::camera::ray_space::RaySpace,
+    /// The views training rays are drawn from (`None`: all of them); camera refinement
+    /// leaves out the cameras it cannot place (`train::stuck_cameras`).
+    pub drawn_views: Option<Vec<usize>>,
 }
 
 pub use train_views::{evenly_kept, TrainViews};
@@ -62,6 +65,17 @@ impl Dataset {
             .iter()
             .filter_map(|&i| views.get_mut(i)?.take())
             .collect();
+        self.drawn_views = None;
+    }
+
+    /// Draws no more training rays from the views of `cameras` (indices among the first
+    /// `count` views, each camera's photo at every scale of a multi-scale split).
+    pub fn leave_out(&mut self, count: usize, cameras: &[usize]) {
+        let count = count.max(1);
+        let drawn: Vec<usize> = (0..self.views.len())
+            .filter(|v| !cameras.contains(&(v % count)))
+            .collect();
+        self.drawn_views = (drawn.len() < self.views.len() && !drawn.is_empty()).then_some(drawn);
     }
 
     /// mip-NeRF's multi-scale variant of the split: every view also at 1/2, 1/4, ...,
@@ -185,6 +199,7 @@ mod tests {
             near: 2.0,
             far: 6.0,
             space: Default::default(),
+            drawn_views: None,
         };
         set.add_scales(3).expect("scales");
         assert_eq!(set.views.len(), 3);

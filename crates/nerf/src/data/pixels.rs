@@ -133,11 +133,15 @@ pub struct PixelChoice {
 }
 
 impl PixelChoice {
-    /// Ray `k` of the step: a uniformly random training pixel (inside the central `crop`
+    /// Ray `k` of the step: a uniformly random training pixel of the views rays are drawn
+    /// from (`Dataset::drawn_views`), inside the central `crop`
     /// fraction while warming up; among the pixels its mask keeps, if it has one).
     pub fn draw(data: &Dataset, how: &PixelSampling, k: u64) -> PixelChoice {
         let mut rng = Rng::for_stream(how.seed, how.step, k);
-        let v = rng.below(data.views.len());
+        let v = match &data.drawn_views {
+            Some(drawn) => drawn[rng.below(drawn.len())],
+            None => rng.below(data.views.len()),
+        };
         let view = &data.views[v];
         let (w, h) = (view.image.width, view.image.height);
         let (cw, ch) = (
@@ -205,6 +209,41 @@ mod tests {
         // The streams continue alike (the lattice jitter is their next draw).
         for (x, y) in a.rngs.iter().zip(&b.rngs) {
             assert_eq!(x.clone().uniform(), y.clone().uniform());
+        }
+    }
+
+    /// Left-out cameras get no rays, at any scale of a multi-scale split; the rest keep
+    /// theirs, and leaving none out draws exactly the rays of a split that never left any.
+    #[test]
+    fn left_out_cameras_get_no_rays() {
+        let opts = SynthOptions {
+            size: 8,
+            supersample: 1,
+            ..Default::default()
+        };
+        let mut data = synth::dataset(&opts, Split::Train, 4);
+        data.add_scales(2).expect("scales");
+        assert_eq!(data.views.len(), 8);
+        let how = PixelSampling {
+            seed: 1,
+            step: 3,
+            crop: 1.0,
+            background: Background::White,
+            appearance: crate::stage::Appearance::PerView,
+        };
+        let views = |data: &Dataset| -> Vec<usize> {
+            (0..2000)
+                .map(|k| PixelChoice::draw(data, &how, k).view)
+                .collect()
+        };
+        let all = views(&data);
+        data.leave_out(4, &[]);
+        assert_eq!(views(&data), all);
+        data.leave_out(4, &[1, 2]);
+        let drawn = views(&data);
+        assert!(drawn.iter().all(|v| ![1, 2, 5, 6].contains(v)), "{drawn:?}");
+        for v in [0, 3, 4, 7] {
+            assert!(drawn.contains(&v), "view {v} lost its rays");
         }
     }
 }

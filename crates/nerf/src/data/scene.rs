@@ -275,6 +275,7 @@ impl Scene {
             near,
             far,
             space: self.space,
+            drawn_views: None,
         })
     }
 

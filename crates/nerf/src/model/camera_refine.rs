@@ -144,6 +144,10 @@ pub struct CameraRefinement {
     /// from the start. Runs saved before this existed had none.
     #[serde(default)]
     pub delay: f32,
+    /// Cameras that stall far from the rest are searched for and, if that fails, left
+    /// out (`train::stuck_cameras`). Runs saved before this existed had no such checks.
+    #[serde(default)]
+    pub recover_stuck: bool,
 }
 
 impl CameraRefinement {
@@ -158,6 +162,7 @@ impl CameraRefinement {
             pose_gradient_only: false,
             field_restart: None,
             delay: 0.0,
+            recover_stuck: true,
         }
         .with_learning_rate(DEFAULT_LR)
     }
@@ -339,6 +344,67 @@ pub fn corrected(pose: &Pose, correction: &[f32], frame: Frame) -> Pose {
     out
 }
 
+/// `w` with `exp([w]x) = r` and `|w|` in [0, pi]: the inverse of [`rotation`] for a
+/// rotation matrix `r`. Near a half turn the axis comes from `r + r^T`, where the
+/// antisymmetric part vanishes.
+pub fn rotation_log(r: &[[f32; 3]; 3]) -> V3 {
+    let r = r.map(|row| row.map(f64::from));
+    let skew = [r[2][1] - r[1][2], r[0][2] - r[2][0], r[1][0] - r[0][1]];
+    let sin = 0.5 * skew.iter().map(|v| v * v).sum::<f64>().sqrt();
+    let cos = (r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0;
+    // atan2 keeps the angle well conditioned where acos of the trace is not (near 0, pi).
+    let theta = sin.atan2(cos);
+    let w = if theta < 1e-6 {
+        skew.map(|v| 0.5 * v)
+    } else if sin > 1e-2 {
+        skew.map(|v| v * theta / (2.0 * sin))
+    } else {
+        // r = 2 a a^T - I at a half turn: the axis is the largest column of (r + I) / 2.
+        let k = (0..3)
+            .max_by(|&a, &b| r[a][a].total_cmp(&r[b][b]))
+            .unwrap_or(0);
+        let col: [f64; 3] = std::array::from_fn(|i| (r[i][k] + r[k][i]) / 2.0 + f64::from(i == k));
+        let norm = col.iter().map(|v| v * v).sum::<f64>().sqrt().max(1e-12);
+        // Pick the sign the antisymmetric part still shows.
+        let sign = if col.iter().zip(&skew).map(|(a, b)| a * b).sum::<f64>() < 0.0 {
+            -1.0
+        } else {
+            1.0
+        };
+        col.map(|v| sign * theta * v / norm)
+    };
+    w.map(|v| v as f32)
+}
+
+/// The correction that leaves a camera turned by `turn` beyond where `correction` puts it:
+/// about the world point `pivot` (`[turn | pivot - turn pivot] * corrected`) in the world
+/// frame, about the camera's own centre in its own axes (`corrected * [turn | 0]`, `pivot`
+/// unused) in the camera frame.
+pub fn turned(
+    correction: &[f32],
+    turn: &[[f32; 3]; 3],
+    pivot: V3,
+    frame: Frame,
+) -> [f32; PER_CAMERA] {
+    let r = rotation([correction[0], correction[1], correction[2]]);
+    let tau = [correction[3], correction[4], correction[5]];
+    let product = |a: &[[f32; 3]; 3], b: &[[f32; 3]; 3]| -> [[f32; 3]; 3] {
+        std::array::from_fn(|i| std::array::from_fn(|j| (0..3).map(|m| a[i][m] * b[m][j]).sum()))
+    };
+    let (rotation, tau) = match frame {
+        Frame::World => {
+            let (t, p) = (mat_vec(turn, tau), mat_vec(turn, pivot));
+            (
+                product(turn, &r),
+                std::array::from_fn(|i| t[i] + pivot[i] - p[i]),
+            )
+        }
+        Frame::Camera => (product(&r, turn), tau),
+    };
+    let w = rotation_log(&rotation);
+    [w[0], w[1], w[2], tau[0], tau[1], tau[2]]
+}
+
 fn mat_vec(m: &[[f32; 3]; 3], v: V3) -> V3 {
     std::array::from_fn(|i| m[i][0] * v[0] + m[i][1] * v[1] + m[i][2] * v[2])
 }
@@ -505,6 +571,78 @@ pub fn corrections_start(layout: &crate::nn::ParamLayout) -> Option<usize> {
 mod tests {
     use super::*;
     use crate::rng::Rng;
+
+    #[test]
+    fn the_rotation_log_inverts_the_exponential() {
+        let mut rng = Rng::for_stream(3, 0, 0);
+        let mut cases: Vec<V3> = vec![
+            [0.0; 3],
+            [1e-7, 0.0, -2e-7],
+            [0.0, 0.0, 3.1],
+            [-3.139, 0.01, 0.0],
+        ];
+        for _ in 0..50 {
+            let axis = [
+                rng.uniform() - 0.5,
+                rng.uniform() - 0.5,
+                rng.uniform() - 0.5,
+            ];
+            let n = crate::math::length(axis).max(1e-6);
+            let angle = 3.1 * rng.uniform();
+            cases.push(axis.map(|v| v / n * angle));
+        }
+        for w in cases {
+            let back = rotation_log(&rotation(w));
+            let (a, b) = (rotation(w), rotation(back));
+            for i in 0..3 {
+                for j in 0..3 {
+                    assert!((a[i][j] - b[i][j]).abs() < 1e-4, "{w:?} -> {back:?}");
+                }
+            }
+            if crate::math::length(w) < 3.0 {
+                for k in 0..3 {
+                    assert!((w[k] - back[k]).abs() < 1e-4, "{w:?} -> {back:?}");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_turned_correction_turns_the_corrected_camera() {
+        let pose = crate::camera::look_at([1.0, -3.0, 2.0], [0.0; 3], [0.0, 0.0, 1.0]);
+        let correction = [0.1, -0.2, 0.05, 0.3, 0.0, -0.1];
+        let turn = rotation([0.0, 0.4, -0.3]);
+        let pivot = [0.5, -1.0, 0.25];
+        for frame in [Frame::World, Frame::Camera] {
+            let now = corrected(&pose, &correction, frame);
+            let want: Pose = match frame {
+                // Turned about the pivot: x -> turn (x - pivot) + pivot.
+                Frame::World => std::array::from_fn(|i| {
+                    std::array::from_fn(|j| {
+                        let turned: f32 = (0..3)
+                            .map(|m| turn[i][m] * (now[m][j] - if j == 3 { pivot[m] } else { 0.0 }))
+                            .sum();
+                        turned + if j == 3 { pivot[i] } else { 0.0 }
+                    })
+                }),
+                Frame::Camera => std::array::from_fn(|i| {
+                    std::array::from_fn(|j| match j {
+                        3 => now[i][3],
+                        _ => (0..3).map(|m| now[i][m] * turn[m][j]).sum(),
+                    })
+                }),
+            };
+            let got = corrected(&pose, &turned(&correction, &turn, pivot, frame), frame);
+            for i in 0..3 {
+                for j in 0..4 {
+                    assert!(
+                        (got[i][j] - want[i][j]).abs() < 1e-4,
+                        "{frame:?}: {got:?} vs {want:?}"
+                    );
+                }
+            }
+        }
+    }
 
     #[test]
     fn rotation_is_orthonormal_and_the_jacobian_matches_differences() {

@@ -16,6 +16,7 @@ pub mod options;
 pub mod refined_cameras;
 pub mod run;
 pub mod run_scene;
+pub mod stuck_cameras;
 
 use std::path::PathBuf;
 

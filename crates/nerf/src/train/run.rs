@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use super::folder::{load_checkpoint, save_checkpoint};
 pub use super::folder::{LoadedRun, CHECKPOINT_FILE, CONFIG_FILE, METRICS_FILE};
 use super::refined_cameras::{PoseError, StartingCameras};
+use super::stuck_cameras::{CheckReport, Checker};
 use super::{StepStats, TrainConfig, Trainer};
 use crate::data::{image::save_rgb_png, Split, View};
 use crate::error::{NerfError, Result};
@@ -129,6 +130,12 @@ struct PoseLine<'a> {
     pose_error: &'a PoseError,
 }
 
+#[derive(Serialize, Deserialize)]
+struct CheckLine {
+    step: u64,
+    camera_check: CheckReport,
+}
+
 #[derive(Serialize)]
 struct ValLine<'a> {
     step: u64,
@@ -242,6 +249,19 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         resumed_from = Some(ckpt.step);
         truncate_metrics(&out.join(METRICS_FILE), ckpt.step)?;
     }
+    // Refinement's checks for stuck cameras; cameras an earlier session left out stay out.
+    let mut checker = Checker::of(&trainer);
+    if let Some(checker) = &mut checker {
+        let left_out = left_out_cameras(&metrics_path);
+        if !left_out.is_empty() {
+            checker.leave_out(&mut trainer, &left_out);
+            let list: Vec<String> = left_out.iter().map(|k| k.to_string()).collect();
+            on_event(Event::Note(&format!(
+                "camera {} stays left out of training (no pose explained its photo)",
+                list.join(", ")
+            )));
+        }
+    }
     on_event(Event::Started {
         config: &config,
         views,
@@ -290,8 +310,27 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
                 break StopReason::Interrupted(signal);
             }
         }
+        let before = config.progress(trainer.step, trainer.elapsed_s);
         let stats = trainer.step()?;
         last_psnr = stats.psnr;
+        if let Some(checker) = &mut checker {
+            let after =
+                config.progress(trainer.step, elapsed_before + start.elapsed().as_secs_f64());
+            if let Some(last) = Checker::due(before, after) {
+                let report = checker.run(&mut trainer, last)?;
+                for s in &report.stuck {
+                    on_event(Event::Note(&super::stuck_cameras::describe(s, stats.step)));
+                }
+                append_line(
+                    &mut metrics,
+                    &metrics_path,
+                    &CheckLine {
+                        step: stats.step,
+                        camera_check: report,
+                    },
+                )?;
+            }
+        }
         let elapsed = elapsed_before + start.elapsed().as_secs_f64();
         let line = MetricLine {
             step: stats.step,
@@ -374,6 +413,19 @@ fn pose_error(cameras: &StartingCameras, trainer: &Trainer) -> PoseError {
     cameras
         .corrected_by(trainer.engine.param_layout(), &state.params)
         .error()
+}
+
+/// The cameras the stuck-camera checks of a metrics file left out.
+fn left_out_cameras(path: &Path) -> Vec<usize> {
+    let Ok(text) = std::fs::read_to_string(path) else {
+        return Vec::new();
+    };
+    text.lines()
+        .filter_map(|l| serde_json::from_str::<CheckLine>(l).ok())
+        .flat_map(|c| c.camera_check.stuck)
+        .filter(|s| s.left_out)
+        .map(|s| s.camera)
+        .collect()
 }
 
 /// The latest `val_psnr` line of a metrics file, if any.

@@ -13,4 +13,5 @@ mod layers;
 mod mesh;
 mod real_formats;
 mod scene_checks;
+mod stuck_cameras;
 mod thread_count;

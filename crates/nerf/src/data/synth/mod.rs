@@ -225,6 +225,7 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
         near: super::blender::NEAR,
         far: super::blender::FAR,
         space: Default::default(),
+        drawn_views: None,
     }
 }
 
