@@ -221,6 +221,10 @@ impl TrainProgress {
                 Some(p) if !p.is_hidden() => p.println(format!("note: {note}")),
                 _ => eprintln!("note: {note}"),
             },
+            Event::Warning(warning) => match &self.pb {
+                Some(p) if !p.is_hidden() => p.println(format!("warning: {warning}")),
+                _ => eprintln!("warning: {warning}"),
+            },
             Event::Checkpoint { .. } | Event::Model { .. } => {}
         }
     }

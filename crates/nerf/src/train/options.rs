@@ -92,6 +92,8 @@ pub struct TrainOptions {
     /// photos' changes of exposure. Not for Blender scenes or forward-facing (NDC) scenes
     /// unless asked for; the GPU engine does not refine cameras yet (--device wgpu refuses
     /// it, and --device auto trains such a run on the CPU, saying so).
+    /// A camera stuck far from where its photo fits is found and searched for, and left
+    /// out of training if no pose explains its photo (the log names it).
     /// `nerf eval` then fits each test camera to the model first, as BARF evaluates.
     #[arg(long, conflicts_with = "no_refine_cameras")]
     pub refine_cameras: bool,

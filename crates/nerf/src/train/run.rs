@@ -99,6 +99,8 @@ pub enum Event<'a> {
     },
     /// Something decided about the run that a user should hear.
     Note(&'a str),
+    /// Something gone wrong that training works around (a camera left out).
+    Warning(&'a str),
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -319,7 +321,12 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
             if let Some(last) = Checker::due(before, after) {
                 let report = checker.run(&mut trainer, last)?;
                 for s in &report.stuck {
-                    on_event(Event::Note(&super::stuck_cameras::describe(s, stats.step)));
+                    let line = super::stuck_cameras::describe(s, stats.step);
+                    on_event(if s.left_out {
+                        Event::Warning(&line)
+                    } else {
+                        Event::Note(&line)
+                    });
                 }
                 append_line(
                     &mut metrics,

@@ -7,13 +7,14 @@
 //! converge around it (on lego with BARF's noise, one draw in a few leaves one camera 24
 //! degrees off). Such a camera stands out: the field, shaped by the cameras that did
 //! converge, explains its photo several times worse than the median camera's. So at a few
-//! points of the schedule every training photo is compared with the field's picture from
-//! its current pose (at a probe's low resolution, [`Probe`]); a camera [`STUCK_RATIO`]
-//! times worse than the median is searched for: turns of its pose about the scene's centre
-//! and about its own centre, at angles from degrees to tens of degrees, scored the same
-//! way, the best kept if it explains the photo clearly better ([`BETTER`]), and the
-//! camera's optimiser state reset so the gradient takes over from there. A camera still
-//! stuck at the last check is left out of training, so its photo stops smearing the field.
+//! points of the schedule ([`CHECKS`]) every training photo is compared with the field's
+//! picture from its current pose, at a low resolution ([`Probe`]); a camera
+//! [`SEARCH_RATIO`] times worse than the median is searched for: a sweep of turns of its
+//! pose up to tens of degrees, about the scene's centre and about its own centre, on a
+//! coarser probe, then a local search from the sweep's best. The best pose is kept if it
+//! explains the photo clearly better ([`BETTER`]), and the camera's optimiser state is reset
+//! so the gradient takes over from there. A camera still [`STUCK_RATIO`] times worse after
+//! the last check is left out of training, so its photo stops smearing the field.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};

@@ -85,10 +85,10 @@ fn a_camera_given_far_off_comes_back_and_a_photo_no_pose_explains_is_left_out() 
         pause_at: Some(400),
         ..cpu_run(&out, config)
     };
-    run::train(&options, &mut |e| {
-        if let Event::Note(n) = e {
-            notes.push(n.to_string());
-        }
+    run::train(&options, &mut |e| match e {
+        Event::Note(n) => notes.push(n.to_string()),
+        Event::Warning(w) => notes.push(format!("warning: {w}")),
+        _ => {}
     })
     .expect("train");
     let log = notes.join("\n");
@@ -112,7 +112,8 @@ fn a_camera_given_far_off_comes_back_and_a_photo_no_pose_explains_is_left_out() 
         "{log}"
     );
     assert!(
-        log.contains(&format!("camera {NOISE} looks stuck")) && log.contains("left out"),
+        log.contains(&format!("warning: step 300: camera {NOISE} looks stuck"))
+            && log.contains("left out"),
         "{log}"
     );
 
