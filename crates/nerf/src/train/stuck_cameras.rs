@@ -153,6 +153,9 @@ pub struct CheckReport {
     pub step: u64,
     /// The median camera's error (MSE on the probe).
     pub median_error: f32,
+    /// The worst camera's error, in multiples of the median's.
+    #[serde(default)]
+    pub worst_ratio: f32,
     /// Each stuck camera: its index and what was done.
     pub stuck: Vec<StuckCamera>,
 }
@@ -334,6 +337,7 @@ pub fn check(
     let mut report = CheckReport {
         step,
         median_error: median,
+        worst_ratio: errors.iter().fold(0.0f32, |m, &e| m.max(e / floor)),
         stuck: Vec::new(),
     };
     let mut changed = false;
