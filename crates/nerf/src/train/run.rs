@@ -254,12 +254,15 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     // Refinement's checks for stuck cameras; cameras an earlier session left out stay out.
     let mut checker = Checker::of(&trainer);
     if let Some(checker) = &mut checker {
-        let left_out = left_out_cameras(&metrics_path);
-        if !left_out.is_empty() {
-            checker.leave_out(&mut trainer, &left_out);
-            let list: Vec<String> = left_out.iter().map(|k| k.to_string()).collect();
+        checker.resume(&mut trainer, &camera_checks(&metrics_path));
+        if !checker.left_out.is_empty() {
+            let list: Vec<String> = checker.left_out.iter().map(|k| k.to_string()).collect();
+            let (who, verb) = match list.len() {
+                1 => ("camera", "stays"),
+                _ => ("cameras", "stay"),
+            };
             on_event(Event::Note(&format!(
-                "camera {} stays left out of training (no pose explained its photo)",
+                "{who} {} {verb} left out of training (no pose explained their photos)",
                 list.join(", ")
             )));
         }
@@ -422,16 +425,14 @@ fn pose_error(cameras: &StartingCameras, trainer: &Trainer) -> PoseError {
         .error()
 }
 
-/// The cameras the stuck-camera checks of a metrics file left out.
-fn left_out_cameras(path: &Path) -> Vec<usize> {
+/// The stuck-camera checks a metrics file records, in order.
+fn camera_checks(path: &Path) -> Vec<CheckReport> {
     let Ok(text) = std::fs::read_to_string(path) else {
         return Vec::new();
     };
     text.lines()
         .filter_map(|l| serde_json::from_str::<CheckLine>(l).ok())
-        .flat_map(|c| c.camera_check.stuck)
-        .filter(|s| s.left_out)
-        .map(|s| s.camera)
+        .map(|c| c.camera_check)
         .collect()
 }
 

@@ -299,6 +299,13 @@ fn search(
     best
 }
 
+/// Whether a camera is left out at the last check: still [`STUCK_RATIO`] times worse than
+/// the median after the search (`after`), and not better than at the previous check
+/// (`now` against `previous`, ratios before the searches).
+fn unexplained(after: f32, now: f32, previous: f32) -> bool {
+    after >= STUCK_RATIO && now >= previous
+}
+
 /// The angle between two corrected poses' orientations, in degrees.
 fn angle_between(a: &Pose, b: &Pose) -> f32 {
     crate::data::poses::rotation_error_degrees(a, b)
@@ -312,8 +319,13 @@ pub struct Corrections {
 
 /// Checks every camera at `step` against the field and searches for the stuck ones;
 /// `starts`: the cameras' poses before correction (the training split's, perturbed);
-/// `last`: whether cameras still stuck are left out (listed in the report). Updates the
-/// engine's corrections (and resets their optimiser state) where a search found better.
+/// `last`: whether cameras still stuck are left out (listed in the report);
+/// `previous`: each camera's ratio at the previous check (0 where it was not stuck). A
+/// camera is left out only if its ratio has not fallen since: a photo at the edge of a
+/// capture, seen by few others, starts worse than the rest and catches up as the field
+/// learns its part of the scene, while a photo no pose explains falls further behind.
+/// Updates the engine's corrections (and resets their optimiser state) where a search
+/// found better.
 pub fn check(
     engine: &mut dyn Engine,
     probes: &Probes,
@@ -321,6 +333,7 @@ pub fn check(
     at: &Corrections,
     step: u64,
     last: bool,
+    previous: &[f32],
 ) -> crate::error::Result<CheckReport> {
     let mut state: EngineState = engine.state();
     let correction = |params: &[f32], k: usize| -> [f32; PER_CAMERA] {
@@ -364,7 +377,12 @@ pub fn check(
             ratio_before: errors[k] / floor,
             ratio_after: after / floor,
             turned_deg,
-            left_out: last && after >= STUCK_RATIO * floor,
+            left_out: last
+                && unexplained(
+                    after / floor,
+                    errors[k] / floor,
+                    previous.get(k).copied().unwrap_or(0.0),
+                ),
         });
     }
     if changed {
@@ -381,6 +399,8 @@ pub struct Checker {
     codes: bool,
     /// Cameras left out so far.
     pub left_out: Vec<usize>,
+    /// Each camera's ratio at the last check (0 where it was not stuck).
+    previous: Vec<f32>,
 }
 
 impl Checker {
@@ -404,6 +424,7 @@ impl Checker {
             },
             codes: m.field.appearance_dims > 0,
             left_out: Vec::new(),
+            previous: vec![0.0; cameras],
         })
     }
 
@@ -416,8 +437,34 @@ impl Checker {
             .map(|i| i + 1 == CHECKS.len())
     }
 
-    /// Leaves `cameras` out of `trainer`'s training (recorded by an earlier session).
-    pub fn leave_out(&mut self, trainer: &mut super::Trainer, cameras: &[usize]) {
+    /// Takes up where an earlier session's checks left off: their last report (the
+    /// cameras' ratios then) and every camera they left out, which stays out.
+    pub fn resume(&mut self, trainer: &mut super::Trainer, reports: &[CheckReport]) {
+        if let Some(last) = reports.last() {
+            self.remember(last);
+        }
+        let out: Vec<usize> = reports
+            .iter()
+            .flat_map(|r| &r.stuck)
+            .filter(|s| s.left_out)
+            .map(|s| s.camera)
+            .collect();
+        if !out.is_empty() {
+            self.leave_out(trainer, &out);
+        }
+    }
+
+    fn remember(&mut self, report: &CheckReport) {
+        self.previous.iter_mut().for_each(|r| *r = 0.0);
+        for s in &report.stuck {
+            if let Some(r) = self.previous.get_mut(s.camera) {
+                *r = s.ratio_before;
+            }
+        }
+    }
+
+    /// Leaves `cameras` out of `trainer`'s training.
+    fn leave_out(&mut self, trainer: &mut super::Trainer, cameras: &[usize]) {
         for &k in cameras {
             if k < self.starts.len() && !self.left_out.contains(&k) {
                 self.left_out.push(k);
@@ -444,7 +491,9 @@ impl Checker {
             &self.at,
             trainer.step,
             last,
+            &self.previous,
         )?;
+        self.remember(&report);
         let out: Vec<usize> = report
             .stuck
             .iter()
@@ -490,6 +539,18 @@ mod tests {
         assert_eq!(median, 0.012);
         assert_eq!(found, vec![4]);
         assert!(stuck(&[0.0; 5]).1.is_empty());
+    }
+
+    #[test]
+    fn only_a_photo_falling_behind_is_left_out() {
+        // Noise: worse and worse as the rest converge.
+        assert!(unexplained(25.0, 25.0, 20.0));
+        // Not stuck at the check before: rising.
+        assert!(unexplained(4.5, 4.5, 0.0));
+        // The edge of a capture: bad, catching up.
+        assert!(!unexplained(4.5, 4.5, 5.0));
+        // Recovered by the search.
+        assert!(!unexplained(1.5, 6.0, 5.0));
     }
 
     #[test]
