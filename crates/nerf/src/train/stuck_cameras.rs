@@ -306,11 +306,6 @@ fn unexplained(after: f32, now: f32, previous: f32) -> bool {
     after >= STUCK_RATIO && now >= previous
 }
 
-/// The angle between two corrected poses' orientations, in degrees.
-fn angle_between(a: &Pose, b: &Pose) -> f32 {
-    crate::data::poses::rotation_error_degrees(a, b)
-}
-
 /// The camera corrections in an engine's state: their offset, the frame they act in.
 pub struct Corrections {
     pub start: usize,
@@ -364,7 +359,7 @@ pub fn check(
             state.adam_m[range.clone()].fill(0.0);
             state.adam_v[range].fill(0.0);
             changed = true;
-            angle_between(
+            crate::data::poses::rotation_error_degrees(
                 &corrected(&starts[k], &now, at.frame),
                 &corrected(&starts[k], &best.1, at.frame),
             )
@@ -594,7 +589,7 @@ mod tests {
         for probe in axes(500) {
             let nearest = a
                 .iter()
-                .map(|v| (v[0] * probe[0] + v[1] * probe[1] + v[2] * probe[2]).clamp(-1.0, 1.0))
+                .map(|v| crate::math::dot(*v, probe).clamp(-1.0, 1.0))
                 .fold(-1.0f32, f32::max)
                 .acos()
                 .to_degrees();
