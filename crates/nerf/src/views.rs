@@ -111,12 +111,16 @@ pub fn render_view(
         &never,
     )
     .unwrap_or_default();
+    let mut rgb = vec![0.0; 3 * out.len()];
+    rgb.par_chunks_exact_mut(3)
+        .zip(out.par_iter())
+        .for_each(|(c, o)| c.copy_from_slice(&o.rgb));
     RenderedView {
         width: camera.width,
         height: camera.height,
-        rgb: out.iter().flat_map(|o| o.rgb).collect(),
-        depth: out.iter().map(|o| o.depth).collect(),
-        opacity: out.iter().map(|o| o.opacity).collect(),
+        rgb,
+        depth: out.par_iter().map(|o| o.depth).collect(),
+        opacity: out.par_iter().map(|o| o.opacity).collect(),
     }
 }
 
@@ -133,7 +137,11 @@ pub fn render_pixels(
 ) -> Option<Vec<RayOutput>> {
     let (w, h) = (camera.width, camera.height);
     let slab = slab.max(1);
-    let mut out = vec![RayOutput::default(); w * h];
+    // Made in parallel: a large view's first touch of fresh pages is most of its cost.
+    let mut out: Vec<RayOutput> = (0..w * h)
+        .into_par_iter()
+        .map(|_| RayOutput::default())
+        .collect();
     for (k, part) in out.chunks_mut(slab).enumerate() {
         if cancelled() {
             return None;

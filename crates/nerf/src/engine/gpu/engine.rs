@@ -47,35 +47,70 @@ pub const MAX_DEVICE_SAMPLES: usize = 1 << 19;
 /// round holds only the samples' positions, directions, depths and results (44 bytes each).
 pub const MAX_FUSED_ROUND: usize = 1 << 22;
 
-/// Rays per rendering chunk and samples per round of the renderer. A software adapter
-/// takes small ones (2^14 rays, 2^16 samples: 70 MB of activations per chunk in flight),
-/// where a round trip costs little beside the field. On a hardware GPU a camera's rays are
-/// cast on the device and every round waits for it once, so large chunks with full rounds
-/// render a frame fastest (docs/benchmarks.md has the sizes measured): 2^19 rays and
-/// rounds of 2^19 samples layer by layer (whose activations cap a round at
-/// [`MAX_DEVICE_SAMPLES`]), 2^20 rays and 2^22 samples fused.
-/// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2` overrides both, for tuning, up to 2^20 rays and
-/// the round cap.
-fn render_sizes(gpu: &Gpu, fused: bool) -> (usize, usize) {
+/// How the GPU renderer cuts its work.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct RenderSizes {
+    /// Rays per rendering call (a pinhole view's slab).
+    chunk: usize,
+    /// Samples per round.
+    round: usize,
+    /// Parts of a call whose rounds interleave (`render::render_batches`).
+    lanes: usize,
+}
+
+/// How the renderer cuts its work on `gpu`. A software adapter takes small calls (2^14
+/// rays, 2^16 samples: 70 MB of activations per chunk in flight), where a round trip
+/// costs little beside the field. On a hardware GPU a camera's rays are cast on the
+/// device and every round waits for the host once, so a frame renders fastest in large
+/// calls with full rounds, split into lanes whose rounds interleave so that the device
+/// works on one lane's round while the host waits for another's (docs/benchmarks.md has
+/// the sizes measured): 2^20 rays a call in 2 lanes, rounds of 2^19 samples layer by
+/// layer (whose activations cap a round at [`MAX_DEVICE_SAMPLES`]), 2^22 fused.
+/// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2[,LANES]` overrides them, for tuning, up to 2^20
+/// rays, the round cap and 8 lanes.
+fn render_sizes(gpu: &Gpu, fused: bool) -> RenderSizes {
     let max_round = if fused {
         MAX_FUSED_ROUND
     } else {
         MAX_DEVICE_SAMPLES
     };
-    let from_env = std::env::var("NERF_GPU_RENDER").ok().and_then(|v| {
-        let (chunk, round) = v.split_once(',')?;
-        let log2 = |s: &str, max: u32| s.trim().parse::<u32>().ok().filter(|&l| l <= max);
-        Some((
-            1usize << log2(chunk, 20)?,
-            1usize << log2(round, max_round.trailing_zeros())?,
-        ))
-    });
-    match from_env {
-        Some(sizes) => sizes,
-        None if gpu.software => (1 << 14, 1 << 16),
-        None if fused => (1 << 20, 1 << 22),
-        None => (1 << 19, 1 << 19),
+    let from_env = std::env::var("NERF_GPU_RENDER")
+        .ok()
+        .and_then(|v| parse_render_sizes(&v, max_round));
+    let (chunk, round, lanes) = match from_env {
+        Some(sizes) => return sizes,
+        None if gpu.software => (1 << 14, 1 << 16, 1),
+        None if fused => (1 << 20, 1 << 22, 2),
+        None => (1 << 20, 1 << 19, 2),
+    };
+    RenderSizes {
+        chunk,
+        round,
+        lanes,
     }
+}
+
+/// `CHUNK_LOG2,ROUND_LOG2[,LANES]` (base-2 logarithms of rays per call and samples per
+/// round, and a lane count), each within its cap; `None` if malformed.
+fn parse_render_sizes(spec: &str, max_round: usize) -> Option<RenderSizes> {
+    let mut parts = spec.split(',').map(str::trim);
+    let log2 = |s: Option<&str>, max: u32| {
+        s?.parse::<u32>()
+            .ok()
+            .filter(|&l| l <= max)
+            .map(|l| 1usize << l)
+    };
+    let chunk = log2(parts.next(), 20)?;
+    let round = log2(parts.next(), max_round.trailing_zeros())?;
+    let lanes = match parts.next() {
+        None => 1,
+        Some(l) => l.parse::<usize>().ok().filter(|l| (1..=8).contains(l))?,
+    };
+    parts.next().is_none().then_some(RenderSizes {
+        chunk,
+        round,
+        lanes,
+    })
 }
 
 /// Points per device call of density queries.
@@ -125,7 +160,7 @@ impl GpuEngine {
     /// (each within what a round holds: `open` refuses larger steps, `render_sizes` larger
     /// rounds).
     fn round_samples(&self) -> usize {
-        let (_, round) = render_sizes(&self.gpu, self.field.is_fused());
+        let round = render_sizes(&self.gpu, self.field.is_fused()).round;
         self.model.config.batch_samples.max(round)
     }
 
@@ -491,7 +526,7 @@ impl Engine for GpuEngine {
         on_progress: &(dyn Fn(usize) + Sync),
     ) {
         // Few, large device calls: every round of the renderer is a round trip.
-        let (chunk_rays, _) = render_sizes(&self.gpu, self.field.is_fused());
+        let chunk_rays = render_sizes(&self.gpu, self.field.is_fused()).chunk;
         let chunk = self.chunk_rays.max(chunk_rays);
         let marcher = self.model.marcher(rays.near, rays.far);
         let (gpu, params) = (&self.gpu, &self.state.values);
@@ -515,47 +550,56 @@ impl Engine for GpuEngine {
         });
     }
 
-    /// A pinhole camera's pixels: rays cast on the device, the whole slab rendered in one
-    /// pass of rounds.
+    /// A pinhole camera's pixels: rays cast on the device, the slab's rows rendered in
+    /// lanes whose rounds interleave.
     fn render_pixels(&self, pixels: &PixelRays, out: &mut [RayOutput]) -> bool {
         let marcher = self.model.marcher(pixels.near, pixels.far);
         let bound = self.model.grid.bound;
-        let range = pixels.pixels.clone();
-        let Some(cast) = rays::camera_rays(
-            &self.gpu,
-            pixels.camera,
-            &pixels.space,
-            &marcher,
-            bound,
-            range,
-        ) else {
-            return false;
-        };
+        let lanes = render_sizes(&self.gpu, self.field.is_fused()).lanes;
         let code = match pixels.appearance {
             Appearance::Of(i) => i,
             Appearance::Mean | Appearance::PerView => MEAN_APPEARANCE,
         };
-        let batch = render::DeviceBatch {
-            rays: cast.rays,
-            inv_norm: cast.inv_norm,
-            radii: Some(cast.radii),
-            cylinders: pixels.space.cylinders(),
-            codes: render::RayCodes::All(code),
-        };
+        let mut batches = Vec::with_capacity(lanes);
+        let parts = render::lane_ranges(pixels.pixels.clone(), lanes);
+        for part in &parts {
+            let Some(cast) = rays::camera_rays(
+                &self.gpu,
+                pixels.camera,
+                &pixels.space,
+                &marcher,
+                bound,
+                part.clone(),
+            ) else {
+                return false;
+            };
+            batches.push(render::DeviceBatch {
+                rays: cast.rays,
+                inv_norm: cast.inv_norm,
+                radii: Some(cast.radii),
+                cylinders: pixels.space.cylinders(),
+                codes: render::RayCodes::All(code),
+            });
+        }
         let (gpu, params) = (&self.gpu, &self.state.values);
         let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
-        let rendered = render::render_batch(
+        let rendered = render::render_batches(
             gpu,
             &self.marcher,
             &marcher,
             &field,
             self.field_needs(),
             self.round_samples(),
-            &batch,
+            &batches,
         );
         match rendered {
-            Ok(state) => {
-                out.copy_from_slice(&render::ray_outputs(&state, |_| pixels.background));
+            Ok(states) => {
+                // Each lane's results straight into its pixels of `out`.
+                let start = pixels.pixels.start;
+                for (part, state) in parts.iter().zip(&states) {
+                    let slots = &mut out[part.start - start..part.end - start];
+                    render::write_ray_outputs(state, |_| pixels.background, slots);
+                }
             }
             Err(e) => fail_rays(&e, out),
         }
@@ -566,7 +610,7 @@ impl Engine for GpuEngine {
     /// each with its rays' spans made and uploaded at once).
     fn render_slab(&self) -> usize {
         render_sizes(&self.gpu, self.field.is_fused())
-            .0
+            .chunk
             .max(crate::engine::RENDER_SLAB)
     }
 
@@ -596,5 +640,44 @@ impl Engine for GpuEngine {
     /// gradient are skipped inside it); there are no untouched blocks to report.
     fn touched_fraction(&self) -> f64 {
         1.0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn render_sizes_parse_from_logarithms_with_optional_lanes() {
+        let sizes = |chunk, round, lanes| RenderSizes {
+            chunk,
+            round,
+            lanes,
+        };
+        let max = MAX_DEVICE_SAMPLES;
+        assert_eq!(
+            parse_render_sizes("19,18", max),
+            Some(sizes(1 << 19, 1 << 18, 1))
+        );
+        assert_eq!(
+            parse_render_sizes(" 20, 19 ,3", max),
+            Some(sizes(1 << 20, 1 << 19, 3))
+        );
+        for bad in [
+            "21,18",
+            "19,20",
+            "19",
+            "19,18,0",
+            "19,18,9",
+            "a,b",
+            "19,18,2,1",
+            "",
+        ] {
+            assert_eq!(parse_render_sizes(bad, max), None, "{bad}");
+        }
+        assert_eq!(
+            parse_render_sizes("20,22,2", MAX_FUSED_ROUND),
+            Some(sizes(1 << 20, 1 << 22, 2))
+        );
     }
 }

@@ -11,7 +11,7 @@ use super::antialias::LevelWeights;
 use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
 use super::fused::FusedShape;
-use super::harmonics::sh4;
+use super::harmonics::sh4_at;
 use super::hash_grid::{GpuHashGrid, Scatter};
 use super::launch::grid;
 use super::mlp::Dense;
@@ -41,22 +41,22 @@ fn density_head(geo: &[f32], sigma: &mut [f32], g: u32, log_max: f32) {
 
 /// The colour network's input (rows `ci` wide): the 16 spherical harmonics of the sample's
 /// unit view direction (as `encoding::spherical_harmonics::sh4`), then the geometry
-/// features; an appearance code, if any, follows (`codes`).
+/// features; an appearance code, if any, follows (`codes`). A thread per value of the
+/// first `15 + g` columns (`rows` rows), so that a warp's writes fill whole rows.
 #[cube(launch_unchecked)]
-fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32, ci: u32) {
-    let s = ABSOLUTE_POS;
-    let gw = g as usize;
-    let ci = ci as usize;
-    if s * ci < colour_in.len() {
-        let o = s * ci;
-        let sh = sh4(dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]);
-        #[unroll]
-        for k in 0..16usize {
-            colour_in[o + k] = sh[k];
-        }
-        for j in 1usize..gw {
-            colour_in[o + 15 + j] = geo[s * gw + j];
-        }
+fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32, ci: u32, rows: u32) {
+    let i = ABSOLUTE_POS;
+    let (gw, ci) = (g as usize, ci as usize);
+    let width = 15 + gw;
+    if i < rows as usize * width {
+        let s = i / width;
+        let k = i % width;
+        let value = if k < 16 {
+            sh4_at(k, dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2])
+        } else {
+            geo[s * gw + k - 15]
+        };
+        colour_in[s * ci + k] = value;
     }
 }
 
@@ -79,7 +79,8 @@ pub(super) fn sigmoid_bwd(d_rgb: &[f32], rgb: &[f32], d_logit: &mut [f32]) {
 }
 
 /// The density network's output gradient: `d o_0` through `exp(min(o_0, max))`, and the
-/// geometry features' gradients from the colour network's input gradient.
+/// geometry features' gradients from the colour network's input gradient. A thread per
+/// value of `d_geo` (`g` a row), so that a warp's reads and writes are neighbours.
 #[cube(launch_unchecked)]
 fn geo_bwd(
     geo: &[f32],
@@ -91,13 +92,15 @@ fn geo_bwd(
     ci: u32,
     log_max: f32,
 ) {
-    let s = ABSOLUTE_POS;
-    if s < sigma.len() {
-        let gw = g as usize;
-        let ci = ci as usize;
-        d_geo[s * gw] = select(geo[s * gw] < log_max, d_sigma[s] * sigma[s], 0.0);
-        for j in 1usize..gw {
-            d_geo[s * gw + j] = d_colour_in[s * ci + 15 + j];
+    let i = ABSOLUTE_POS;
+    let (gw, ci) = (g as usize, ci as usize);
+    if i < sigma.len() * gw {
+        let s = i / gw;
+        let j = i % gw;
+        if j == 0 {
+            d_geo[i] = select(geo[i] < log_max, d_sigma[s] * sigma[s], 0.0);
+        } else {
+            d_geo[i] = d_colour_in[s * ci + 15 + j];
         }
     }
 }
@@ -354,7 +357,7 @@ impl GpuFastField {
         let np = self.n_params;
         // SAFETY: as in `density`.
         unsafe {
-            let (count, dim) = Self::launch(n);
+            let (count, dim) = Self::launch(n * (15 + self.geo));
             colour_input::launch_unchecked(
                 &gpu.client,
                 count,
@@ -364,6 +367,7 @@ impl GpuFastField {
                 BufferArg::from_raw_parts(acts.colour_in.clone(), n * c0.inputs),
                 self.geo as u32,
                 c0.inputs as u32,
+                n as u32,
             );
         }
         if let Some(c) = &self.codes {
@@ -461,7 +465,7 @@ impl GpuFastField {
         let d_geo = gpu.floats(n * self.geo);
         // SAFETY: as in `density`.
         unsafe {
-            let (count, dim) = Self::launch(n);
+            let (count, dim) = Self::launch(n * self.geo);
             geo_bwd::launch_unchecked(
                 &gpu.client,
                 count,

@@ -1,8 +1,12 @@
 //! Small helpers every GPU module shares: launch grids past the 65535-workgroup limit of
 //! one axis, and moving `f32` buffers to and from the device.
 
+use std::future::Future;
+use std::pin::Pin;
+
+use cubecl::bytes::Bytes;
 use cubecl::prelude::*;
-use cubecl::server::Handle;
+use cubecl::server::{Handle, ServerError};
 
 use super::device::Gpu;
 use crate::error::{NerfError, Result};
@@ -87,11 +91,38 @@ impl Gpu {
 
     /// The first `n` `u32`s of `h`, read back.
     pub fn read_u32(&self, h: &Handle, n: usize) -> Result<Vec<u32>> {
-        let bytes = self
-            .client
-            .read_one(h.clone())
+        self.read_u32_later(h, n).wait()
+    }
+
+    /// The first `n` `u32`s of `h`, on their way back: the copy is queued, and the queue
+    /// sent to the device, now, so work queued after this call does not delay the copy,
+    /// and the host can queue more before it waits ([`PendingRead::wait`]).
+    pub fn read_u32_later(&self, h: &Handle, n: usize) -> PendingRead<'_> {
+        PendingRead {
+            bytes: Box::pin(self.client.read_async(vec![h.clone()])),
+            n,
+            _source: h.clone(),
+        }
+    }
+}
+
+/// `u32`s on their way back from the device: [`Gpu::read_u32_later`].
+pub struct PendingRead<'a> {
+    bytes: Pin<Box<dyn Future<Output = std::result::Result<Vec<Bytes>, ServerError>> + Send + 'a>>,
+    n: usize,
+    /// The buffer read, kept until its values are back (as a blocking read keeps it).
+    _source: Handle,
+}
+
+impl PendingRead<'_> {
+    /// Waits for the copy and returns the values.
+    pub fn wait(self) -> Result<Vec<u32>> {
+        let buffers = cubecl::future::block_on(self.bytes)
             .map_err(|e| NerfError::Device(format!("reading a buffer back failed: {e:?}")))?;
-        let all = u32::from_bytes(&bytes);
-        Ok(all[..n.min(all.len())].to_vec())
+        let bytes = buffers
+            .first()
+            .ok_or_else(|| NerfError::Device("a read returned no buffer".into()))?;
+        let all = u32::from_bytes(bytes);
+        Ok(all[..self.n.min(all.len())].to_vec())
     }
 }

@@ -18,9 +18,9 @@ use cubecl::server::Handle;
 use rayon::iter::{IntoParallelIterator, ParallelIterator};
 
 use super::device::Gpu;
-use super::launch::grid;
+use super::launch::{grid, PendingRead};
 use super::volume::GpuSamples;
-use crate::error::Result;
+use crate::error::{NerfError, Result};
 use crate::math::{length, scale};
 use crate::render::contraction::FAR_N;
 use crate::render::march::{Marcher, MIN_TRANSMITTANCE};
@@ -557,6 +557,36 @@ pub struct Cut {
     pub live: usize,
 }
 
+/// A [`Cut`] known on the host, or on its way back from the device.
+pub enum PendingCut<'a> {
+    Known(Cut),
+    Reading(PendingRead<'a>),
+}
+
+impl PendingCut<'_> {
+    /// The cut, once its four numbers are back.
+    pub fn wait(self) -> Result<Cut> {
+        match self {
+            PendingCut::Known(cut) => Ok(cut),
+            PendingCut::Reading(read) => {
+                let v = read.wait()?;
+                if v.len() < 4 {
+                    return Err(NerfError::Device(format!(
+                        "a marching cut read back {} of 4 numbers",
+                        v.len()
+                    )));
+                }
+                Ok(Cut {
+                    rays: v[0] as usize,
+                    samples: v[1] as usize,
+                    found: v[2] == 1,
+                    live: v[3] as usize,
+                })
+            }
+        }
+    }
+}
+
 /// Rays marched and counted, with their slots: what [`GpuMarcher::write`] packs.
 pub struct Counted {
     counts: Handle,
@@ -664,8 +694,21 @@ impl GpuMarcher {
         budget: usize,
         max_rays: usize,
     ) -> Result<Cut> {
+        self.cut_later(gpu, counted, n, budget, max_rays).wait()
+    }
+
+    /// [`GpuMarcher::cut`] on its way back: the cut is found and its copy sent to the
+    /// device now, and the host may queue other work before it waits for the numbers.
+    pub fn cut_later<'g>(
+        &self,
+        gpu: &'g Gpu,
+        counted: &Counted,
+        n: usize,
+        budget: usize,
+        max_rays: usize,
+    ) -> PendingCut<'g> {
         if n == 0 {
-            return Ok(Cut {
+            return PendingCut::Known(Cut {
                 rays: 0,
                 samples: 0,
                 found: max_rays == 0,
@@ -690,13 +733,7 @@ impl GpuMarcher {
                 max_rays.min(u32::MAX as usize) as u32,
             );
         }
-        let v = gpu.read_u32(&cut, 4)?;
-        Ok(Cut {
-            rays: v[0] as usize,
-            samples: v[1] as usize,
-            found: v[2] == 1,
-            live: v[3] as usize,
-        })
+        PendingCut::Reading(gpu.read_u32_later(&cut, 4))
     }
 
     /// Pass 3: the samples of the first `cut.rays` rays, packed: their CSR offsets, depths

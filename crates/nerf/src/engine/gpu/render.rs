@@ -15,7 +15,9 @@ use super::codes::SampleCodes;
 use super::device::Gpu;
 use super::field::DeviceInput;
 use super::launch::grid;
-use super::march::{GpuMarcher, GpuRays, RoundState, STATE_WORDS};
+use std::time::{Duration, Instant};
+
+use super::march::{Counted, Cut, GpuMarcher, GpuRays, PendingCut, RoundState, STATE_WORDS};
 use crate::error::Result;
 use crate::math::length;
 use crate::render::march::Marcher;
@@ -87,7 +89,9 @@ pub enum RayCodes {
     PerRay(Handle),
 }
 
-/// Rays on the device to render, with what a field may read besides them.
+/// Rays on the device to render, with what a field may read besides them. Rendering
+/// advances the rays (each one's start is where its next round resumes), so a batch
+/// renders once.
 pub struct DeviceBatch {
     pub rays: GpuRays,
     /// One over the length of each ray's direction in its space: depth's scale.
@@ -156,18 +160,28 @@ pub fn render_rays(
 /// Each ray's result from its running state (`STATE_WORDS` floats a ray) over its
 /// `background`.
 pub fn ray_outputs(state: &[f32], background: impl Fn(usize) -> [f32; 3] + Sync) -> Vec<RayOutput> {
-    state
-        .par_chunks_exact(STATE_WORDS)
+    let mut out = vec![RayOutput::default(); state.len() / STATE_WORDS];
+    write_ray_outputs(state, background, &mut out);
+    out
+}
+
+/// [`ray_outputs`] written into `out` (a slot per ray of `state`).
+pub fn write_ray_outputs(
+    state: &[f32],
+    background: impl Fn(usize) -> [f32; 3] + Sync,
+    out: &mut [RayOutput],
+) {
+    out.par_iter_mut()
+        .zip(state.par_chunks_exact(STATE_WORDS))
         .enumerate()
-        .map(|(r, s)| {
+        .for_each(|(r, (o, s))| {
             let (opacity, bg) = (s[5], background(r));
-            RayOutput {
+            *o = RayOutput {
                 rgb: [0, 1, 2].map(|c| s[1 + c] + (1.0 - opacity) * bg[c]),
                 depth: s[4],
                 opacity,
-            }
-        })
-        .collect()
+            };
+        });
 }
 
 /// Renders `batch` through `field`: the grid `device_grid` marched as `marcher` marches,
@@ -183,58 +197,242 @@ pub fn render_batch(
     round_samples: usize,
     batch: &DeviceBatch,
 ) -> Result<Vec<f32>> {
-    let n = batch.rays.len;
-    if n == 0 {
-        return Ok(Vec::new());
-    }
-    // The codes a field reads: each sample its ray's, or one for all (made once).
-    let all_codes = match (&batch.codes, needs.codes) {
-        (RayCodes::All(code), true) => SampleCodes::all(gpu, *code),
-        _ => SampleCodes::all(gpu, MEAN_APPEARANCE),
+    let rounds = Rounds {
+        gpu,
+        device_grid,
+        marcher,
+        field,
+        needs,
+        round_samples: round_samples.max(1),
     };
-    let ray_codes = match (&batch.codes, needs.codes) {
-        (RayCodes::PerRay(codes), true) => Some(codes),
-        _ => None,
+    Ok(rounds.render(std::slice::from_ref(batch))?.remove(0))
+}
+
+/// Renders `batches` as [`render_batch`] renders each, their rounds interleaved: while
+/// the host waits for one batch's round to be cut, the device works on another's, so
+/// the round trips that set a frame's pace on a hardware GPU overlap its work.
+pub fn render_batches(
+    gpu: &Gpu,
+    device_grid: &GpuMarcher,
+    marcher: &Marcher,
+    field: &DeviceFieldFn,
+    needs: FieldNeeds,
+    round_samples: usize,
+    batches: &[DeviceBatch],
+) -> Result<Vec<Vec<f32>>> {
+    let rounds = Rounds {
+        gpu,
+        device_grid,
+        marcher,
+        field,
+        needs,
+        round_samples: round_samples.max(1),
     };
-    let radii = batch.radii.as_ref().filter(|_| needs.footprints);
-    let round = RoundState::new(gpu, &batch.rays);
-    let round_samples = round_samples.max(1);
-    // As many samples per ray as spread a round's budget over the rays still marching: all
-    // of them at first, then those that had samples in the round before (no more can have
-    // any now), so that after the first round the budget cuts no ray short, and no ray
-    // is marched in a count pass only to be marched again in the next one. The budget
-    // bounds a round's memory, so unlike the CPU renderer (64) a ray's share has no cap
-    // of its own: the last few rays finish in one round, not in many round trips.
-    let most = marcher.max_samples.max(1);
-    let mut per_ray = (round_samples / n).clamp(1, most);
-    loop {
-        let counted = device_grid.count_round(gpu, &round, per_ray);
-        let cut = device_grid.cut(gpu, &counted, n, round_samples, n)?;
-        if cut.samples == 0 {
-            break;
+    rounds.render(batches)
+}
+
+/// Where the host's time goes in a render, told on stderr when `NERF_GPU_TRACE` is set:
+/// the rounds, the time spent waiting for their cuts, and the results' read-back.
+struct Trace {
+    on: bool,
+    start: Instant,
+    rounds: usize,
+    samples: usize,
+    waiting: Duration,
+    rounds_done: Duration,
+}
+
+impl Trace {
+    fn start() -> Self {
+        Trace {
+            on: std::env::var_os("NERF_GPU_TRACE").is_some(),
+            start: Instant::now(),
+            rounds: 0,
+            samples: 0,
+            waiting: Duration::ZERO,
+            rounds_done: Duration::ZERO,
         }
+    }
+
+    fn wait(&mut self, pending: PendingCut) -> Result<Cut> {
+        let t = Instant::now();
+        let cut = pending.wait()?;
+        self.waiting += t.elapsed();
+        self.rounds += usize::from(cut.samples > 0);
+        self.samples += cut.samples;
+        Ok(cut)
+    }
+
+    fn rounds_done(&mut self) {
+        self.rounds_done = self.start.elapsed();
+    }
+
+    fn report(&self, batches: &[DeviceBatch]) {
+        if self.on {
+            let ms = |d: Duration| d.as_secs_f64() * 1e3;
+            eprintln!(
+                "gpu render: {} rays in {} lanes, {} rounds, {} samples; {:.1} ms: rounds {:.1} \
+                 (waiting for cuts {:.1}), read-back {:.1}",
+                batches.iter().map(|b| b.rays.len).sum::<usize>(),
+                batches.len(),
+                self.rounds,
+                self.samples,
+                ms(self.start.elapsed()),
+                ms(self.rounds_done),
+                ms(self.waiting),
+                ms(self.start.elapsed() - self.rounds_done),
+            );
+        }
+    }
+}
+
+/// `range` cut into at most `lanes` contiguous parts of nearly equal length (none empty,
+/// except one for an empty range).
+pub fn lane_ranges(range: std::ops::Range<usize>, lanes: usize) -> Vec<std::ops::Range<usize>> {
+    let len = range.len();
+    let parts = lanes.clamp(1, len.max(1));
+    (0..parts)
+        .map(|k| range.start + k * len / parts..range.start + (k + 1) * len / parts)
+        .collect()
+}
+
+/// What every batch's rounds share.
+struct Rounds<'a> {
+    gpu: &'a Gpu,
+    device_grid: &'a GpuMarcher,
+    marcher: &'a Marcher,
+    field: &'a DeviceFieldFn<'a>,
+    needs: FieldNeeds,
+    round_samples: usize,
+}
+
+/// One batch's rendering: its rays' running state, and the round counted whose cut is on
+/// its way back (`None` once every ray is done).
+struct Lane<'a> {
+    batch: &'a DeviceBatch,
+    round: RoundState<'a>,
+    /// The codes a field reads: each sample its ray's, or one for all (made once).
+    all_codes: SampleCodes,
+    ray_codes: Option<&'a Handle>,
+    radii: Option<&'a Handle>,
+    per_ray: usize,
+    pending: Option<(Counted, PendingCut<'a>)>,
+}
+
+impl<'a> Rounds<'a> {
+    fn render(&self, batches: &'a [DeviceBatch]) -> Result<Vec<Vec<f32>>> {
+        let mut trace = Trace::start();
+        let mut lanes: Vec<Lane> = batches
+            .iter()
+            .filter(|b| b.rays.len > 0)
+            .map(|b| self.lane(b))
+            .collect();
+        while lanes.iter().any(|lane| lane.pending.is_some()) {
+            for lane in &mut lanes {
+                self.advance(lane, &mut trace)?;
+            }
+        }
+        trace.rounds_done();
+        let mut lanes = lanes.into_iter();
+        let states = batches
+            .iter()
+            .map(|b| match b.rays.len {
+                0 => Ok(Vec::new()),
+                n => match lanes.next() {
+                    Some(lane) => self.gpu.read(&lane.round.state, STATE_WORDS * n),
+                    None => Ok(Vec::new()),
+                },
+            })
+            .collect();
+        trace.report(batches);
+        states
+    }
+
+    /// A batch's rays before their first round, that round counted and its cut on its way.
+    fn lane(&self, batch: &'a DeviceBatch) -> Lane<'a> {
+        let gpu = self.gpu;
+        let all_codes = match (&batch.codes, self.needs.codes) {
+            (RayCodes::All(code), true) => SampleCodes::all(gpu, *code),
+            _ => SampleCodes::all(gpu, MEAN_APPEARANCE),
+        };
+        let ray_codes = match (&batch.codes, self.needs.codes) {
+            (RayCodes::PerRay(codes), true) => Some(codes),
+            _ => None,
+        };
+        // At first a round's budget is spread over all of the rays.
+        let per_ray = self.per_ray(batch.rays.len);
+        let mut lane = Lane {
+            batch,
+            round: RoundState::new(gpu, &batch.rays),
+            all_codes,
+            ray_codes,
+            radii: batch.radii.as_ref().filter(|_| self.needs.footprints),
+            per_ray,
+            pending: None,
+        };
+        self.count(&mut lane);
+        lane
+    }
+
+    /// As many samples per ray as spread a round's budget over `live` rays. After the first
+    /// round only the rays that had samples in the round before can have any now, so the
+    /// budget cuts no ray short, and no ray is marched in a count pass only to be marched
+    /// again in the next one. The budget bounds a round's memory, so unlike the CPU
+    /// renderer (64) a ray's share has no cap of its own: the last few rays finish in one
+    /// round, not in many round trips.
+    fn per_ray(&self, live: usize) -> usize {
+        let most = self.marcher.max_samples.max(1);
+        (self.round_samples / live.max(1)).clamp(1, most)
+    }
+
+    /// Queues `lane`'s next round's count and cut, the cut's numbers sent back.
+    fn count(&self, lane: &mut Lane<'a>) {
+        let n = lane.batch.rays.len;
+        let counted = self
+            .device_grid
+            .count_round(self.gpu, &lane.round, lane.per_ray);
+        let cut = self
+            .device_grid
+            .cut_later(self.gpu, &counted, n, self.round_samples, n);
+        lane.pending = Some((counted, cut));
+    }
+
+    /// Waits for `lane`'s cut and queues its round: the samples written, the field, each
+    /// ray's sums; then the next round's count. A lane whose cut is empty is done.
+    fn advance(&self, lane: &mut Lane<'a>, trace: &mut Trace) -> Result<()> {
+        let Some((counted, pending)) = lane.pending.take() else {
+            return Ok(());
+        };
+        let cut = trace.wait(pending)?;
+        if cut.samples == 0 {
+            return Ok(());
+        }
+        let gpu = self.gpu;
+        let (n, round) = (lane.batch.rays.len, &lane.round);
         let (samples, positions, dirs) =
-            device_grid.write_round(gpu, &round, &counted, cut, per_ray);
+            self.device_grid
+                .write_round(gpu, round, &counted, cut, lane.per_ray);
         let (k, s) = (cut.rays, cut.samples);
-        let round_codes =
-            ray_codes.map(|per_ray| SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s));
-        let footprints = radii.map(|radii| {
+        let round_codes = lane
+            .ray_codes
+            .map(|per_ray| SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s));
+        let footprints = lane.radii.map(|radii| {
             let csr = (&samples.offsets, &samples.t);
             sample_footprints(
                 gpu,
                 round.rays,
                 radii,
-                batch.cylinders,
-                marcher.contract,
+                lane.batch.cylinders,
+                self.marcher.contract,
                 csr,
                 k,
                 s,
             )
         });
-        let (sigma, rgb) = field(&DeviceInput {
+        let (sigma, rgb) = (self.field)(&DeviceInput {
             positions: &positions,
             dirs: &dirs,
-            codes: round_codes.as_ref().unwrap_or(&all_codes),
+            codes: round_codes.as_ref().unwrap_or(&lane.all_codes),
             footprints: footprints.as_ref(),
             n: s,
         });
@@ -251,14 +449,15 @@ pub fn render_batch(
                 BufferArg::from_raw_parts(samples.dt.clone(), s),
                 BufferArg::from_raw_parts(sigma, s),
                 BufferArg::from_raw_parts(rgb, 3 * s),
-                BufferArg::from_raw_parts(batch.inv_norm.clone(), n),
+                BufferArg::from_raw_parts(lane.batch.inv_norm.clone(), n),
                 BufferArg::from_raw_parts(round.state.clone(), STATE_WORDS * n),
                 k as u32,
             );
         }
-        per_ray = (round_samples / cut.live.max(1)).clamp(1, most);
+        lane.per_ray = self.per_ray(cut.live);
+        self.count(lane);
+        Ok(())
     }
-    gpu.read(&round.state, STATE_WORDS * n)
 }
 
 #[cfg(test)]
@@ -269,6 +468,31 @@ mod tests {
     use crate::engine::gpu::field::GpuFastField;
     use crate::render::march::{render_marched, MarchWorkspace};
     use crate::rng::Rng;
+
+    #[test]
+    fn lanes_cover_the_range_in_order_without_empty_parts() {
+        for (range, lanes) in [(0..10, 3), (5..7, 4), (3..3, 2), (0..1 << 20, 2), (4..9, 1)] {
+            let parts = lane_ranges(range.clone(), lanes);
+            assert!(parts.len() <= lanes.max(1));
+            assert_eq!(parts.first().map(|p| p.start), Some(range.start));
+            assert_eq!(parts.last().map(|p| p.end), Some(range.end));
+            for pair in parts.windows(2) {
+                assert_eq!(pair[0].end, pair[1].start);
+            }
+            if !range.is_empty() {
+                assert!(
+                    parts.iter().all(|p| !p.is_empty()),
+                    "{range:?} in {lanes}: {parts:?}"
+                );
+                let (min, max) = (
+                    parts.iter().map(|p| p.len()).min().unwrap_or(0),
+                    parts.iter().map(|p| p.len()).max().unwrap_or(0),
+                );
+                assert!(max - min <= 1, "{parts:?}");
+            }
+        }
+        assert_eq!(lane_ranges(5..7, 4), vec![5..6, 6..7]);
+    }
 
     /// A random field over a random half-occupied grid, 300 rays from outside the box (some
     /// missing it): the device's rounds against the CPU renderer, with a round budget of a
@@ -297,6 +521,10 @@ mod tests {
             contract: None,
         };
         let mut rays = RayBatch::new(marcher.near, marcher.far);
+        // The same rays in three lanes (120, 100 and 80 of them), for interleaved rounds.
+        let mut lanes: Vec<RayBatch> = (0..3)
+            .map(|_| RayBatch::new(marcher.near, marcher.far))
+            .collect();
         for k in 0..300 {
             let origin = [rng.range(-4.0, 4.0), -4.0, rng.range(-1.0, 1.0)];
             let target = [rng.range(-2.0, 2.0), 0.0, rng.range(-2.0, 2.0)];
@@ -304,6 +532,7 @@ mod tests {
             let ray = crate::camera::Ray { origin, dir };
             let bg = [rng.uniform(), rng.uniform(), rng.uniform()];
             rays.push(ray, dir, bg, k);
+            lanes[usize::from(k >= 120) + usize::from(k >= 220)].push(ray, dir, bg, k);
         }
         let mut want = vec![RayOutput::default(); rays.len()];
         let mut ws = MarchWorkspace::default();
@@ -345,6 +574,32 @@ mod tests {
             let err = worst(&flat(&got), &flat(&want));
             eprintln!("round budget {round_samples}: worst difference {err:.1e}");
             assert!(err < 1e-3, "round budget {round_samples}: {err}");
+        }
+        // Interleaved lanes render each ray as one lane alone does, whatever the budget
+        // (rendering advances a batch's rays, so each render takes fresh ones).
+        for round_samples in [40, 1 << 16] {
+            let batches: Vec<DeviceBatch> = lanes
+                .iter()
+                .map(|lane| DeviceBatch::upload(&gpu, &marcher, &grid, lane))
+                .collect();
+            let states = render_batches(
+                &gpu,
+                &device_grid,
+                &marcher,
+                &field_fn,
+                FieldNeeds::default(),
+                round_samples,
+                &batches,
+            )
+            .expect("render lanes");
+            assert_eq!(
+                states.iter().map(Vec::len).collect::<Vec<_>>(),
+                [120, 100, 80].map(|n| n * STATE_WORDS)
+            );
+            let got = ray_outputs(&states.concat(), |r| rays.backgrounds[r]);
+            let err = worst(&flat(&got), &flat(&want));
+            eprintln!("3 lanes, round budget {round_samples}: worst difference {err:.1e}");
+            assert!(err < 1e-3, "lanes, round budget {round_samples}: {err}");
         }
         // Something to compare: opaque rays, empty rays and ones in between.
         let opacity: Vec<f32> = want.iter().map(|o| o.opacity).collect();
