@@ -45,6 +45,9 @@ pub fn run(a: SceneArgs) -> Result<()> {
         s.val.len(),
         s.test.len()
     );
+    if s.is_dynamic() {
+        println!("{}", moments_line(&s));
+    }
     if let Some(c) = first {
         println!(
             "first camera: {}x{}, focal {:.1} x {:.1}, centre ({:.1}, {:.1}), {}",
@@ -87,4 +90,19 @@ pub fn run(a: SceneArgs) -> Result<()> {
         println!("warning: {w}");
     }
     Ok(())
+}
+
+/// A dynamic scene's time range and how many distinct moments each split shows.
+fn moments_line(s: &Scene) -> String {
+    let [train, val, test] = [Split::Train, Split::Val, Split::Test].map(|k| s.moments(k));
+    let all = nerf::data::time::moments(train.iter().chain(&val).chain(&test).copied());
+    let (first, last) = (all.first().copied(), all.last().copied());
+    format!(
+        "time: a dynamic scene, moments {:.3} to {:.3}; {} distinct in train, {} in val, {} in test",
+        first.unwrap_or(0.0),
+        last.unwrap_or(0.0),
+        train.len(),
+        val.len(),
+        test.len()
+    )
 }

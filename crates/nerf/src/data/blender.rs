@@ -34,6 +34,9 @@ pub struct Frame {
     /// Ground-truth depth written by `nerf synth` (16-bit PNG, millimetres), if any.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub depth_file_path: Option<String>,
+    /// The moment the photo shows, in a dynamic scene (D-NeRF's key, in [0, 1]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time: Option<f32>,
 }
 
 /// Near and far bounds of the Blender scenes.
@@ -66,6 +69,8 @@ struct SplitJson {
 struct FrameJson {
     file_path: String,
     transform_matrix: Vec<Vec<f32>>,
+    /// D-NeRF's moment of the photo.
+    time: Option<f32>,
     #[serde(flatten)]
     intrinsics: Intrinsics,
 }
@@ -161,6 +166,7 @@ pub(crate) fn parse(dir: &Path) -> Result<Parsed> {
                 image,
                 mask: None,
                 name: frame.file_path.clone(),
+                time: frame.time,
             });
         }
     }
@@ -302,6 +308,7 @@ mod tests {
                 file_path: name,
                 transform_matrix: matrix.clone(),
                 depth_file_path: None,
+                time: None,
             });
         }
         let t = Transforms {

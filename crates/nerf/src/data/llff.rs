@@ -198,6 +198,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions, downscale: usize) -> Result
             camera,
             image,
             mask: None,
+            time: None,
         })
         .collect();
     Ok(Parsed {

@@ -17,6 +17,7 @@ pub mod reader;
 pub mod scene;
 pub mod snapshot;
 pub mod synth;
+pub mod time;
 pub mod train_views;
 pub mod transforms;
 
@@ -34,6 +35,8 @@ pub struct View {
     pub name: String,
     /// Pixels that count in training (`None`: all); from a mask image.
     pub kept_pixels: Option<Vec<u32>>,
+    /// The moment the photo shows, in [0, 1], in a dynamic scene.
+    pub time: Option<f32>,
 }
 
 /// The posed images of one split of a scene.
@@ -114,6 +117,7 @@ impl Dataset {
                     image: v.image.downscale(factor),
                     name: format!("{} (1/{factor})", v.name),
                     kept_pixels,
+                    time: v.time,
                 };
                 self.views.push(view);
             }
@@ -193,6 +197,7 @@ mod tests {
             name: "a.png".into(),
             // Pixels (3, 0) and (6, 3).
             kept_pixels: Some(vec![3, 3 * 8 + 6]),
+            time: Some(0.25),
         };
         let mut set = Dataset {
             views: vec![view],
@@ -213,6 +218,8 @@ mod tests {
         assert!((half.image.data[4] - expected).abs() < 1e-6);
         assert_eq!(half.kept_pixels, Some(vec![1, 4 + 3]));
         assert_eq!(quarter.kept_pixels, Some(vec![0, 1]));
+        // Each scale shows the same moment.
+        assert!(set.views.iter().all(|v| v.time == Some(0.25)));
         // Too many scales for the image: a clear error.
         let err = set.add_scales(5).expect_err("1/16 of 8x4 is empty");
         assert!(err.to_string().contains("too small"), "{err}");

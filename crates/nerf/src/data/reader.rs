@@ -92,6 +92,9 @@ pub struct Frame {
     /// Optional mask: black pixels are left out of training (nerfstudio's convention).
     pub mask: Option<PathBuf>,
     pub name: String,
+    /// The moment the photo shows, in a dynamic scene (D-NeRF's `time` key): as the file
+    /// gives it until the scene opens, then in [0, 1] (`data::time`).
+    pub time: Option<f32>,
 }
 
 /// What a format reader hands back; `Scene::open` adds splits and downscaling.

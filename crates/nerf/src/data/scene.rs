@@ -108,6 +108,8 @@ impl Scene {
         let image_factor = (downscale / parsed.prescaled.max(1)).max(1);
         let mut problems = parsed.warnings;
         let mut frames = parsed.frames;
+        let mut notes = parsed.notes;
+        notes.extend(super::time::normalise(dir, &mut frames)?);
         problems.extend(check_frames(dir, &mut frames)?);
         if parsed.one_size {
             check_one_size(&frames)?;
@@ -157,10 +159,24 @@ impl Scene {
             bound: parsed.bound,
             contract: parsed.contract,
             image_factor,
-            notes: parsed.notes,
+            notes,
             problems,
             photos_missing: None,
         })
+    }
+
+    /// Whether the photos show moments of a moving scene (each frame has a time).
+    pub fn is_dynamic(&self) -> bool {
+        self.frames.iter().any(|f| f.time.is_some())
+    }
+
+    /// The distinct moments of `split`'s photos, in order (none in a static scene).
+    pub fn moments(&self, split: Split) -> Vec<f32> {
+        let times = self
+            .indices(split)
+            .iter()
+            .filter_map(|&i| self.frames.get(i).and_then(|f| f.time));
+        super::time::moments(times)
     }
 
     pub fn indices(&self, split: Split) -> &[usize] {
@@ -294,6 +310,7 @@ impl Scene {
             image,
             name: frame.name.clone(),
             kept_pixels,
+            time: frame.time,
         })
     }
 }

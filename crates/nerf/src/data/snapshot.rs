@@ -30,6 +30,9 @@ struct SavedFrame {
     c2w: Pose,
     #[serde(default)]
     distortion: Distortion,
+    /// The photo's moment, in a dynamic scene.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    time: Option<f32>,
 }
 
 /// A scene's cameras and bounds, at its images' full resolution.
@@ -68,6 +71,7 @@ impl SceneSnapshot {
                     cy: c.cy,
                     c2w: c.c2w,
                     distortion: c.distortion,
+                    time: f.time,
                 }
             })
             .collect();
@@ -114,6 +118,7 @@ impl SceneSnapshot {
                 image: f.image.clone(),
                 mask: None,
                 name: f.name.clone(),
+                time: f.time,
             })
             .collect();
         Scene {

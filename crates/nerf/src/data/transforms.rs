@@ -154,6 +154,8 @@ struct FrameJson {
     file_path: String,
     transform_matrix: Vec<Vec<f32>>,
     mask_path: Option<String>,
+    /// D-NeRF's moment of the photo.
+    time: Option<f32>,
     #[serde(flatten)]
     intrinsics: Intrinsics,
 }
@@ -238,6 +240,7 @@ pub(crate) fn parse(dir: &Path, opts: &SceneOptions) -> Result<Parsed> {
             image,
             mask: f.mask_path.as_deref().map(|m| resolve(dir, m)),
             name: f.file_path.clone(),
+            time: f.time,
         });
     }
     let (ngp, why) = match opts.convention {

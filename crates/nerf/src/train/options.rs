@@ -319,6 +319,12 @@ impl TrainOptions {
         {
             on_notice(&format!("warning: {w}"));
         }
+        if scene.is_dynamic() {
+            on_notice(
+                "warning: the scene's photos show a moving subject (each frame has a time): \
+                 the models train a still field, which averages the motion into a blur",
+            );
+        }
         match &mut c.model {
             ModelConfig::Fast(m) => {
                 m.field.bound = self.bound.unwrap_or(scene.bound);

@@ -640,3 +640,65 @@ fn a_uniformly_scaled_rotation_is_normalised() {
     );
     assert!(open_err(dir.path(), 1).contains("not a rotation"));
 }
+
+/// Adds `time(k)` to every frame of the JSON file at `path`.
+fn add_times(path: &Path, time: impl Fn(usize) -> Value) {
+    let mut doc: Value =
+        serde_json::from_str(&std::fs::read_to_string(path).expect("read")).expect("json");
+    if let Some(frames) = doc["frames"].as_array_mut() {
+        for (k, f) in frames.iter_mut().enumerate() {
+            f["time"] = time(k);
+        }
+    }
+    write(path, &doc);
+}
+
+/// Dynamic scenes (D-NeRF's `time` key): each frame's moment reaches its view, times
+/// outside [0, 1] are mapped onto it with a note, and a frame without one is named.
+#[test]
+fn dynamic_scenes_carry_each_frames_time() {
+    let tmp = tempfile::tempdir().expect("tmp");
+    let dir = tmp.path().join("blender");
+    blender(&dir, 8, 4, 2, json!({}));
+    add_times(&dir.join("transforms_train.json"), |k| {
+        json!(10.0 * k as f64)
+    });
+    add_times(&dir.join("transforms_test.json"), |k| {
+        json!(5.0 + 10.0 * k as f64)
+    });
+    let s = open(&dir, 1).expect("open");
+    assert!(s.is_dynamic());
+    assert_eq!(
+        s.moments(Split::Train),
+        vec![0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0]
+    );
+    assert_eq!(s.moments(Split::Test), vec![1.0 / 6.0, 0.5]);
+    assert!(
+        s.notes.iter().any(|n| n.contains("mapped onto [0, 1]")),
+        "{:?}",
+        s.notes
+    );
+    let test = s.load(Split::Test, 1).expect("load");
+    let times: Vec<_> = test.views.iter().map(|v| v.time).collect();
+    assert_eq!(times, [Some(1.0 / 6.0), Some(0.5)]);
+
+    // A transforms.json with times in [0, 1]: kept as they are, without a note.
+    let tf = tmp.path().join("transforms");
+    transforms(&tf, 5, 8, 8, json!({}));
+    add_times(&tf.join("transforms.json"), |k| json!(k as f64 / 4.0));
+    let s = open(&tf, 1).expect("open");
+    let all: Vec<f32> = s.frames.iter().filter_map(|f| f.time).collect();
+    assert_eq!(all, [0.0, 0.25, 0.5, 0.75, 1.0]);
+    assert!(!s.notes.iter().any(|n| n.contains("mapped onto")));
+
+    // A static scene has no moments; a frame without a time is refused by name.
+    let still = tmp.path().join("still");
+    blender(&still, 8, 2, 1, json!({}));
+    assert!(!open(&still, 1).expect("open").is_dynamic());
+    add_times(&still.join("transforms_train.json"), |k| json!(k as f64));
+    let err = open_err(&still, 1);
+    assert!(
+        err.contains("./test/r_0") && err.contains("no time"),
+        "{err}"
+    );
+}

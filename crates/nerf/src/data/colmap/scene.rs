@@ -69,6 +69,7 @@ pub fn frames_of(
                 image: images_dir.join(&img.name),
                 mask: None,
                 name: img.name.clone(),
+                time: None,
             })
         })
         .collect::<Result<Vec<_>>>()?;

@@ -186,6 +186,7 @@ pub fn generate(
                 file_path: format!("./{}/r_{k}", split.name()),
                 transform_matrix: pose_to_matrix(&camera.c2w),
                 depth_file_path: Some(format!("./{}/r_{k}_depth.png", split.name())),
+                time: None,
             });
             done += 1;
             on_image(done, total);
@@ -217,6 +218,7 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
                 image,
                 name: format!("{}/r_{k}", split.name()),
                 kept_pixels: None,
+                time: None,
             }
         })
         .collect();
