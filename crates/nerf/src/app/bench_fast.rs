@@ -129,11 +129,13 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         appearance: Choice::Off,
         refine_cameras: Choice::Off,
         distortion: opts.distortion.map_or(Choice::Default, Choice::On),
+        few_view: Choice::Default,
     };
     let facts = defaults::SceneFacts {
         blender,
         space: data.space,
         multiscale: 1,
+        train_views: data.views.len(),
     };
     let chosen = defaults::decide(opts.device, &facts, &flags);
     for note in chosen.notes {

@@ -112,6 +112,7 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         blender: opened.format == crate::data::scene::Format::Blender,
         space: opened.space,
         multiscale: 1,
+        train_views: opened.train.len(),
     };
     let flags = crate::train::defaults::Flags::default();
     let chosen = crate::train::defaults::decide(opts.device.device, &facts, &flags);

@@ -29,25 +29,29 @@ pub enum Feature {
     Distortion,
     /// The paper model's integrated positional encoding and shared network (`--preset mip`).
     Mip,
+    /// Few-view training: the space too few photos see kept empty (`--few-view`).
+    FewView,
 }
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
-const TABLE: [(Feature, bool, bool); 5] = [
+const TABLE: [(Feature, bool, bool); 6] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, false),
     (Feature::Distortion, true, true),
     (Feature::Mip, true, true),
+    (Feature::FewView, true, false),
 ];
 
 impl Feature {
     /// Every feature, in the table's order.
-    pub const ALL: [Feature; 5] = [
+    pub const ALL: [Feature; 6] = [
         Feature::Antialias,
         Feature::Appearance,
         Feature::CameraRefinement,
         Feature::Distortion,
         Feature::Mip,
+        Feature::FewView,
     ];
 
     /// Its name and the flags that ask for it and turn it off, for messages.
@@ -64,6 +68,7 @@ impl Feature {
                 "the distortion loss (--distortion; turned off by --no-distortion)"
             }
             Feature::Mip => "mip-NeRF's frustums and shared network (--preset mip)",
+            Feature::FewView => "few-view training (--few-view; turned off by --no-few-view)",
         }
     }
 
@@ -76,6 +81,7 @@ impl Feature {
                 (Feature::Appearance, ModelConfig::Fast(c)) => c.field.appearance_dims > 0,
                 (Feature::CameraRefinement, ModelConfig::Fast(c)) => c.refine_cameras.is_some(),
                 (Feature::Distortion, ModelConfig::Fast(c)) => c.distortion > 0.0,
+                (Feature::FewView, ModelConfig::Fast(c)) => c.few_view.is_some(),
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
                 _ => false,
             })

@@ -123,6 +123,7 @@ impl<M: Model> Engine for CpuEngine<M> {
         for w in &mut self.workers {
             w.grads.clear();
         }
+        self.model.prepare(data);
         self.model.set_progress(spec.progress);
         let check = FiniteCheck::new(self.check_finite);
         let input = StepInput {

@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera_refine::{self, CameraRefinement, CameraStep};
+use super::few_view::FewView;
 use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
 use crate::camera::ray_space::RaySpace;
 use crate::data::pixels::{PixelSampling, TrainingRays};
@@ -62,6 +63,9 @@ pub struct FastModelConfig {
     /// before it existed had none.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub distortion: f32,
+    /// Few-view training: the space too few photos see kept empty (see `few_view`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub few_view: Option<FewView>,
 }
 
 fn is_zero(x: &f32) -> bool {
@@ -81,6 +85,7 @@ impl Default for FastModelConfig {
             contract: false,
             refine_cameras: None,
             distortion: 0.0,
+            few_view: None,
         }
     }
 }
@@ -589,6 +594,28 @@ impl Model for FastModel {
                 self.field.level_weights = weights;
             }
         }
+    }
+
+    /// Few-view training of a bounded scene in world space: the space too few training
+    /// cameras see stays empty (`model::few_view`), marked once.
+    fn prepare(&mut self, data: &Dataset) {
+        let Some(few) = self.config.few_view else {
+            return;
+        };
+        let bounded_world = data.space == RaySpace::World && !self.config.contract;
+        if !bounded_world || self.grid.possible.is_some() {
+            return;
+        }
+        // The photos themselves: a multi-scale split repeats them, smaller, after them.
+        let photos = data.views.len().min(few.photos.max(1));
+        let cameras: Vec<crate::camera::Camera> = data.views[..photos]
+            .iter()
+            .map(|v| v.camera.clone())
+            .collect();
+        let (res, bound) = (self.grid.resolution, self.grid.bound);
+        let seen = crate::render::visibility::seen_by(&cameras, res, bound, few.min_views());
+        self.grid.possible = Some(seen);
+        self.grid.refresh(self.config.occupancy.threshold);
     }
 
     /// Re-evaluates the occupancy grid every `update_every` steps with the current weights.

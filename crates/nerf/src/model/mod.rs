@@ -8,6 +8,7 @@
 
 pub mod camera_refine;
 pub mod fast;
+pub mod few_view;
 pub mod vanilla;
 
 use serde::{Deserialize, Serialize};
@@ -163,6 +164,10 @@ pub trait Model: Send + Sync + 'static {
 
     /// Called after each optimiser step, with the steps completed (occupancy refreshes).
     fn after_step(&mut self, _params: &[f32], _steps_done: u64, _seed: u64) {}
+
+    /// Called before each step with the training data (few-view training marks, once,
+    /// the space its cameras see).
+    fn prepare(&mut self, _data: &Dataset) {}
 
     /// Called before each step with how far through its schedule the run is, in [0, 1]
     /// (coarse-to-fine weighting of camera refinement).

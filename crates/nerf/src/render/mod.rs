@@ -12,4 +12,5 @@ pub mod loss;
 pub mod march;
 pub mod occupancy;
 pub mod sampling;
+pub mod visibility;
 pub mod volume;

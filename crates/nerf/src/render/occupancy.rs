@@ -52,6 +52,9 @@ pub struct OccupancyGrid {
     /// Remembered optical thickness per cell, x fastest.
     pub thickness: Vec<f32>,
     occupied: Vec<bool>,
+    /// Cells that may hold anything (`None`: all): few-view training keeps the space the
+    /// training cameras do not see empty (`render::visibility`).
+    pub possible: Option<Vec<bool>>,
 }
 
 /// Entry and exit distances of a ray (unit direction) through `[-bound, bound]^3`,
@@ -84,6 +87,7 @@ impl OccupancyGrid {
             bound,
             thickness: vec![0.0; n],
             occupied: vec![true; n],
+            possible: None,
         }
     }
 
@@ -135,6 +139,7 @@ impl OccupancyGrid {
             bound,
             thickness,
             occupied,
+            possible: None,
         }
     }
 
@@ -153,8 +158,16 @@ impl OccupancyGrid {
         let mean = self.thickness.iter().map(|&v| v as f64).sum::<f64>()
             / self.thickness.len().max(1) as f64;
         let cut = threshold.min(mean as f32);
-        for (o, &v) in self.occupied.iter_mut().zip(&self.thickness) {
-            *o = v >= cut;
+        if let Some(possible) = &self.possible {
+            // Kept in the thickness too, so a saved grid stays empty there when loaded.
+            for (v, &p) in self.thickness.iter_mut().zip(possible) {
+                if !p {
+                    *v = 0.0;
+                }
+            }
+        }
+        for (i, (o, &v)) in self.occupied.iter_mut().zip(&self.thickness).enumerate() {
+            *o = v >= cut && self.possible.as_ref().is_none_or(|p| p[i]);
         }
     }
 
@@ -248,6 +261,25 @@ impl OccupancyGrid {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Cells marked impossible stay empty whatever their thickness, and lose it, so a grid
+    /// saved and loaded without the mark is empty there too.
+    #[test]
+    fn impossible_cells_are_never_occupied_and_keep_no_thickness() {
+        let mut g = OccupancyGrid::from_thickness(2, 1.0, vec![1.0; 8], 0.01);
+        assert!((g.occupancy() - 1.0).abs() < 1e-12);
+        g.possible = Some((0..8).map(|i| i % 2 == 0).collect());
+        g.refresh(0.01);
+        assert!((g.occupancy() - 0.5).abs() < 1e-12);
+        assert_eq!(g.thickness, [1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 1.0, 0.0]);
+        // Even before any thickness (all cells at zero pass a zero cut).
+        let mut fresh = OccupancyGrid::new(2, 1.0);
+        fresh.possible = Some(vec![false; 8]);
+        fresh.refresh(0.01);
+        assert_eq!(fresh.occupancy(), 0.0);
+        let loaded = OccupancyGrid::from_thickness(2, 1.0, g.thickness.clone(), 0.01);
+        assert!((loaded.occupancy() - 0.5).abs() < 1e-12);
+    }
 
     #[test]
     fn ray_box_clips_to_the_box_and_misses_outside() {

@@ -11,7 +11,8 @@
 //!    Blender scenes (exact poses, one look). Refinement alone would let the poses absorb
 //!    exposure changes, so a default turns on both or neither;
 //! 3. the distortion loss: on for forward-facing scenes, which grow fog in front of what
-//!    they see ([`FORWARD_FACING_DISTORTION`]).
+//!    they see ([`FORWARD_FACING_DISTORTION`]);
+//! 4. few-view training: on for runs on at most `model::few_view::FEW_VIEWS` photos.
 //!
 //! A default turns a feature on only where the run's engine runs it (`engine::caps`), and
 //! says so when it leaves one off for that reason. With `--device auto` on a machine with a
@@ -64,6 +65,7 @@ pub struct Flags {
     pub refine_cameras: Choice,
     /// With the loss's weight.
     pub distortion: Choice<f32>,
+    pub few_view: Choice,
 }
 
 /// What a scene is, as far as the defaults care.
@@ -74,6 +76,8 @@ pub struct SceneFacts {
     pub space: RaySpace,
     /// Scales each photo is trained at (`--multiscale`).
     pub multiscale: usize,
+    /// The photos the run trains on.
+    pub train_views: usize,
 }
 
 impl SceneFacts {
@@ -98,6 +102,7 @@ pub struct Defaults {
     /// Whether refinement was asked for (else it is a real capture's default).
     pub refine_asked: bool,
     pub distortion: f32,
+    pub few_view: bool,
     /// What the user should hear: each default that turned a feature on or left one off.
     pub notes: Vec<String>,
 }
@@ -116,6 +121,7 @@ pub fn engine_for(device: Device, has_gpu: bool, flags: &Flags) -> (EngineKind, 
                 (flags.appearance.asked(), Feature::Appearance),
                 (flags.refine_cameras.asked(), Feature::CameraRefinement),
                 (flags.distortion.asked(), Feature::Distortion),
+                (flags.few_view.asked(), Feature::FewView),
             ];
             let cpu_only: Vec<Feature> = asked
                 .into_iter()
@@ -235,12 +241,30 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         }
     };
 
+    let few = scene.train_views <= crate::model::few_view::FEW_VIEWS;
+    let few_view = match flags.few_view {
+        Choice::On(()) => true,
+        Choice::Off => false,
+        Choice::Default => by_default(
+            Feature::FewView,
+            few,
+            &format!(
+                "few-view training: the space fewer than half of the {} training photos see \
+                 is kept empty (the default for runs on at most {} photos; --no-few-view \
+                 turns it off)",
+                scene.train_views,
+                crate::model::few_view::FEW_VIEWS
+            ),
+        ),
+    };
+
     Defaults {
         antialias,
         appearance,
         refine_cameras,
         refine_asked: flags.refine_cameras.asked(),
         distortion,
+        few_view,
         notes,
     }
 }
@@ -254,6 +278,7 @@ mod tests {
             blender,
             space,
             multiscale: 1,
+            train_views: 100,
         }
     }
 
@@ -301,24 +326,43 @@ mod tests {
     }
 
     #[test]
+    fn runs_on_few_photos_keep_the_space_few_photos_see_empty() {
+        for (views, on) in [(3, true), (16, true), (17, false), (100, false)] {
+            let scene = SceneFacts {
+                train_views: views,
+                ..facts(true, RaySpace::World)
+            };
+            let d = fast_defaults(&scene, CPU, &Flags::default());
+            assert_eq!(d.few_view, on, "{views} views");
+            assert_eq!(d.notes.iter().any(|n| n.contains("few-view")), on);
+        }
+    }
+
+    #[test]
     fn flags_win_over_every_rule() {
         let flags = Flags {
             antialias: Choice::Off,
             appearance: Choice::On(8),
             refine_cameras: Choice::On(()),
             distortion: Choice::On(0.01),
+            few_view: Choice::On(()),
         };
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
-        assert!(!d.antialias && d.refine_cameras && d.refine_asked);
+        assert!(!d.antialias && d.refine_cameras && d.refine_asked && d.few_view);
         assert_eq!((d.appearance, d.distortion), (Some(8), 0.01));
         let off = Flags {
             antialias: Choice::On(()),
             appearance: Choice::Off,
             refine_cameras: Choice::Off,
             distortion: Choice::Off,
+            few_view: Choice::Off,
         };
-        let d = fast_defaults(&facts(false, NDC), CPU, &off);
-        assert!(d.antialias);
+        let few = SceneFacts {
+            train_views: 3,
+            ..facts(false, NDC)
+        };
+        let d = fast_defaults(&few, CPU, &off);
+        assert!(d.antialias && !d.few_view);
         assert_eq!(
             (d.appearance, d.refine_cameras, d.distortion),
             (None, false, 0.0)

@@ -152,6 +152,13 @@ pub struct TrainOptions {
     /// Fast: point samples, as Instant-NGP (the default for forward-facing NDC captures).
     #[arg(long)]
     pub no_antialias: bool,
+    /// Fast: few-view training (the hash grid's fine levels faded in over the first half
+    /// of the run), the default for runs on at most 16 training views.
+    #[arg(long, conflicts_with = "no_few_view")]
+    pub few_view: bool,
+    /// Fast: train as on many views, however few there are.
+    #[arg(long)]
+    pub no_few_view: bool,
     /// Area-average downscale factor of the images (default 1).
     #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=64))]
     pub downscale: Option<usize>,
@@ -225,6 +232,7 @@ impl TrainOptions {
                 (None, true) => Choice::Off,
                 (None, false) => Choice::Default,
             },
+            few_view: Choice::from_flags(self.few_view, self.no_few_view),
         }
     }
 
@@ -342,10 +350,15 @@ impl TrainOptions {
                             .into(),
                     );
                 }
+                let photos = match self.train_views.as_ref().or(c.train_views.as_ref()) {
+                    Some(v) => v.indices(scene.train.len())?.len(),
+                    None => scene.train.len(),
+                };
                 let facts = defaults::SceneFacts {
                     blender: scene.format == crate::data::scene::Format::Blender,
                     space: scene.space,
                     multiscale: c.multiscale,
+                    train_views: photos,
                 };
                 let d = defaults::decide(self.device.device, &facts, &self.feature_flags());
                 for note in &d.notes {
@@ -355,6 +368,9 @@ impl TrainOptions {
                     m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
                 }
                 m.distortion = d.distortion;
+                if d.few_view {
+                    m.few_view = Some(crate::model::few_view::FewView { photos });
+                }
                 if let Some(dims) = d.appearance {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
@@ -406,6 +422,9 @@ impl TrainOptions {
             }
             ModelConfig::Vanilla(_) if self.antialias => {
                 return refuse("--antialias applies to --model fast only".into());
+            }
+            ModelConfig::Vanilla(_) if self.few_view => {
+                return refuse("--few-view applies to --model fast only".into());
             }
             ModelConfig::Vanilla(_)
                 if self.appearance.is_some()
@@ -606,12 +625,14 @@ impl TrainOptions {
             || self.no_antialias
             || self.distortion.is_some()
             || self.no_distortion
+            || self.few_view
+            || self.no_few_view
         {
             out.push(
                 "--paper-pe / --no-contract / --appearance / --no-appearance / \
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
-                 --antialias / --no-antialias / --distortion / --no-distortion (set when the \
-                 run was made)"
+                 --antialias / --no-antialias / --distortion / --no-distortion / --few-view / \
+                 --no-few-view (set when the run was made)"
                     .into(),
             );
         }
@@ -874,6 +895,17 @@ mod tests {
             "{err}"
         );
         let err = config(&["--preset", "demo", "--antialias"], dir.path()).expect_err("vanilla");
+        assert!(err.to_string().contains("--model fast only"), "{err}");
+        // Few-view training: on for at most 16 photos (the kept ones), off when asked.
+        let few = |args: &[&str]| match config(args, dir.path()).expect("ok").model {
+            ModelConfig::Fast(m) => m.few_view,
+            ModelConfig::Vanilla(_) => panic!("fast model expected"),
+        };
+        use crate::model::few_view::FewView;
+        assert_eq!(few(&["--train-views", "2"]), Some(FewView { photos: 2 }));
+        assert_eq!(few(&[]), Some(FewView { photos: 3 }));
+        assert_eq!(few(&["--no-few-view"]), None);
+        let err = config(&["--preset", "demo", "--few-view"], dir.path()).expect_err("vanilla");
         assert!(err.to_string().contains("--model fast only"), "{err}");
     }
 }

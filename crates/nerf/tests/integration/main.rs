@@ -7,6 +7,7 @@ mod common;
 mod antialias;
 mod end_to_end;
 mod fast_model;
+mod few_view;
 #[cfg(feature = "wgpu")]
 mod gpu_engine;
 mod layers;

@@ -197,15 +197,17 @@ pub fn render_batch(
     round_samples: usize,
     batch: &DeviceBatch,
 ) -> Result<Vec<f32>> {
-    let rounds = Rounds {
+    let batches = std::slice::from_ref(batch);
+    let mut states = render_batches(
         gpu,
         device_grid,
         marcher,
         field,
         needs,
-        round_samples: round_samples.max(1),
-    };
-    Ok(rounds.render(std::slice::from_ref(batch))?.remove(0))
+        round_samples,
+        batches,
+    )?;
+    Ok(states.pop().unwrap_or_default())
 }
 
 /// Renders `batches` as [`render_batch`] renders each, their rounds interleaved: while
