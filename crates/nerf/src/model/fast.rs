@@ -613,7 +613,7 @@ impl Model for FastModel {
             .map(|v| v.camera.clone())
             .collect();
         let (res, bound) = (self.grid.resolution, self.grid.bound);
-        let seen = crate::render::visibility::seen_by(&cameras, res, bound, few.min_views());
+        let seen = super::few_view::seen_by(&cameras, res, bound, few.min_views());
         self.grid.possible = Some(seen);
         self.grid.refresh(self.config.occupancy.threshold);
     }

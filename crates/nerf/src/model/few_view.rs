@@ -2,9 +2,12 @@
 //! them see can explain their pixels with anything at any depth, and a field fills it
 //! with floaters that every other view then shows. Few-view training keeps the space that
 //! fewer than half of the training photos see empty: the occupancy grid never marks it,
-//! so no sample is taken there in training or rendering (`render::visibility`).
+//! so no sample is taken there in training or rendering.
 
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+
+use crate::camera::Camera;
 
 /// Runs on at most this many training views get few-view training by default.
 pub const FEW_VIEWS: usize = 16;
@@ -22,6 +25,45 @@ impl FewView {
     }
 }
 
+/// For each cell of a `resolution^3` grid over `[-bound, bound]^3` (x fastest), whether at
+/// least `min_views` of `cameras` see its centre: in front of the camera and inside its
+/// image, widened by the cell's own size there (pinhole projection; lens distortion is
+/// ignored, which only moves the border a little).
+pub fn seen_by(cameras: &[Camera], resolution: usize, bound: f32, min_views: usize) -> Vec<bool> {
+    let cell = 2.0 * bound / resolution as f32;
+    (0..resolution.pow(3))
+        .into_par_iter()
+        .map(|i| {
+            let c = [
+                i % resolution,
+                (i / resolution) % resolution,
+                i / (resolution * resolution),
+            ];
+            let p = c.map(|k| (k as f32 + 0.5) * cell - bound);
+            cameras.iter().filter(|cam| sees(cam, p, cell)).count() >= min_views
+        })
+        .collect()
+}
+
+/// Whether `camera` sees the point `p` (a cell of size `cell` around it).
+fn sees(camera: &Camera, p: [f32; 3], cell: f32) -> bool {
+    let m = &camera.c2w;
+    let rel = [p[0] - m[0][3], p[1] - m[1][3], p[2] - m[2][3]];
+    // Camera coordinates: the transpose of the rotation (columns x, y, z); it looks down -z.
+    let axis = |k: usize| rel[0] * m[0][k] + rel[1] * m[1][k] + rel[2] * m[2][k];
+    let depth = -axis(2);
+    if depth <= 0.0 {
+        return false;
+    }
+    let x = camera.cx + camera.fx * axis(0) / depth;
+    let y = camera.cy - camera.fy * axis(1) / depth;
+    let margin = camera.fx.max(camera.fy) * cell / depth;
+    x >= -margin
+        && x <= camera.width as f32 + margin
+        && y >= -margin
+        && y <= camera.height as f32 + margin
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -33,5 +75,63 @@ mod tests {
             [min(1), min(3), min(4), min(8), min(9), min(16)],
             [2, 2, 2, 4, 5, 8]
         );
+    }
+    use crate::camera::look_at;
+
+    #[test]
+    fn a_cell_is_seen_where_it_projects_into_enough_images() {
+        // Two cameras on the x axis, facing the origin, with a narrow field of view.
+        let left = Camera::from_fov_x(
+            32,
+            32,
+            0.3,
+            look_at([-4.0, 0.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]),
+        );
+        let right = Camera::from_fov_x(
+            32,
+            32,
+            0.3,
+            look_at([4.0, 0.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]),
+        );
+        let res = 16;
+        let seen = seen_by(&[left.clone(), right], res, 1.5, 2);
+        let at = |p: [f32; 3]| {
+            let cell = 3.0 / res as f32;
+            let c = p.map(|x| ((x + 1.5) / cell) as usize);
+            seen[c[0] + res * (c[1] + res * c[2])]
+        };
+        assert!(at([0.0, 0.0, 0.0]), "the centre is in both views");
+        assert!(
+            !at([0.0, 1.4, 1.4]),
+            "a corner is outside both narrow views"
+        );
+        // The centre's projection lands mid-image, where ray_at points.
+        let r = left.ray_at(16.0, 16.0);
+        assert!(r.dir[0] > 0.99 * crate::math::length(r.dir));
+        // One view is not enough at two, but is at one.
+        assert!(!seen_by(std::slice::from_ref(&left), res, 1.5, 2)
+            .iter()
+            .any(|&s| s));
+        let one = seen_by(&[left], res, 1.5, 1);
+        assert!(one.iter().any(|&s| s) && !one.iter().all(|&s| s));
+    }
+
+    #[test]
+    fn a_point_behind_the_camera_or_off_the_image_is_not_seen() {
+        let cam = Camera::from_fov_x(
+            32,
+            32,
+            0.5,
+            look_at([0.0, -4.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]),
+        );
+        assert!(sees(&cam, [0.0, 0.0, 0.0], 0.01));
+        assert!(!sees(&cam, [0.0, -6.0, 0.0], 0.01), "behind");
+        assert!(!sees(&cam, [3.0, 0.0, 0.0], 0.01), "off to the side");
+        // Up in the world is up in the image: y below the centre row.
+        let up = [0.0, 0.0, 0.5];
+        let m = &cam.c2w;
+        let rel = [up[0] - m[0][3], up[1] - m[1][3], up[2] - m[2][3]];
+        let axis = |k: usize| rel[0] * m[0][k] + rel[1] * m[1][k] + rel[2] * m[2][k];
+        assert!(cam.cy - cam.fy * axis(1) / -axis(2) < cam.cy);
     }
 }

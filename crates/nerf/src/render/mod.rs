@@ -12,5 +12,4 @@ pub mod loss;
 pub mod march;
 pub mod occupancy;
 pub mod sampling;
-pub mod visibility;
 pub mod volume;

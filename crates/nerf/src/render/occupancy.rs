@@ -53,7 +53,7 @@ pub struct OccupancyGrid {
     pub thickness: Vec<f32>,
     occupied: Vec<bool>,
     /// Cells that may hold anything (`None`: all): few-view training keeps the space the
-    /// training cameras do not see empty (`render::visibility`).
+    /// training cameras do not see empty (`model::few_view`).
     pub possible: Option<Vec<bool>>,
 }
 
