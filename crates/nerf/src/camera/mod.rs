@@ -188,6 +188,22 @@ impl Camera {
         (2.0 * (0.5 * self.height as f32 / self.fy).atan()).to_degrees()
     }
 
+    /// Where the world point `p` lands in the image, pinhole (lens distortion aside):
+    /// `(x, y, depth)`, in pixels from the top-left corner and in units along the camera's
+    /// axis; the inverse of [`ray_at`](Self::ray_at) for points in front of the camera
+    /// (depth > 0; behind it the pixel is meaningless).
+    pub fn project(&self, p: V3) -> (f32, f32, f32) {
+        let m = &self.c2w;
+        let rel = sub(p, self.origin());
+        let axis = |c: usize| rel[0] * m[0][c] + rel[1] * m[1][c] + rel[2] * m[2][c];
+        let depth = -axis(2);
+        (
+            self.fx * axis(0) / depth + self.cx,
+            -self.fy * axis(1) / depth + self.cy,
+            depth,
+        )
+    }
+
     /// The ray through the centre of pixel (column `i`, row `j`).
     #[inline]
     pub fn ray(&self, i: usize, j: usize) -> Ray {
@@ -265,6 +281,28 @@ mod tests {
         // Unnormalised: the centre ray has unit length (z component -1 in camera space).
         assert!((length(r.dir) - 1.0).abs() < 1e-6);
         assert_eq!(r.origin, eye);
+    }
+
+    #[test]
+    fn projecting_a_point_on_a_pixels_ray_gives_back_the_pixel() {
+        let cam = Camera::from_fov_x(
+            100,
+            80,
+            0.7,
+            look_at([3.0, 1.0, 2.0], [0.0; 3], [0.0, 0.0, 1.0]),
+        );
+        for (x, y) in [(50.0, 40.0), (3.5, 77.25), (99.0, 0.5)] {
+            let r = cam.ray_at(x, y);
+            let p = [0, 1, 2].map(|a| r.origin[a] + 2.5 * r.dir[a]);
+            let (px, py, depth) = cam.project(p);
+            assert!(
+                (px - x).abs() < 1e-3 && (py - y).abs() < 1e-3,
+                "{x},{y}: {px},{py}"
+            );
+            // The ray's direction has unit length along the axis (z = -1 in camera space).
+            assert!((depth - 2.5).abs() < 1e-4, "{depth}");
+        }
+        assert!(cam.project([6.0, 2.0, 4.0]).2 < 0.0, "behind the camera");
     }
 
     #[test]

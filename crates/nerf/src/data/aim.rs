@@ -3,7 +3,7 @@
 //! another centre (every camera looking past the box) from one read right.
 
 use crate::camera::Camera;
-use crate::math::{dot, sub, V3};
+use crate::math::V3;
 
 /// Points spread through the box `[-bound, bound]^3`: a 5x5x5 lattice, its corners included.
 fn box_points(bound: f32) -> impl Iterator<Item = V3> {
@@ -17,21 +17,15 @@ fn box_points(bound: f32) -> impl Iterator<Item = V3> {
 /// the box (or on its surface) sees it, whichever way it looks: an inside-out capture of a
 /// room has its box around the cameras.
 pub fn sees_box(camera: &Camera, bound: f32, far: f32) -> bool {
-    let m = &camera.c2w;
-    let axis = |c: usize| [m[0][c], m[1][c], m[2][c]];
-    let origin = camera.origin();
-    if origin.iter().all(|x| x.abs() <= 1.01 * bound) {
+    if camera.origin().iter().all(|x| x.abs() <= 1.01 * bound) {
         return true;
     }
     box_points(bound).any(|p| {
-        let rel = sub(p, origin);
-        let (x, y, depth) = (dot(rel, axis(0)), dot(rel, axis(1)), -dot(rel, axis(2)));
-        if !(depth > 0.0 && depth <= far) {
-            return false;
-        }
-        let u = camera.fx * x / depth + camera.cx;
-        let v = -camera.fy * y / depth + camera.cy;
-        (0.0..=camera.width as f32).contains(&u) && (0.0..=camera.height as f32).contains(&v)
+        let (u, v, depth) = camera.project(p);
+        depth > 0.0
+            && depth <= far
+            && (0.0..=camera.width as f32).contains(&u)
+            && (0.0..=camera.height as f32).contains(&v)
     })
 }
 
