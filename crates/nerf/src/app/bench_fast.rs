@@ -135,6 +135,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         blender,
         space: data.space,
         multiscale: 1,
+        contract: model.contract,
         train_views: data.views.len(),
     };
     let chosen = defaults::decide(opts.device, &facts, &flags);
@@ -143,6 +144,9 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     }
     let antialias = chosen.antialias;
     model.distortion = chosen.distortion;
+    model.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
+        photos: data.views.len(),
+    });
     if antialias {
         let cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
         model.antialias_for(&cameras, &data.space);

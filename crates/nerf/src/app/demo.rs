@@ -112,6 +112,7 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         blender: opened.format == crate::data::scene::Format::Blender,
         space: opened.space,
         multiscale: 1,
+        contract: opened.contract,
         train_views: opened.train.len(),
     };
     let flags = crate::train::defaults::Flags::default();
@@ -124,6 +125,9 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
             m.antialias_for(&opened.cameras(Split::Train), &opened.space);
         }
         m.distortion = chosen.distortion;
+        m.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
+            photos: opened.train.len(),
+        });
     }
     let run_options = RunOptions {
         out: run_dir.clone(),

@@ -602,8 +602,9 @@ impl Model for FastModel {
         let Some(few) = self.config.few_view else {
             return;
         };
-        let bounded_world = data.space == RaySpace::World && !self.config.contract;
-        if !bounded_world || self.grid.possible.is_some() {
+        if !super::few_view::applies(data.space, self.config.contract)
+            || self.grid.possible.is_some()
+        {
             return;
         }
         // The photos themselves: a multi-scale split repeats them, smaller, after them.

@@ -7,10 +7,19 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use crate::camera::ray_space::RaySpace;
 use crate::camera::Camera;
 
 /// Runs on at most this many training views get few-view training by default.
 pub const FEW_VIEWS: usize = 16;
+
+/// Whether keeping unseen space empty applies to a scene marched in `space`, contracted
+/// or not: only to bounded scenes in world space, whose grid cells are places the photos
+/// can be asked about (a forward-facing capture's NDC cells and a contracted capture's
+/// outer cells are not).
+pub fn applies(space: RaySpace, contract: bool) -> bool {
+    space == RaySpace::World && !contract
+}
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FewView {

@@ -12,7 +12,8 @@
 //!    exposure changes, so a default turns on both or neither;
 //! 3. the distortion loss: on for forward-facing scenes, which grow fog in front of what
 //!    they see ([`FORWARD_FACING_DISTORTION`]);
-//! 4. few-view training: on for runs on at most `model::few_view::FEW_VIEWS` photos.
+//! 4. few-view training: on for runs on at most `model::few_view::FEW_VIEWS` photos of a
+//!    scene it applies to (bounded, in world space: `model::few_view::applies`).
 //!
 //! A default turns a feature on only where the run's engine runs it (`engine::caps`), and
 //! says so when it leaves one off for that reason. With `--device auto` on a machine with a
@@ -76,6 +77,8 @@ pub struct SceneFacts {
     pub space: RaySpace,
     /// Scales each photo is trained at (`--multiscale`).
     pub multiscale: usize,
+    /// Space beyond the box is contracted into it (unbounded captures).
+    pub contract: bool,
     /// The photos the run trains on.
     pub train_views: usize,
 }
@@ -241,7 +244,8 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         }
     };
 
-    let few = scene.train_views <= crate::model::few_view::FEW_VIEWS;
+    let few = scene.train_views <= crate::model::few_view::FEW_VIEWS
+        && crate::model::few_view::applies(scene.space, scene.contract);
     let few_view = match flags.few_view {
         Choice::On(()) => true,
         Choice::Off => false,
@@ -278,6 +282,7 @@ mod tests {
             blender,
             space,
             multiscale: 1,
+            contract: false,
             train_views: 100,
         }
     }
@@ -335,6 +340,21 @@ mod tests {
             let d = fast_defaults(&scene, CPU, &Flags::default());
             assert_eq!(d.few_view, on, "{views} views");
             assert_eq!(d.notes.iter().any(|n| n.contains("few-view")), on);
+        }
+        // Not where it cannot act: forward-facing (NDC) and contracted captures.
+        for scene in [
+            SceneFacts {
+                train_views: 3,
+                ..facts(false, NDC)
+            },
+            SceneFacts {
+                train_views: 3,
+                contract: true,
+                ..facts(false, RaySpace::World)
+            },
+        ] {
+            let d = fast_defaults(&scene, CPU, &Flags::default());
+            assert!(!d.few_view && !d.notes.iter().any(|n| n.contains("few-view")));
         }
     }
 

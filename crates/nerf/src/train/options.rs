@@ -354,10 +354,18 @@ impl TrainOptions {
                     Some(v) => v.indices(scene.train.len())?.len(),
                     None => scene.train.len(),
                 };
+                if self.few_view && !crate::model::few_view::applies(scene.space, m.contract) {
+                    return refuse(
+                        "--few-view applies to bounded scenes in world space, not to \
+                         forward-facing or contracted captures"
+                            .into(),
+                    );
+                }
                 let facts = defaults::SceneFacts {
                     blender: scene.format == crate::data::scene::Format::Blender,
                     space: scene.space,
                     multiscale: c.multiscale,
+                    contract: m.contract,
                     train_views: photos,
                 };
                 let d = defaults::decide(self.device.device, &facts, &self.feature_flags());
@@ -897,15 +905,22 @@ mod tests {
         let err = config(&["--preset", "demo", "--antialias"], dir.path()).expect_err("vanilla");
         assert!(err.to_string().contains("--model fast only"), "{err}");
         // Few-view training: on for at most 16 photos (the kept ones), off when asked.
-        let few = |args: &[&str]| match config(args, dir.path()).expect("ok").model {
+        let few_in = |args: &[&str], dir: &Path| match config(args, dir).expect("ok").model {
             ModelConfig::Fast(m) => m.few_view,
             ModelConfig::Vanilla(_) => panic!("fast model expected"),
         };
+        let few = |args: &[&str]| few_in(args, dir.path());
         use crate::model::few_view::FewView;
         assert_eq!(few(&["--train-views", "2"]), Some(FewView { photos: 2 }));
         assert_eq!(few(&[]), Some(FewView { photos: 3 }));
         assert_eq!(few(&["--no-few-view"]), None);
         let err = config(&["--preset", "demo", "--few-view"], dir.path()).expect_err("vanilla");
         assert!(err.to_string().contains("--model fast only"), "{err}");
+        // Not where it cannot act: a forward-facing capture of 6 photos trains as before,
+        // and asking for it there is refused.
+        let llff = tiny_llff();
+        assert_eq!(few_in(&[], llff.path()), None);
+        let err = config(&["--few-view"], llff.path()).expect_err("ndc");
+        assert!(err.to_string().contains("world space"), "{err}");
     }
 }
