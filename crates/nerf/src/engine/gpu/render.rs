@@ -6,6 +6,8 @@
 //! lattice and the same stopping rule), with the host reading back three numbers per round
 //! and the results at the end.
 
+use std::time::{Duration, Instant};
+
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 use rayon::prelude::*;
@@ -15,8 +17,6 @@ use super::codes::SampleCodes;
 use super::device::Gpu;
 use super::field::DeviceInput;
 use super::launch::grid;
-use std::time::{Duration, Instant};
-
 use super::march::{Counted, Cut, GpuMarcher, GpuRays, PendingCut, RoundState, STATE_WORDS};
 use crate::error::Result;
 use crate::math::length;
@@ -324,26 +324,24 @@ struct Lane<'a> {
 impl<'a> Rounds<'a> {
     fn render(&self, batches: &'a [DeviceBatch]) -> Result<Vec<Vec<f32>>> {
         let mut trace = Trace::start();
-        let mut lanes: Vec<Lane> = batches
+        // A lane per batch with rays.
+        let mut lanes: Vec<Option<Lane>> = batches
             .iter()
-            .filter(|b| b.rays.len > 0)
-            .map(|b| self.lane(b))
+            .map(|b| (b.rays.len > 0).then(|| self.lane(b)))
             .collect();
-        while lanes.iter().any(|lane| lane.pending.is_some()) {
-            for lane in &mut lanes {
+        while lanes.iter().flatten().any(|lane| lane.pending.is_some()) {
+            for lane in lanes.iter_mut().flatten() {
                 self.advance(lane, &mut trace)?;
             }
         }
         trace.rounds_done();
-        let mut lanes = lanes.into_iter();
-        let states = batches
+        let states = lanes
             .iter()
-            .map(|b| match b.rays.len {
-                0 => Ok(Vec::new()),
-                n => match lanes.next() {
-                    Some(lane) => self.gpu.read(&lane.round.state, STATE_WORDS * n),
-                    None => Ok(Vec::new()),
-                },
+            .map(|lane| match lane {
+                Some(l) => self
+                    .gpu
+                    .read(&l.round.state, STATE_WORDS * l.batch.rays.len),
+                None => Ok(Vec::new()),
             })
             .collect();
         trace.report(batches);
