@@ -29,7 +29,6 @@ pub(crate) fn normalise(dir: &Path, frames: &mut [Frame]) -> Result<Option<Strin
             ),
         ));
     }
-    let times: Vec<f32> = frames.iter().filter_map(|f| f.time).collect();
     if let Some(bad) = frames
         .iter()
         .find(|f| f.time.is_some_and(|t| !t.is_finite()))
@@ -39,9 +38,10 @@ pub(crate) fn normalise(dir: &Path, frames: &mut [Frame]) -> Result<Option<Strin
             format!("frame {}: its time is not a finite number", bad.name),
         ));
     }
-    let (first, last) = times
+    let (first, last) = frames
         .iter()
-        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &t| {
+        .filter_map(|f| f.time)
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), t| {
             (lo.min(t), hi.max(t))
         });
     if first >= 0.0 && last <= 1.0 {
