@@ -124,6 +124,60 @@ pub fn render_view(
     }
 }
 
+/// Renders every one of `cameras`' views, `in_flight` at a time (what
+/// `engine.views_in_flight()` advises), each on a thread of its own: on a GPU one view's
+/// rounds keep the device busy while the host waits on or lays out another's.
+/// Each view goes to `done` with its index as it finishes (views in flight finish in any
+/// order; `done` may be called from several threads); `on_rays` hears the rays finished
+/// over all views so far. Stops at the first error `done` returns, and returns it.
+pub fn render_views<E: Send>(
+    engine: &dyn Engine,
+    cameras: &[Camera],
+    settings: &RenderSettings,
+    in_flight: usize,
+    on_rays: &(dyn Fn(usize) + Sync),
+    done: &(dyn Fn(usize, RenderedView) -> Result<(), E> + Sync),
+) -> Result<(), E> {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    let (next, rays_done, failed) = (
+        AtomicUsize::new(0),
+        AtomicUsize::new(0),
+        AtomicBool::new(false),
+    );
+    let worker = || -> Result<(), E> {
+        loop {
+            let k = next.fetch_add(1, Ordering::Relaxed);
+            let Some(camera) = cameras.get(k) else {
+                return Ok(());
+            };
+            if failed.load(Ordering::Relaxed) {
+                return Ok(());
+            }
+            // Within a view, progress counts its own rays past those of the views done.
+            let before = rays_done.load(Ordering::Relaxed);
+            let view = render_view(engine, camera, settings, &|n| on_rays(before + n));
+            let pixels = camera.width * camera.height;
+            on_rays(rays_done.fetch_add(pixels, Ordering::Relaxed) + pixels);
+            if let Err(e) = done(k, view) {
+                failed.store(true, Ordering::Relaxed);
+                return Err(e);
+            }
+        }
+    };
+    let in_flight = in_flight.clamp(1, cameras.len().max(1));
+    std::thread::scope(|scope| {
+        let workers: Vec<_> = (1..in_flight).map(|_| scope.spawn(worker)).collect();
+        let mine = worker();
+        workers
+            .into_iter()
+            .map(|w| {
+                w.join()
+                    .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+            })
+            .fold(mine, Result::and)
+    })
+}
+
 /// Every pixel of `camera`'s view (row by row), `slab` rays per engine call; `None` as
 /// soon as `cancelled` says so between calls (the viewer stops a frame its camera has
 /// left). `on_progress` hears the rays finished so far.

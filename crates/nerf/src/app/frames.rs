@@ -3,6 +3,8 @@
 //! nerfstudio `camera_path.json`. What `nerf render` and the demo run.
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Mutex, MutexGuard};
 use std::time::Instant;
 
 use crate::camera::{Camera, Pose};
@@ -11,7 +13,7 @@ use crate::data::scene::Scene;
 use crate::data::Split;
 use crate::error::{NerfError, Result};
 use crate::train::folder::LoadedRun;
-use crate::views::{render_view, RenderSettings};
+use crate::views::{render_view, render_views, RenderSettings};
 
 /// Which cameras to render.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -250,7 +252,8 @@ pub struct FramesReport {
     pub frames: usize,
     /// Wall time of the whole path, writing included.
     pub seconds: f64,
-    /// Time the engine spent rendering the frames (writing overlaps it).
+    /// Wall time from the first frame's start until the last is rendered (writing, and
+    /// frames in flight, overlap each other inside it).
     pub render_seconds: f64,
     /// The first frame's share of it (which includes compiling a GPU's kernels).
     pub first_frame_seconds: f64,
@@ -284,10 +287,21 @@ pub fn render_frames(
     }
     let rays_total: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let t0 = Instant::now();
-    let mut render_seconds = 0.0;
-    let mut first_frame_seconds = 0.0;
-    let mut gif_frames = Vec::new();
-    // Frames are written by a thread of their own while the next one renders, so the
+    let frames_done = AtomicUsize::new(0);
+    let progress = |rays_done| {
+        let done = frames_done.load(Ordering::Relaxed);
+        on_progress(FrameProgress {
+            frame: done.min(cameras.len().saturating_sub(1)),
+            frames: cameras.len(),
+            rays_done,
+            rays_total,
+            frames_per_second: done as f64 / t0.elapsed().as_secs_f64().max(1e-9),
+        })
+    };
+    let gif_frames = Mutex::new(Vec::new());
+    let keep_gif = video.as_ref().is_some_and(|v| !v.mp4);
+    let (mut render_seconds, mut first_frame_seconds) = (0.0, 0.0);
+    // Frames are written by a thread of their own while the next ones render, so the
     // engine never waits on PNG encoding; at most two rendered frames wait to be written.
     let (send, receive) = std::sync::mpsc::sync_channel::<FrameToWrite>(2);
     let written = std::thread::scope(|scope| -> Result<()> {
@@ -297,42 +311,42 @@ pub fn render_frames(
             }
             Ok(())
         });
-        let mut done = 0;
-        let mut depth_range = opts.depth_range;
-        for (k, cam) in cameras.iter().enumerate() {
-            let progress = |rays_done| FrameProgress {
-                frame: k,
-                frames: cameras.len(),
-                rays_done,
-                rays_total,
-                frames_per_second: k as f64 / t0.elapsed().as_secs_f64().max(1e-9),
-            };
-            let started = Instant::now();
-            let r = render_view(run.engine.as_ref(), cam, &settings, &|n| {
-                on_progress(progress(done + n))
-            });
-            let seconds = started.elapsed().as_secs_f64();
-            render_seconds += seconds;
-            if k == 0 {
-                first_frame_seconds = seconds;
+        // A frame on its way to the writer; `Err` once the writer has stopped on an error,
+        // which it returns below.
+        let emit = |index, view: crate::views::RenderedView, depth_range| {
+            if keep_gif {
+                lock(&gif_frames).push((index, view.rgb.clone()));
             }
-            done += cam.width * cam.height;
-            let depth_range = *depth_range.get_or_insert_with(|| {
+            frames_done.fetch_add(1, Ordering::Relaxed);
+            let frame = FrameToWrite {
+                index,
+                view,
+                depth_range,
+            };
+            send.send(frame).map_err(|_| ())
+        };
+        if let Some((first, rest)) = cameras.split_first() {
+            // The first frame alone: it compiles a GPU's kernels, and sets the depth range.
+            let started = Instant::now();
+            let r = render_view(run.engine.as_ref(), first, &settings, &progress);
+            first_frame_seconds = started.elapsed().as_secs_f64();
+            let depth_range = opts.depth_range.unwrap_or_else(|| {
                 crate::app::video::auto_depth_range(&r.depth, &r.opacity)
                     .unwrap_or((settings.near, settings.far))
             });
-            if video.as_ref().is_some_and(|v| !v.mp4) {
-                gif_frames.push(r.rgb.clone());
-            }
-            let frame = FrameToWrite {
-                index: k,
-                view: r,
-                depth_range,
-            };
-            if send.send(frame).is_err() {
-                // The writer stopped on an error, which it returns below.
-                break;
-            }
+            let first_rays = first.width * first.height;
+            // The rest as many at once as the engine renders best.
+            let _stopped = emit(0, r, depth_range).and_then(|()| {
+                render_views(
+                    run.engine.as_ref(),
+                    rest,
+                    &settings,
+                    run.engine.views_in_flight(),
+                    &|n| progress(first_rays + n),
+                    &|k, view| emit(k + 1, view, depth_range),
+                )
+            });
+            render_seconds = started.elapsed().as_secs_f64();
         }
         drop(send);
         writer
@@ -344,7 +358,10 @@ pub fn render_frames(
         if v.mp4 {
             crate::app::video::write_mp4(&out.join("frame_%04d.png"), &v.path, opts.fps)?;
         } else if let Some(c) = cameras.first() {
-            crate::app::video::write_gif(&v.path, c.width, c.height, &gif_frames, opts.fps)?;
+            let mut frames = gif_frames.into_inner().unwrap_or_else(|e| e.into_inner());
+            frames.sort_by_key(|&(index, _)| index);
+            let frames: Vec<Vec<f32>> = frames.into_iter().map(|(_, rgb)| rgb).collect();
+            crate::app::video::write_gif(&v.path, c.width, c.height, &frames, opts.fps)?;
         }
     }
     Ok(FramesReport {
@@ -354,6 +371,11 @@ pub fn render_frames(
         first_frame_seconds,
         video,
     })
+}
+
+/// `m`'s value, even if a thread panicked holding it (the frames pushed stay whole).
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
 /// A rendered frame on its way to its three PNGs.

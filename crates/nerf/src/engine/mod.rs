@@ -179,6 +179,14 @@ pub trait Engine: Send + Sync {
         RENDER_SLAB
     }
 
+    /// Views worth rendering at once (`views::render_views`), each on a thread of its own:
+    /// more than one where a view's host work (waiting for the device, laying out its
+    /// pixels) would otherwise leave the device idle. The CPU engine's views already
+    /// take every core.
+    fn views_in_flight(&self) -> usize {
+        1
+    }
+
     /// Densities at world `positions` (`n x 3`) into `out` (`n`).
     fn density(&self, positions: &[f32], out: &mut [f32]);
 

@@ -399,6 +399,40 @@ fn checkpoints_move_between_devices() {
             "density {x} (cpu) vs {y} (gpu)"
         );
     }
+    views_in_flight_render_as_one_at_a_time(&on_gpu);
+}
+
+/// Views rendered at once, each on a thread of its own sharing the device, come out as
+/// they do one at a time, each handed over once under its own index; an error from the
+/// consumer stops the rendering and comes back.
+fn views_in_flight_render_as_one_at_a_time(run: &LoadedRun) {
+    use nerf::views::{render_views, RenderSettings};
+    let scene = run.config.open_scene(1).expect("scene");
+    let cameras: Vec<_> = scene.cameras(Split::Test).into_iter().take(5).collect();
+    let settings = RenderSettings::of_scene(&scene, [1.0; 3]);
+    let engine = run.engine.as_ref();
+    let views_at = |in_flight| {
+        let got = std::sync::Mutex::new(vec![Vec::new(); cameras.len()]);
+        let keep = |k: usize, view: nerf::views::RenderedView| -> Result<(), ()> {
+            let mut got = got.lock().expect("views");
+            assert!(got[k].is_empty(), "view {k} handed over twice");
+            got[k] = view.rgb;
+            Ok(())
+        };
+        render_views(engine, &cameras, &settings, in_flight, &|_| {}, &keep).expect("views");
+        got.into_inner().expect("views")
+    };
+    let (one, three) = (views_at(1), views_at(3));
+    assert!(one.iter().all(|v| !v.is_empty()), "a view is missing");
+    assert_eq!(one, three, "views in flight render differently");
+    let handed = std::sync::atomic::AtomicUsize::new(0);
+    let refuse = |_, _| {
+        handed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        Err("writer stopped")
+    };
+    let stopped = render_views(engine, &cameras, &settings, 2, &|_| {}, &refuse);
+    assert_eq!(stopped, Err("writer stopped"));
+    assert!(handed.into_inner() <= 2, "rendering went on past the error");
 }
 
 /// Every pixel of the first test view of `scene`.

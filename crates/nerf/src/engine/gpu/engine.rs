@@ -56,6 +56,8 @@ struct RenderSizes {
     round: usize,
     /// Parts of a call whose rounds interleave (`render::render_batches`).
     lanes: usize,
+    /// Views rendered at once (`Engine::views_in_flight`).
+    views: usize,
 }
 
 /// How the renderer cuts its work on `gpu`. A software adapter takes small calls (2^14
@@ -65,9 +67,10 @@ struct RenderSizes {
 /// calls with full rounds, split into lanes whose rounds interleave so that the device
 /// works on one lane's round while the host waits for another's (docs/benchmarks.md has
 /// the sizes measured): 2^20 rays a call in 2 lanes, rounds of 2^19 samples layer by
-/// layer (whose activations cap a round at [`MAX_DEVICE_SAMPLES`]), 2^22 fused.
-/// `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2[,LANES]` overrides them, for tuning, up to 2^20
-/// rays, the round cap and 8 lanes.
+/// layer (whose activations cap a round at [`MAX_DEVICE_SAMPLES`]), 2^22 fused; and three
+/// views at once, so that one view's rounds run while the host waits on or lays out the
+/// others'. `NERF_GPU_RENDER=CHUNK_LOG2,ROUND_LOG2[,LANES[,VIEWS]]` overrides them, for
+/// tuning, up to 2^20 rays, the round cap, 8 lanes and 4 views.
 fn render_sizes(gpu: &Gpu, fused: bool) -> RenderSizes {
     let max_round = if fused {
         MAX_FUSED_ROUND
@@ -77,21 +80,23 @@ fn render_sizes(gpu: &Gpu, fused: bool) -> RenderSizes {
     let from_env = std::env::var("NERF_GPU_RENDER")
         .ok()
         .and_then(|v| parse_render_sizes(&v, max_round));
-    let (chunk, round, lanes) = match from_env {
+    let (chunk, round, lanes, views) = match from_env {
         Some(sizes) => return sizes,
-        None if gpu.software => (1 << 14, 1 << 16, 1),
-        None if fused => (1 << 20, 1 << 22, 2),
-        None => (1 << 20, 1 << 19, 2),
+        None if gpu.software => (1 << 14, 1 << 16, 1, 1),
+        None if fused => (1 << 20, 1 << 22, 2, 3),
+        None => (1 << 20, 1 << 19, 2, 3),
     };
     RenderSizes {
         chunk,
         round,
         lanes,
+        views,
     }
 }
 
-/// `CHUNK_LOG2,ROUND_LOG2[,LANES]` (base-2 logarithms of rays per call and samples per
-/// round, and a lane count), each within its cap; `None` if malformed.
+/// `CHUNK_LOG2,ROUND_LOG2[,LANES[,VIEWS]]` (base-2 logarithms of rays per call and
+/// samples per round, a lane count and a count of views in flight), each within its cap;
+/// `None` if malformed.
 fn parse_render_sizes(spec: &str, max_round: usize) -> Option<RenderSizes> {
     let mut parts = spec.split(',').map(str::trim);
     let log2 = |s: Option<&str>, max: u32| {
@@ -102,14 +107,17 @@ fn parse_render_sizes(spec: &str, max_round: usize) -> Option<RenderSizes> {
     };
     let chunk = log2(parts.next(), 20)?;
     let round = log2(parts.next(), max_round.trailing_zeros())?;
-    let lanes = match parts.next() {
-        None => 1,
-        Some(l) => l.parse::<usize>().ok().filter(|l| (1..=8).contains(l))?,
+    let mut count = |most: usize| match parts.next() {
+        None => Some(1),
+        Some(c) => c.parse::<usize>().ok().filter(|c| (1..=most).contains(c)),
     };
+    let lanes = count(8)?;
+    let views = count(4)?;
     parts.next().is_none().then_some(RenderSizes {
         chunk,
         round,
         lanes,
+        views,
     })
 }
 
@@ -553,6 +561,7 @@ impl Engine for GpuEngine {
     /// A pinhole camera's pixels: rays cast on the device, the slab's rows rendered in
     /// lanes whose rounds interleave.
     fn render_pixels(&self, pixels: &PixelRays, out: &mut [RayOutput]) -> bool {
+        let started = std::time::Instant::now();
         let marcher = self.model.marcher(pixels.near, pixels.far);
         let bound = self.model.grid.bound;
         let lanes = render_sizes(&self.gpu, self.field.is_fused()).lanes;
@@ -583,6 +592,7 @@ impl Engine for GpuEngine {
         }
         let (gpu, params) = (&self.gpu, &self.state.values);
         let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
+        let cast = started.elapsed();
         let rendered = render::render_batches(
             gpu,
             &self.marcher,
@@ -602,6 +612,16 @@ impl Engine for GpuEngine {
                 }
             }
             Err(e) => fail_rays(&e, out),
+        }
+        if render::tracing() {
+            let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
+            eprintln!(
+                "gpu view: {} pixels in {:.1} ms: casting {:.1}, rendering and writing {:.1}",
+                out.len(),
+                ms(started.elapsed()),
+                ms(cast),
+                ms(started.elapsed() - cast)
+            );
         }
         true
     }
@@ -636,6 +656,10 @@ impl Engine for GpuEngine {
         self.model.occupancy()
     }
 
+    fn views_in_flight(&self) -> usize {
+        render_sizes(&self.gpu, self.field.is_fused()).views
+    }
+
     /// Every parameter goes through the device's Adam pass (hash entries without a
     /// gradient are skipped inside it); there are no untouched blocks to report.
     fn touched_fraction(&self) -> f64 {
@@ -648,20 +672,25 @@ mod tests {
     use super::*;
 
     #[test]
-    fn render_sizes_parse_from_logarithms_with_optional_lanes() {
-        let sizes = |chunk, round, lanes| RenderSizes {
+    fn render_sizes_parse_from_logarithms_with_optional_lanes_and_views() {
+        let sizes = |chunk, round, lanes, views| RenderSizes {
             chunk,
             round,
             lanes,
+            views,
         };
         let max = MAX_DEVICE_SAMPLES;
         assert_eq!(
             parse_render_sizes("19,18", max),
-            Some(sizes(1 << 19, 1 << 18, 1))
+            Some(sizes(1 << 19, 1 << 18, 1, 1))
         );
         assert_eq!(
             parse_render_sizes(" 20, 19 ,3", max),
-            Some(sizes(1 << 20, 1 << 19, 3))
+            Some(sizes(1 << 20, 1 << 19, 3, 1))
+        );
+        assert_eq!(
+            parse_render_sizes("20,19,2,2", max),
+            Some(sizes(1 << 20, 1 << 19, 2, 2))
         );
         for bad in [
             "21,18",
@@ -670,14 +699,16 @@ mod tests {
             "19,18,0",
             "19,18,9",
             "a,b",
-            "19,18,2,1",
+            "19,18,2,0",
+            "19,18,2,5",
+            "19,18,2,1,1",
             "",
         ] {
             assert_eq!(parse_render_sizes(bad, max), None, "{bad}");
         }
         assert_eq!(
             parse_render_sizes("20,22,2", MAX_FUSED_ROUND),
-            Some(sizes(1 << 20, 1 << 22, 2))
+            Some(sizes(1 << 20, 1 << 22, 2, 1))
         );
     }
 }

@@ -244,10 +244,15 @@ struct Trace {
     rounds_done: Duration,
 }
 
+/// Whether `NERF_GPU_TRACE` asks for the renderer's timings.
+pub fn tracing() -> bool {
+    std::env::var_os("NERF_GPU_TRACE").is_some()
+}
+
 impl Trace {
     fn start() -> Self {
         Trace {
-            on: std::env::var_os("NERF_GPU_TRACE").is_some(),
+            on: tracing(),
             start: Instant::now(),
             rounds: 0,
             samples: 0,
