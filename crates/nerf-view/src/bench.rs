@@ -1,15 +1,21 @@
 //! `nerf view --bench`: how the viewer performs on this machine for a run, through the
 //! code that serves pages (render, colour, JPEG): frames per second at several sizes, the
 //! preview size the pacer picks for a moving camera, the time from a resting camera to
-//! its full-resolution frame, and the input-to-frame latency of a preview.
+//! its full-resolution frame, the input-to-frame latency of a preview, and the frames a
+//! second of full-size frames streamed as the session streams them (the next frame
+//! rendering while the last is encoded).
 
 use std::time::Instant;
 
 use crate::protocol::{Mode, ViewCamera};
-use crate::render::{level_sizes, render_level, Model, Pacer, ViewRequest};
+use crate::render::{encode_levels, level_sizes, render_level, Model, Pacer, ViewRequest};
 
 /// Frames rendered per size (the median is reported).
 const REPEATS: usize = 5;
+/// Full-size frames streamed for the streaming figure, unless [`STREAM_SECONDS`] pass
+/// first (a CPU takes seconds a frame).
+const STREAMED: usize = 24;
+const STREAM_SECONDS: f64 = 5.0;
 
 /// One row of the report.
 #[derive(Clone, Debug, serde::Serialize)]
@@ -31,6 +37,8 @@ pub struct ViewBench {
     pub preview_seconds: f64,
     /// From a resting camera's request to its full-resolution frame (every level).
     pub refine_seconds: f64,
+    /// Full-size frames a second, rendered and encoded as a session streams them.
+    pub streamed_frames_per_second: f64,
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -68,7 +76,7 @@ pub fn run(
         let times: Vec<f64> = (0..REPEATS)
             .map(|_| {
                 let t0 = Instant::now();
-                render_level(model, &mut pacer, &v, (w, h), &never);
+                render_level(model, &mut pacer, &v, (w, h), &never).map(|l| l.encode());
                 t0.elapsed().as_secs_f64()
             })
             .collect();
@@ -87,22 +95,45 @@ pub fn run(
         (0..REPEATS)
             .map(|_| {
                 let t0 = Instant::now();
-                render_level(model, &mut pacer, &v, preview, &never);
+                render_level(model, &mut pacer, &v, preview, &never).map(|l| l.encode());
                 t0.elapsed().as_secs_f64()
             })
             .collect(),
     );
     let t0 = Instant::now();
     for size in level_sizes(&v.camera, preview_scale, false) {
-        render_level(model, &mut pacer, &v, size, &never);
+        render_level(model, &mut pacer, &v, size, &never).map(|l| l.encode());
     }
+    let refine_seconds = t0.elapsed().as_secs_f64();
     ViewBench {
         sizes,
         full,
         preview,
         preview_seconds,
-        refine_seconds: t0.elapsed().as_secs_f64(),
+        refine_seconds,
+        streamed_frames_per_second: streamed(model, &mut pacer, &v, full),
     }
+}
+
+/// Full-size frames a second of `view` rendered on this thread while the one before is
+/// encoded on another, as a session streams them.
+fn streamed(model: &Model, pacer: &mut Pacer, view: &ViewRequest, full: (usize, usize)) -> f64 {
+    let (to_encoder, levels) = std::sync::mpsc::sync_channel(1);
+    let t0 = Instant::now();
+    let frames = std::thread::scope(|scope| {
+        scope.spawn(|| encode_levels(model, levels, |_| true));
+        let mut frames = 0;
+        while frames < STREAMED && (frames < 2 || t0.elapsed().as_secs_f64() < STREAM_SECONDS) {
+            if let Some(level) = render_level(model, pacer, view, full, &|| false) {
+                let _ = to_encoder.send(level);
+            }
+            frames += 1;
+        }
+        drop(to_encoder);
+        frames
+    });
+    // The last frame's encoding counts: the scope waited for it.
+    frames as f64 / t0.elapsed().as_secs_f64().max(1e-9)
 }
 
 impl ViewBench {
@@ -128,6 +159,10 @@ impl ViewBench {
         println!(
             "camera at rest: full {}x{} frame after {:.2} s (every refinement level)",
             self.full.0, self.full.1, self.refine_seconds
+        );
+        println!(
+            "full {}x{} frames streamed (each encoded while the next renders): {:.1} frames/s",
+            self.full.0, self.full.1, self.streamed_frames_per_second
         );
     }
 }

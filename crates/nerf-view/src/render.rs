@@ -3,8 +3,11 @@
 //! full resolution. A newer request cancels the one being rendered between chunks of rays,
 //! so no stale frames queue up.
 
+use std::sync::mpsc::Receiver;
 use std::sync::RwLock;
 use std::time::Instant;
+
+use rayon::prelude::*;
 
 use nerf::camera::Camera;
 use nerf::data::image::to_u8;
@@ -14,8 +17,6 @@ use nerf::views::RenderSettings;
 
 use crate::protocol::{FrameHeader, Mode, ViewCamera, HEADER_BYTES};
 
-/// Rays per engine call between cancellation checks (a few milliseconds of work).
-const CHUNK_RAYS: usize = 4096;
 /// The preview's time budget: 10 frames a second while the camera moves, less a margin
 /// for what does not grow with the frame's size (colouring, JPEG, sending), which the
 /// per-ray estimate does not see.
@@ -124,6 +125,14 @@ impl Model {
     pub fn settings_at(&self, eye: [f32; 3]) -> RenderSettings {
         bounds_at(self.settings, self.camera_distance, eye)
     }
+
+    /// Runs `f` with its parallel work on the viewer's threads ([`Model::pool`]).
+    pub fn on_its_threads<R: Send>(&self, f: impl FnOnce() -> R + Send) -> R {
+        match &self.pool {
+            Some(pool) => pool.install(f),
+            None => f(),
+        }
+    }
 }
 
 /// [`Model::settings_at`] for `settings` meant for cameras `camera_distance` from the
@@ -162,10 +171,7 @@ pub fn render(
     appearance: Appearance,
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Option<Vec<RayOutput>> {
-    match &model.pool {
-        Some(pool) => pool.install(|| render_here(model, camera, appearance, cancelled)),
-        None => render_here(model, camera, appearance, cancelled),
-    }
+    model.on_its_threads(|| render_here(model, camera, appearance, cancelled))
 }
 
 fn render_here(
@@ -179,21 +185,16 @@ fn render_here(
         appearance,
         ..model.settings_at(camera.origin())
     };
-    nerf::views::render_pixels(
-        run.engine.as_ref(),
-        camera,
-        &settings,
-        CHUNK_RAYS,
-        &|_| {},
-        cancelled,
-    )
+    let engine = run.engine.as_ref();
+    let slab = engine.interactive_slab();
+    nerf::views::render_pixels(engine, camera, &settings, slab, &|_| {}, cancelled)
 }
 
 /// The image a mode shows, as 8-bit RGB.
 pub fn to_rgb8(out: &[RayOutput], mode: Mode, settings: &RenderSettings) -> Vec<u8> {
     let float: Vec<f32> = match mode {
-        Mode::Rgb => out.iter().flat_map(|o| o.rgb).collect(),
-        Mode::Opacity => out.iter().flat_map(|o| [o.opacity; 3]).collect(),
+        Mode::Rgb => out.par_iter().flat_map_iter(|o| o.rgb).collect(),
+        Mode::Opacity => out.par_iter().flat_map_iter(|o| [o.opacity; 3]).collect(),
         Mode::Depth => {
             let depth: Vec<f32> = out.iter().map(|o| o.depth).collect();
             let opacity: Vec<f32> = out.iter().map(|o| o.opacity).collect();
@@ -202,7 +203,7 @@ pub fn to_rgb8(out: &[RayOutput], mode: Mode, settings: &RenderSettings) -> Vec<
             nerf::app::video::depth_turbo(&depth, &opacity, near, far)
         }
     };
-    float.iter().map(|&v| to_u8(v)).collect()
+    float.par_iter().map(|&v| to_u8(v)).collect()
 }
 
 /// Encodes 8-bit RGB as a JPEG.
@@ -221,14 +222,23 @@ pub fn jpeg(rgb: &[u8], width: usize, height: usize) -> Vec<u8> {
     bytes
 }
 
-/// Renders a request at `w` x `h` and encodes it; `None` when cancelled.
+/// A request rendered at one size, before it is coloured and encoded.
+pub struct Level {
+    header: FrameHeader,
+    out: Vec<RayOutput>,
+    mode: Mode,
+    /// The settings the view was rendered with (depth's fallback range).
+    settings: RenderSettings,
+}
+
+/// Renders a request at `w` x `h`; `None` when cancelled.
 pub fn render_level(
     model: &Model,
     pacer: &mut Pacer,
     request: &ViewRequest,
     (w, h): (usize, usize),
     cancelled: &(dyn Fn() -> bool + Sync),
-) -> Option<Frame> {
+) -> Option<Level> {
     let ViewRequest {
         seq,
         camera: ref view,
@@ -241,7 +251,6 @@ pub fn render_level(
     let out = render(model, &camera, appearance, cancelled)?;
     let seconds = t0.elapsed().as_secs_f64();
     pacer.record(w * h, seconds);
-    let rgb = to_rgb8(&out, mode, &model.settings_at(view.c2w.map(|r| r[3])));
     let header = FrameHeader {
         seq,
         width: w as u16,
@@ -250,10 +259,39 @@ pub fn render_level(
         last: w == view.width && h == view.height,
         micros: (seconds * 1e6).min(u32::MAX as f64) as u32,
     };
-    let mut bytes = Vec::with_capacity(HEADER_BYTES + w * h);
-    bytes.extend_from_slice(&header.encode());
-    bytes.extend_from_slice(&jpeg(&rgb, w, h));
-    Some(Frame { header, bytes })
+    Some(Level {
+        header,
+        out,
+        mode,
+        settings: model.settings_at(view.c2w.map(|r| r[3])),
+    })
+}
+
+impl Level {
+    /// The frame the page gets: header and JPEG of the mode's image.
+    pub fn encode(&self) -> Frame {
+        let (w, h) = (self.header.width as usize, self.header.height as usize);
+        let rgb = to_rgb8(&self.out, self.mode, &self.settings);
+        let mut bytes = Vec::with_capacity(HEADER_BYTES + w * h);
+        bytes.extend_from_slice(&self.header.encode());
+        bytes.extend_from_slice(&jpeg(&rgb, w, h));
+        Frame {
+            header: self.header,
+            bytes,
+        }
+    }
+}
+
+/// Encodes every level that comes down `levels` (on `model`'s threads) and hands its frame
+/// to `send`, until `levels` closes or `send` says the page has gone (false). Run on a
+/// thread of its own, it lets the next view render while this one is coloured and
+/// encoded.
+pub fn encode_levels(model: &Model, levels: Receiver<Level>, mut send: impl FnMut(Frame) -> bool) {
+    for level in levels {
+        if !send(model.on_its_threads(|| level.encode())) {
+            return;
+        }
+    }
 }
 
 #[cfg(test)]

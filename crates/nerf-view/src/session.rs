@@ -11,7 +11,7 @@ use tokio::sync::{broadcast, mpsc};
 
 use crate::paths;
 use crate::protocol::{ClientMessage, ServerMessage};
-use crate::render::{level_sizes, render_level, Model, Pacer, ViewRequest};
+use crate::render::{encode_levels, level_sizes, render_level, Model, Pacer, ViewRequest};
 use crate::state::Viewer;
 
 /// The newest view request, handed from the socket to the render worker.
@@ -54,20 +54,35 @@ impl Latest {
     }
 }
 
-/// Renders the newest request, level by level, until the page goes.
+/// Renders the newest request, level by level, until the page goes; each level is
+/// coloured and encoded on a thread of its own while the next one renders.
 fn render_worker(model: Arc<Model>, latest: Arc<Latest>, out: mpsc::UnboundedSender<Message>) {
-    let mut pacer = Pacer::default();
-    while let Some((job, generation)) = latest.take() {
-        let cancelled = || latest.generation.load(Ordering::SeqCst) != generation;
-        let preview = pacer.preview_scale(job.camera.width, job.camera.height);
-        for size in level_sizes(&job.camera, preview, job.moving) {
-            let frame = render_level(&model, &mut pacer, &job, size, &cancelled);
-            let Some(frame) = frame else { break };
-            if out.send(Message::Binary(frame.bytes.into())).is_err() {
-                return;
+    // One level waits at most: a slow encoder holds rendering back, not stale frames.
+    let (to_encoder, levels) = std::sync::mpsc::sync_channel(1);
+    std::thread::scope(|scope| {
+        // Dropped when rendering ends, which ends the encoder's loop before the scope
+        // waits for it.
+        let to_encoder = to_encoder;
+        let encoder_model = &model;
+        scope.spawn(move || {
+            encode_levels(encoder_model, levels, |frame| {
+                out.send(Message::Binary(frame.bytes.into())).is_ok()
+            })
+        });
+        let mut pacer = Pacer::default();
+        while let Some((job, generation)) = latest.take() {
+            let cancelled = || latest.generation.load(Ordering::SeqCst) != generation;
+            let preview = pacer.preview_scale(job.camera.width, job.camera.height);
+            for size in level_sizes(&job.camera, preview, job.moving) {
+                let level = render_level(&model, &mut pacer, &job, size, &cancelled);
+                let Some(level) = level else { break };
+                if to_encoder.send(level).is_err() {
+                    // The encoder stopped: the page has gone.
+                    return;
+                }
             }
         }
-    }
+    });
 }
 
 fn text(msg: &ServerMessage) -> Message {

@@ -123,6 +123,10 @@ pub fn diverged(step: u64, loss: f32, bad_gradients: Option<usize>) -> crate::er
 /// Rays per [`Engine::render_rays`] call of a whole view, unless the engine takes more.
 pub const RENDER_SLAB: usize = 1 << 16;
 
+/// Rays per call of a caller that checks for cancellation between calls, unless the engine
+/// takes more: a few milliseconds of a CPU's work.
+pub const INTERACTIVE_SLAB: usize = 4096;
+
 /// A camera's pixels to render, for an engine that casts their rays itself
 /// ([`Engine::render_pixels`]); `views::render_pixels` makes the same rays on the host.
 pub struct PixelRays<'a> {
@@ -177,6 +181,13 @@ pub trait Engine: Send + Sync {
     /// memory of big views (a 4K frame is 8 M rays) while keeping the device busy.
     fn render_slab(&self) -> usize {
         RENDER_SLAB
+    }
+
+    /// Rays per call for a caller that checks between calls whether to stop (the viewer,
+    /// whose camera moves on): as few as keep this engine efficient. A GPU takes its
+    /// rendering chunk, a whole view: its every call waits on the device several times.
+    fn interactive_slab(&self) -> usize {
+        INTERACTIVE_SLAB
     }
 
     /// Views worth rendering at once (`views::render_views`), each on a thread of its own:

@@ -656,6 +656,10 @@ impl Engine for GpuEngine {
         self.model.occupancy()
     }
 
+    fn interactive_slab(&self) -> usize {
+        render_sizes(&self.gpu, self.field.is_fused()).chunk
+    }
+
     fn views_in_flight(&self) -> usize {
         render_sizes(&self.gpu, self.field.is_fused()).views
     }
