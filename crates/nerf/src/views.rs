@@ -124,16 +124,17 @@ pub fn render_view(
     }
 }
 
-/// Renders every one of `cameras`' views, `in_flight` at a time (what
-/// `engine.views_in_flight()` advises), each on a thread of its own: on a GPU one view's
-/// rounds keep the device busy while the host waits on or lays out another's.
+/// Renders every one of `cameras`' views (the `k`th with `settings(k)`), `in_flight` at a
+/// time (what `engine.views_in_flight()` advises), each on a thread of its own: on a GPU
+/// one view's rounds keep the device busy while the host waits on or lays out another's.
 /// Each view goes to `done` with its index as it finishes (views in flight finish in any
-/// order; `done` may be called from several threads); `on_rays` hears the rays finished
-/// over all views so far. Stops at the first error `done` returns, and returns it.
+/// order; `done` may be called from several threads, and its own work overlaps the other
+/// views' rendering); `on_rays` hears the rays finished over all views so far. Stops at
+/// the first error `done` returns, and returns it.
 pub fn render_views<E: Send>(
     engine: &dyn Engine,
     cameras: &[Camera],
-    settings: &RenderSettings,
+    settings: &(dyn Fn(usize) -> RenderSettings + Sync),
     in_flight: usize,
     on_rays: &(dyn Fn(usize) + Sync),
     done: &(dyn Fn(usize, RenderedView) -> Result<(), E> + Sync),
@@ -155,7 +156,7 @@ pub fn render_views<E: Send>(
             }
             // Within a view, progress counts its own rays past those of the views done.
             let before = rays_done.load(Ordering::Relaxed);
-            let view = render_view(engine, camera, settings, &|n| on_rays(before + n));
+            let view = render_view(engine, camera, &settings(k), &|n| on_rays(before + n));
             let pixels = camera.width * camera.height;
             on_rays(rays_done.fetch_add(pixels, Ordering::Relaxed) + pixels);
             if let Err(e) = done(k, view) {

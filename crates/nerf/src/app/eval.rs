@@ -2,6 +2,7 @@
 //! images and `metrics.json` with per-view and mean PSNR / SSIM.
 
 use std::path::{Path, PathBuf};
+use std::sync::Mutex;
 
 use serde::{Deserialize, Serialize};
 
@@ -14,7 +15,8 @@ use crate::metrics::{psnr, ssim};
 use crate::stage::Appearance;
 use crate::train::folder::LoadedRun;
 use crate::train::refined_cameras::{PoseError, RunCameras};
-use crate::views::RenderSettings;
+use crate::camera::Camera;
+use crate::views::{RenderSettings, RenderedView};
 
 /// Metrics of one view.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -196,31 +198,30 @@ pub fn evaluate(
     };
     crate::io::create_dir(out_dir)?;
     let bg = cfg.background.eval_colour();
-    let mut settings = RenderSettings::of_dataset(&data, bg);
+    let settings = RenderSettings::of_dataset(&data, bg);
     let (width, height) = data.image_size();
     let originals = data.views.len();
     data.add_scales(options.multiscale.max(1))?;
     let pixels = |v: &crate::data::View| v.image.width * v.image.height;
     let total_rays = data.views.iter().map(pixels).sum();
-    let mut views = Vec::new();
-    let mut done_before = 0;
-    for (k, view) in data.views.iter().enumerate() {
+    let look_of = |k: usize| looks.as_ref().map(|l| &l[k % originals]);
+    let view_cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
+    let settings_of = |k: usize| RenderSettings {
+        appearance: look_of(k).map_or(Appearance::Mean, |l| l.appearance),
+        ..settings
+    };
+    // Each view's scores and pictures, made while the next views render.
+    let scored: Vec<Mutex<Option<ViewMetrics>>> =
+        data.views.iter().map(|_| Mutex::new(None)).collect();
+    let score = |k: usize, r: RenderedView| -> Result<()> {
+        let view = &data.views[k];
         let i = (k % originals) * every;
         let scale = 1usize << (k / originals);
         let suffix = match scale {
             1 => String::new(),
             s => format!("_d{s}"),
         };
-        let look = looks.as_ref().map(|l| &l[k % originals]);
-        settings.appearance = look.map_or(Appearance::Mean, |l| l.appearance);
-        let r = crate::views::render_view(run.engine.as_ref(), &view.camera, &settings, &|n| {
-            on_progress(EvalProgress::Rendering {
-                rays: done_before + n,
-                total: total_rays,
-            })
-        });
         let truth = view.image.composite(bg);
-        done_before += pixels(view);
         let image = out_dir.join(format!("{i:03}{suffix}.png"));
         let depth = out_dir.join(format!("{i:03}{suffix}_depth.png"));
         save_rgb_png(&image, r.width, r.height, &r.rgb)?;
@@ -234,7 +235,7 @@ pub fn evaluate(
             Some(net) => net.distance(&r.rgb, &truth, r.width, r.height).ok(),
             None => None,
         };
-        views.push(ViewMetrics {
+        let metrics = ViewMetrics {
             index: i,
             name: view.name.clone(),
             psnr: psnr(&r.rgb, &truth),
@@ -242,10 +243,29 @@ pub fn evaluate(
             lpips,
             image,
             depth,
-            look: look.and_then(|l| l.photo.clone()),
+            look: look_of(k).and_then(|l| l.photo.clone()),
             scale,
-        });
-    }
+        };
+        *scored[k].lock().unwrap_or_else(|e| e.into_inner()) = Some(metrics);
+        Ok(())
+    };
+    crate::views::render_views(
+        run.engine.as_ref(),
+        &view_cameras,
+        &settings_of,
+        run.engine.views_in_flight(),
+        &|rays| {
+            on_progress(EvalProgress::Rendering {
+                rays,
+                total: total_rays,
+            })
+        },
+        &score,
+    )?;
+    let views: Vec<ViewMetrics> = scored
+        .into_iter()
+        .filter_map(|m| m.into_inner().unwrap_or_else(|e| e.into_inner()))
+        .collect();
     let n = views.len().max(1) as f32;
     let scales = match options.multiscale {
         0 | 1 => Vec::new(),

@@ -340,7 +340,7 @@ pub fn render_frames(
                 render_views(
                     run.engine.as_ref(),
                     rest,
-                    &settings,
+                    &|_| settings,
                     run.engine.views_in_flight(),
                     &|n| progress(first_rays + n),
                     &|k, view| emit(k + 1, view, depth_range),

@@ -419,7 +419,7 @@ fn views_in_flight_render_as_one_at_a_time(run: &LoadedRun) {
             got[k] = view.rgb;
             Ok(())
         };
-        render_views(engine, &cameras, &settings, in_flight, &|_| {}, &keep).expect("views");
+        render_views(engine, &cameras, &|_| settings, in_flight, &|_| {}, &keep).expect("views");
         got.into_inner().expect("views")
     };
     let (one, three) = (views_at(1), views_at(3));
@@ -430,7 +430,7 @@ fn views_in_flight_render_as_one_at_a_time(run: &LoadedRun) {
         handed.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         Err("writer stopped")
     };
-    let stopped = render_views(engine, &cameras, &settings, 2, &|_| {}, &refuse);
+    let stopped = render_views(engine, &cameras, &|_| settings, 2, &|_| {}, &refuse);
     assert_eq!(stopped, Err("writer stopped"));
     assert!(handed.into_inner() <= 2, "rendering went on past the error");
 }
