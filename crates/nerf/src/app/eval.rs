@@ -8,6 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::app::looks::{looks_of, EvalLook};
 use crate::app::test_poses::{refine_test_poses, TestPoseFit, TestPoseReport};
+use crate::camera::Camera;
 use crate::data::{image::save_rgb_png, Split};
 use crate::error::Result;
 use crate::metrics::lpips::Lpips;
@@ -15,7 +16,6 @@ use crate::metrics::{psnr, ssim};
 use crate::stage::Appearance;
 use crate::train::folder::LoadedRun;
 use crate::train::refined_cameras::{PoseError, RunCameras};
-use crate::camera::Camera;
 use crate::views::{RenderSettings, RenderedView};
 
 /// Metrics of one view.

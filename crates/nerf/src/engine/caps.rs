@@ -40,7 +40,7 @@ const TABLE: [(Feature, bool, bool); 6] = [
     (Feature::CameraRefinement, true, false),
     (Feature::Distortion, true, true),
     (Feature::Mip, true, true),
-    (Feature::FewView, true, false),
+    (Feature::FewView, true, true),
 ];
 
 impl Feature {

@@ -349,20 +349,21 @@ impl GpuEngine {
         let cells = self.occupancy.cells();
         let thickness = gpu.read(&self.occupancy.thickness, cells)?;
         let occupied = gpu.read_u32(&self.occupancy.occupied, cells)?;
+        let possible = self.model.grid.possible.take();
         self.model.grid = OccupancyGrid::from_parts(
             self.occupancy.resolution,
             self.occupancy.bound,
             thickness,
             occupied.iter().map(|&b| b == 1).collect(),
         );
+        self.model.grid.possible = possible;
         Ok(())
     }
 
     /// Puts the host grid's state on the device.
     fn upload_occupancy(gpu: &Gpu, model: &FastModel) -> (GpuOccupancy, GpuMarcher) {
         let g = &model.grid;
-        let occupancy =
-            GpuOccupancy::new(gpu, &g.thickness, g.occupied_cells(), g.resolution, g.bound);
+        let occupancy = GpuOccupancy::new(gpu, g);
         // Near and far only clip each ray's span, which the host computes.
         let marcher = GpuMarcher::new(
             &model.marcher(0.0, 1.0),
@@ -405,6 +406,13 @@ impl Engine for GpuEngine {
 
     fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
         let step = spec.sampling.step;
+        // Few-view training marks the space its cameras see once, on the host grid; the
+        // device's grid follows it from then on.
+        let marked = self.model.grid.possible.is_some();
+        self.model.prepare(data);
+        if !marked && self.model.grid.possible.is_some() {
+            (self.occupancy, self.marcher) = GpuEngine::upload_occupancy(&self.gpu, &self.model);
+        }
         let StepRays {
             cut,
             samples,

@@ -16,7 +16,7 @@ use cubecl::server::Handle;
 
 use super::device::Gpu;
 use super::launch::grid;
-use crate::render::occupancy::OccupancyConfig;
+use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
 
 const GROUP: u32 = 256;
 /// Cells per field evaluation.
@@ -71,19 +71,31 @@ pub struct Refresh {
     fraction: f32,
     seed: u32,
     step: u32,
+    /// 1: `possible` holds a flag per cell, and cells without it stay empty.
+    masked: u32,
+}
+
+/// Whether cell `idx` may hold anything: every cell, unless `masked` says `possible` has
+/// a flag per cell (a one-element buffer otherwise, never read past).
+#[cube]
+fn may_hold(possible: &[u32], masked: u32, idx: usize) -> bool {
+    let at = select(masked == 1, idx, 0usize);
+    masked == 0 || possible[at] != 0
 }
 
 /// Decays cells `first..first + n` and raises the chosen ones (warm-up, occupied, or picked
-/// at random) to the thickness `sigma * dt` seen at their point.
+/// at random) to the thickness `sigma * dt` seen at their point; a cell that may hold
+/// nothing keeps no thickness.
 #[cube(launch_unchecked)]
-fn update_cells(thickness: &mut [f32], occ: &[u32], sigma: &[f32], u: Refresh) {
+fn update_cells(thickness: &mut [f32], occ: &[u32], sigma: &[f32], possible: &[u32], u: Refresh) {
     let i = ABSOLUTE_POS;
     if i < u.n as usize {
         let idx = (u.first + i as u32) as usize;
         let pick = uniform(u.seed, u.step, idx as u32, 0) < u.fraction;
         let chosen = u.warm == 1 || occ[idx] != 0 || pick;
         let decayed = thickness[idx] * u.decay;
-        thickness[idx] = select(chosen, f32::max(decayed, sigma[i] * u.dt), decayed);
+        let value = select(chosen, f32::max(decayed, sigma[i] * u.dt), decayed);
+        thickness[idx] = select(may_hold(possible, u.masked, idx), value, 0.0);
     }
 }
 
@@ -102,15 +114,19 @@ fn sum_blocks(values: &[f32], sums: &mut [f32], n: u32, block: u32) {
     }
 }
 
-/// `occ = thickness >= min(threshold, mean)`, the mean from the block sums.
+/// `occ = thickness >= min(threshold, mean)`, the mean from the block sums, where the cell
+/// may hold anything.
 #[cube(launch_unchecked)]
+#[allow(clippy::too_many_arguments)]
 fn occupied_cells(
     thickness: &[f32],
     sums: &[f32],
+    possible: &[u32],
     occ: &mut [u32],
     n: u32,
     blocks: u32,
     threshold: f32,
+    masked: u32,
 ) {
     let i = ABSOLUTE_POS;
     if i < n as usize {
@@ -120,7 +136,8 @@ fn occupied_cells(
             total += sums[b];
         }
         let cut = f32::min(threshold, total / f32::cast_from(n));
-        occ[i] = select(thickness[i] >= cut, 1u32, 0u32);
+        let on = thickness[i] >= cut && may_hold(possible, masked, i);
+        occ[i] = select(on, 1u32, 0u32);
     }
 }
 
@@ -129,30 +146,39 @@ pub struct GpuOccupancy {
     pub thickness: Handle,
     /// 1 per occupied cell, x fastest (what the marcher reads).
     pub occupied: Handle,
+    /// 1 per cell that may hold anything (`OccupancyGrid::possible`), when `masked`; one
+    /// unread value otherwise.
+    possible: Handle,
+    masked: bool,
     pub resolution: usize,
     pub bound: f32,
 }
 
 impl GpuOccupancy {
     /// Uploads a host grid's state.
-    pub fn new(
-        gpu: &Gpu,
-        thickness: &[f32],
-        occupied: &[bool],
-        resolution: usize,
-        bound: f32,
-    ) -> Self {
-        let bits: Vec<u32> = occupied.iter().map(|&o| u32::from(o)).collect();
+    pub fn new(gpu: &Gpu, grid: &OccupancyGrid) -> Self {
+        let bits = |flags: &[bool]| -> Vec<u32> { flags.iter().map(|&o| u32::from(o)).collect() };
+        let possible = grid.possible.as_deref().map_or(vec![1], bits);
         GpuOccupancy {
-            thickness: gpu.upload(thickness),
-            occupied: gpu.upload_u32(&bits),
-            resolution,
-            bound,
+            thickness: gpu.upload(&grid.thickness),
+            occupied: gpu.upload_u32(&bits(grid.occupied_cells())),
+            possible: gpu.upload_u32(&possible),
+            masked: grid.possible.is_some(),
+            resolution: grid.resolution,
+            bound: grid.bound,
         }
     }
 
     pub fn cells(&self) -> usize {
         self.resolution.pow(3)
+    }
+
+    fn possible_len(&self) -> usize {
+        if self.masked {
+            self.cells()
+        } else {
+            1
+        }
     }
 
     /// One refresh at training step `step` (`OccupancyGrid::update`'s rule): `density`
@@ -200,9 +226,11 @@ impl GpuOccupancy {
                 config.update_fraction,
                 seed32,
                 step32,
+                u32::from(self.masked),
             );
             // SAFETY: the grid's buffers hold `cells` values and `sigma` `n`; the kernel
-            // touches cells `first..first + n` only.
+            // touches cells `first..first + n` only, and reads `possible` past its first
+            // value only when it is masked (a value per cell).
             unsafe {
                 let (c, d) = grid(n, GROUP);
                 update_cells::launch_unchecked(
@@ -212,6 +240,7 @@ impl GpuOccupancy {
                     BufferArg::from_raw_parts(self.thickness.clone(), cells),
                     BufferArg::from_raw_parts(self.occupied.clone(), cells),
                     BufferArg::from_raw_parts(sigma.clone(), n),
+                    BufferArg::from_raw_parts(self.possible.clone(), self.possible_len()),
                     update,
                 );
             }
@@ -238,10 +267,12 @@ impl GpuOccupancy {
                 d,
                 BufferArg::from_raw_parts(self.thickness.clone(), cells),
                 BufferArg::from_raw_parts(sums.clone(), blocks),
+                BufferArg::from_raw_parts(self.possible.clone(), self.possible_len()),
                 BufferArg::from_raw_parts(self.occupied.clone(), cells),
                 cells as u32,
                 blocks as u32,
                 config.threshold,
+                u32::from(self.masked),
             );
         }
     }
@@ -250,7 +281,6 @@ impl GpuOccupancy {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::render::occupancy::OccupancyGrid;
 
     /// Two refreshes of a 40^3 grid (more than one chunk is not needed for the rule; the
     /// chunk loop is exercised by `CHUNK`-independent indexing) with a density known in
@@ -277,7 +307,7 @@ mod tests {
             }
         };
         let host = OccupancyGrid::new(res, bound);
-        let g = GpuOccupancy::new(&gpu, &host.thickness, host.occupied_cells(), res, bound);
+        let g = GpuOccupancy::new(&gpu, &host);
         let seen = std::cell::RefCell::new(Vec::new());
         let density = |points: &Handle, n: usize| {
             let p = gpu.read(points, 3 * n).expect("read");
@@ -341,6 +371,43 @@ mod tests {
             // The ball (about 15% of the box) is occupied and most of the rest is not.
             let share = bits.iter().filter(|&&b| b == 1).count() as f64 / bits.len() as f64;
             assert!((0.1..0.35).contains(&share), "{share} occupied");
+        }
+    }
+
+    /// Few-view training's mask on the device, as `OccupancyGrid::refresh` applies it on
+    /// the host: a cell that may hold nothing keeps no thickness and is never occupied,
+    /// even when nothing else is (the cut falls to a mean of zero), and the other cells
+    /// follow the rule as before.
+    #[test]
+    fn cells_that_may_hold_nothing_stay_empty() {
+        let Some(gpu) = super::super::device::test_gpu() else {
+            return;
+        };
+        let (res, bound, dt) = (8, 1.5, 0.01);
+        let config = OccupancyConfig {
+            resolution: res,
+            warmup_steps: 10,
+            ..OccupancyConfig::default()
+        };
+        let cells = res * res * res;
+        let density = |_: &Handle, n: usize| gpu.upload(&vec![100.0; n]);
+        for every_third in [true, false] {
+            let mut host = OccupancyGrid::new(res, bound);
+            host.possible = Some((0..cells).map(|i| every_third && i % 3 == 0).collect());
+            let g = GpuOccupancy::new(&gpu, &host);
+            g.update(&gpu, &config, 5, 7, dt, &density);
+            let thickness = gpu.read(&g.thickness, cells).expect("read");
+            let bits = gpu.read_u32(&g.occupied, cells).expect("read");
+            for i in 0..cells {
+                let may = every_third && i % 3 == 0;
+                let want = if may { 100.0 * dt } else { 0.0 };
+                assert!(
+                    (thickness[i] - want).abs() < 1e-6,
+                    "cell {i}: {}",
+                    thickness[i]
+                );
+                assert_eq!(bits[i] == 1, may, "cell {i}");
+            }
         }
     }
 }
