@@ -8,7 +8,8 @@
 //!   density queries with parameters, gradients, Adam's moments and the occupancy grid on
 //!   the device; [`vanilla`]: [`vanilla::GpuVanillaEngine`], the paper's model; [`params`]:
 //!   the trainable state both keep on the device;
-//! * [`vanilla_net`]: the paper's network forward and backward;
+//! * [`vanilla_net`]: the paper's network forward and backward; [`importance`]: its
+//!   importance samples drawn from the coarse weights and packed for the fine pass;
 //! * [`march`]: occupancy-grid marching with sample compaction (count, prefix sum, budget
 //!   cut, packed write), for training steps and rendering rounds; [`occupancy`]: the
 //!   grid's refresh;
@@ -29,9 +30,10 @@
 //!   device (lens distortion through per-lens tables);
 //! * [`launch`]: launch grids and host/device copies.
 //!
-//! Not on the device yet: the paper's model's sampling (stratified and importance samples
-//! are drawn on the host), and the random choice of each training ray's pixel (drawn on
-//! the host so both engines train on the same rays; 6 words a ray go up).
+//! Not on the device yet: the paper's model's stratified coarse samples and mip-NeRF's
+//! frustums (made on the host, uploaded), the uniform draws of its importance samples, and
+//! the random choice of each training ray's pixel (drawn on the host so both engines train
+//! on the same rays and samples; 6 words a ray go up).
 
 pub mod adam;
 pub mod antialias;
@@ -45,6 +47,7 @@ pub mod fused;
 pub mod gemm;
 pub mod harmonics;
 pub mod hash_grid;
+pub mod importance;
 pub mod launch;
 pub mod loss;
 pub mod march;

@@ -3,15 +3,17 @@
 //!
 //! Work mapping of a step: the host draws the rays and their stratified depths (the CPU
 //! engine's code: the same rays and samples) and uploads the packed samples; the device
-//! runs the coarse pass forward and backward; its compositing weights come back (4 bytes
-//! per sample) for the host to draw the importance samples from, exactly as on the CPU;
-//! the device runs the fine pass forward and backward, and Adam. The host reads back one
-//! float per ray per pass (the loss) and one count (non-finite gradients). Rendering goes
-//! through the same two passes in chunks of rays.
+//! runs the coarse pass forward and backward, draws the importance samples from its
+//! compositing weights by the host's rule (`importance`: the host sends only each ray's
+//! uniform draws, from the CPU engine's random streams), runs the fine pass forward and
+//! backward, and Adam. mip-NeRF's frustums are still made on the host from weights read
+//! back. The host reads back one float per ray per pass (the loss) and one count
+//! (non-finite gradients). Rendering goes through the same two passes in chunks of rays.
 
 use cubecl::server::Handle;
 
 use super::device::Gpu;
+use super::importance::{self, FineSamples};
 use super::loss;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
 use super::vanilla_net::{GpuVanillaNet, VanillaActs};
@@ -24,6 +26,7 @@ use crate::model::vanilla::ChunkWorkspace;
 use crate::model::{Model, ModelConfig, VanillaModel, VanillaModelConfig};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
+use crate::rng::Rng;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{PackedSamples, RayBatch, RayOutput};
 
@@ -93,22 +96,38 @@ impl GpuVanillaEngine {
         let offsets: Vec<u32> = samples.offsets.iter().map(|&o| o as u32).collect();
         let spd = samples.samples_per_dir.max(1);
         let dirs: Vec<f32> = (0..n).flat_map(|s| samples.dirs[s / spd]).collect();
-        let on_device = GpuSamples {
-            offsets: gpu.upload_u32(&offsets),
-            t: gpu.upload(&samples.t),
-            dt: gpu.upload(&samples.dt),
-            rays,
-            len: n,
+        let on_device = FineSamples {
+            samples: GpuSamples {
+                offsets: gpu.upload_u32(&offsets),
+                t: gpu.upload(&samples.t),
+                dt: gpu.upload(&samples.dt),
+                rays,
+                len: n,
+            },
+            positions: gpu.upload(samples.positions.as_flattened()),
+            dirs: gpu.upload(&dirs),
         };
         let variances = (!samples.variances.is_empty()).then(|| gpu.upload(&samples.variances));
-        let acts = net.forward(
-            gpu,
-            &self.state.values,
-            &gpu.upload(samples.positions.as_flattened()),
-            variances.as_ref(),
-            &gpu.upload(&dirs),
-            n,
-        );
+        self.pass_on_device(net, on_device, variances.as_ref(), backgrounds)
+    }
+
+    /// Runs `net` forward on `samples` already on the device (each a Gaussian of diagonal
+    /// covariance `variances` when given), and compositing over `backgrounds`.
+    fn pass_on_device(
+        &self,
+        net: &GpuVanillaNet,
+        samples: FineSamples,
+        variances: Option<&Handle>,
+        backgrounds: &Handle,
+    ) -> Pass {
+        let gpu = &self.gpu;
+        let FineSamples {
+            samples: on_device,
+            positions,
+            dirs,
+        } = samples;
+        let (rays, n) = (on_device.rays, on_device.len);
+        let acts = net.forward(gpu, &self.state.values, &positions, variances, &dirs, n);
         let (weights, out) = (gpu.floats(n), gpu.floats(rays * OUT_WORDS));
         volume::composite(
             gpu,
@@ -167,6 +186,38 @@ impl GpuVanillaEngine {
         Ok(gpu.read(&sse, rays)?.iter().map(|&e| e as f64).sum())
     }
 
+    /// The fine pass of `rays` after their `coarse` one: its samples drawn from the coarse
+    /// weights (with `rngs`: training's random draws; without: evenly spaced), on the
+    /// device, or for mip-NeRF's frustums on the host.
+    fn fine_pass(
+        &self,
+        net: &GpuVanillaNet,
+        ws: &mut ChunkWorkspace,
+        rays: &RayBatch,
+        coarse: &Pass,
+        rngs: Option<&mut [Rng]>,
+        backgrounds: &Handle,
+    ) -> Result<Pass> {
+        let gpu = &self.gpu;
+        let config = &self.model.config;
+        if config.integrated {
+            let weights = gpu.read(&coarse.weights, coarse.samples.len)?;
+            let samples = self.model.pack_fine(ws, rays, &weights, rngs);
+            return Ok(self.pass(net, samples, backgrounds));
+        }
+        let (n_c, n_f) = (config.n_coarse, config.n_fine);
+        let draws = rngs.map(|g| importance::sorted_draws(g, n_f));
+        let samples = importance::fine_samples(
+            gpu,
+            rays,
+            &coarse.samples.t,
+            &coarse.weights,
+            draws.as_deref(),
+            (n_c, n_f),
+        );
+        Ok(self.pass_on_device(net, samples, None, backgrounds))
+    }
+
     fn check_forward(&self, check: &FiniteCheck, pass: &Pass) -> Result<()> {
         let n = pass.samples.len;
         check_device(
@@ -196,9 +247,7 @@ impl GpuVanillaEngine {
         let samples = self.model.pack_coarse(&mut ws, rays, None);
         let mut pass = self.pass(&self.coarse, samples, &backgrounds);
         if let Some(fine) = self.fine_net() {
-            let weights = gpu.read(&pass.weights, pass.samples.len)?;
-            let samples = self.model.pack_fine(&mut ws, rays, &weights, None);
-            pass = self.pass(fine, samples, &backgrounds);
+            pass = self.fine_pass(fine, &mut ws, rays, &pass, None, &backgrounds)?;
         }
         let values = gpu.read(&pass.out, rays.len() * OUT_WORDS)?;
         for (o, v) in out.iter_mut().zip(values.chunks_exact(OUT_WORDS)) {
@@ -254,11 +303,9 @@ impl Engine for GpuVanillaEngine {
             let mut evaluated = coarse.samples.len;
             let mut fine_sse = None;
             if let Some(fine) = self.fine_net() {
-                let weights = gpu.read(&coarse.weights, coarse.samples.len)?;
-                let samples =
-                    self.model
-                        .pack_fine(&mut ws, &rays.rays, &weights, Some(&mut rays.rngs));
-                let pass = self.pass(fine, samples, &backgrounds);
+                let rngs = Some(&mut rays.rngs[..]);
+                let pass =
+                    self.fine_pass(fine, &mut ws, &rays.rays, &coarse, rngs, &backgrounds)?;
                 self.check_forward(&check, &pass)?;
                 fine_sse = Some(self.backward(fine, &pass, &backgrounds, &targets, &check)?);
                 evaluated += pass.samples.len;
