@@ -1,8 +1,8 @@
 //! The paper model's importance sampling on the device, by the host's rule
 //! (`render::sampling::sample_pdf`, then `merge_sorted`): each ray's fine depths drawn by
 //! inverse transform from its coarse weights and merged with its coarse depths, then packed
-//! as the fine pass's samples (positions, deltas, view directions). The coarse pass's
-//! weights stay on the device; the host sends only the uniform draws of training.
+//! as the fine pass's samples (positions, deltas, view directions), for training steps.
+//! The coarse pass's weights stay on the device; the host sends only the uniform draws.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
@@ -17,21 +17,19 @@ use crate::stage::RayBatch;
 /// Threads per workgroup.
 const GROUP: u32 = 64;
 
-/// The sizes of one draw: rays, coarse and fine depths per ray, and whether the uniform
-/// draws are given (1: training) or evenly spaced in [0, 1] (0: rendering).
+/// The sizes of one draw: rays, coarse and fine depths per ray.
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
 pub struct Draw {
     rays: u32,
     n_c: u32,
     n_f: u32,
-    given_u: u32,
 }
 
 /// One thread per ray: its `n_f` fine depths from the piecewise-constant PDF over the bins
 /// between its coarse depths' midpoints (weights `w_1 .. w_{n_c-2}`, each + 1e-5), at the
-/// uniform draws `u` (sorted per ray) or evenly spaced ones, merged in order with its
-/// coarse depths into `t_fine` (`n_c + n_f` a ray). The draws are sorted, so one pass walks
-/// the CDF and the merge together.
+/// uniform draws `u` (sorted per ray), merged in order with its coarse depths into
+/// `t_fine` (`n_c + n_f` a ray). The draws are sorted, so one pass walks the CDF and the
+/// merge together.
 #[cube(launch_unchecked)]
 fn fine_depths(t_coarse: &[f32], weights: &[f32], u: &[f32], t_fine: &mut [f32], d: Draw) {
     let r = ABSOLUTE_POS;
@@ -56,12 +54,7 @@ fn fine_depths(t_coarse: &[f32], weights: &[f32], u: &[f32], t_fine: &mut [f32],
         let mut i = 0usize;
         let mut o = o0;
         for j in 0..n_f {
-            let even = select(n_f > 1, f32::cast_from(j) / f32::cast_from(n_f - 1), 0.5f32);
-            let draw = select(
-                d.given_u == 1,
-                u[select(d.given_u == 1, r * n_f + j, 0usize)],
-                even,
-            );
+            let draw = u[r * n_f + j];
             loop {
                 if p > last || cur > draw {
                     break;
@@ -166,27 +159,23 @@ pub fn sorted_draws(rngs: &mut [Rng], n_f: usize) -> Vec<f32> {
 }
 
 /// The fine samples of `rays` (`n_c` coarse depths a ray in `t_coarse`, their compositing
-/// `weights`), at the sorted uniform draws `u` (`rays x n_f`: training) or evenly spaced
-/// ones (`None`: rendering).
+/// `weights`), at the sorted uniform draws `u` (`rays x n_f`, [`sorted_draws`]).
 pub fn fine_samples(
     gpu: &Gpu,
     rays: &RayBatch,
     t_coarse: &Handle,
     weights: &Handle,
-    u: Option<&[f32]>,
+    u: &[f32],
     (n_c, n_f): (usize, usize),
 ) -> FineSamples {
     let r = rays.len();
     let spr = n_c + n_f;
     let n = r * spr;
+    assert_eq!(u.len(), r * n_f, "a draw per fine sample");
     let t = gpu.floats(n);
-    let (u_buf, u_len) = match u {
-        Some(u) => (gpu.upload(u), u.len()),
-        None => (gpu.upload(&[0.0]), 1),
-    };
-    let draw = DrawLaunch::new(r as u32, n_c as u32, n_f as u32, u32::from(u.is_some()));
-    // SAFETY: `t_coarse` and `weights` hold `r x n_c` floats, `t` `r x spr`, `u` `r x n_f`
-    // (or one value, read only at index 0 when not given); each thread touches its ray.
+    let draw = DrawLaunch::new(r as u32, n_c as u32, n_f as u32);
+    // SAFETY: `t_coarse` and `weights` hold `r x n_c` floats, `t` `r x spr`, `u` `r x n_f`;
+    // each thread touches its own ray.
     unsafe {
         let (c, d) = grid(r, GROUP);
         fine_depths::launch_unchecked(
@@ -195,7 +184,7 @@ pub fn fine_samples(
             d,
             BufferArg::from_raw_parts(t_coarse.clone(), r * n_c),
             BufferArg::from_raw_parts(weights.clone(), r * n_c),
-            BufferArg::from_raw_parts(u_buf, u_len),
+            BufferArg::from_raw_parts(gpu.upload(u), u.len()),
             BufferArg::from_raw_parts(t.clone(), n),
             draw,
         );
@@ -245,9 +234,9 @@ mod tests {
     use crate::render::volume::depth_deltas;
 
     /// The device's fine samples against the host's rule on the same coarse depths and
-    /// weights (some rays with no weight at all, some with one spike): with training's
-    /// random draws and with rendering's evenly spaced ones, every depth, delta, position
-    /// and direction agrees (within the device's division and square root).
+    /// weights (some rays with no weight at all, some with one spike) and the same random
+    /// streams: every depth, delta, position and direction agrees (within the device's
+    /// division and square root), and the streams are left where the host leaves them.
     #[test]
     fn fine_samples_follow_the_host_rule() {
         let Some(gpu) = test_gpu() else {
@@ -276,24 +265,24 @@ mod tests {
             })
             .collect();
         let streams: Vec<Rng> = (0..r).map(|k| Rng::new(100 + k as u64)).collect();
-        for random in [true, false] {
+        {
             let (mut host_rngs, mut device_rngs) = (streams.clone(), streams.clone());
             let mut want_t = vec![0.0; r * (n_c + n_f)];
             let (mut fresh, mut cdf) = (vec![0.0; n_f], Vec::new());
             for k in 0..r {
                 let tc = &t_coarse[k * n_c..][..n_c];
-                let g = random.then(|| &mut host_rngs[k]);
+                let g = Some(&mut host_rngs[k]);
                 sample_pdf(tc, &weights[k * n_c..][..n_c], g, &mut fresh, &mut cdf);
                 fresh.sort_unstable_by(f32::total_cmp);
                 merge_sorted(tc, &fresh, &mut want_t[k * (n_c + n_f)..][..n_c + n_f]);
             }
-            let draws = random.then(|| sorted_draws(&mut device_rngs, n_f));
+            let draws = sorted_draws(&mut device_rngs, n_f);
             let got = fine_samples(
                 &gpu,
                 &rays,
                 &gpu.upload(&t_coarse),
                 &gpu.upload(&weights),
-                draws.as_deref(),
+                &draws,
                 (n_c, n_f),
             );
             let n = r * (n_c + n_f);
@@ -304,7 +293,7 @@ mod tests {
             for s in 0..n {
                 assert!(
                     close(t[s], want_t[s]),
-                    "random {random}, sample {s}: {} vs {}",
+                    "sample {s}: {} vs {}",
                     t[s],
                     want_t[s]
                 );
@@ -333,8 +322,10 @@ mod tests {
                     }
                 }
             }
-            // Training's draws came from the same streams, as many as the host took.
-            assert_eq!(device_rngs[0].uniform(), host_rngs[0].uniform());
+            // The draws came from the same streams, as many as the host took.
+            for (a, b) in device_rngs.iter_mut().zip(&mut host_rngs) {
+                assert_eq!(a.uniform(), b.uniform());
+            }
         }
     }
 }

@@ -30,8 +30,9 @@
 //!   device (lens distortion through per-lens tables);
 //! * [`launch`]: launch grids and host/device copies.
 //!
-//! Not on the device yet: the paper's model's stratified coarse samples and mip-NeRF's
-//! frustums (made on the host, uploaded), the uniform draws of its importance samples, and
+//! Not on the device: the paper's model's stratified coarse samples, mip-NeRF's frustums
+//! and rendering's fine samples (made on the host, uploaded; rendering's measured faster
+//! there), the uniform draws of its importance samples, and
 //! the random choice of each training ray's pixel (drawn on the host so both engines train
 //! on the same rays and samples; 6 words a ray go up).
 

@@ -6,8 +6,8 @@
 //! runs the coarse pass forward and backward, draws the importance samples from its
 //! compositing weights by the host's rule (`importance`: the host sends only each ray's
 //! uniform draws, from the CPU engine's random streams), runs the fine pass forward and
-//! backward, and Adam. mip-NeRF's frustums are still made on the host from weights read
-//! back. The host reads back one float per ray per pass (the loss) and one count
+//! backward, and Adam. mip-NeRF's frustums, and rendering's fine samples (measured
+//! faster there), are made on the host from weights read back. The host reads back one float per ray per pass (the loss) and one count
 //! (non-finite gradients). Rendering goes through the same two passes in chunks of rays.
 
 use cubecl::server::Handle;
@@ -187,8 +187,10 @@ impl GpuVanillaEngine {
     }
 
     /// The fine pass of `rays` after their `coarse` one: its samples drawn from the coarse
-    /// weights (with `rngs`: training's random draws; without: evenly spaced), on the
-    /// device, or for mip-NeRF's frustums on the host.
+    /// weights, with `rngs` (training's random draws) on the device; without them
+    /// (rendering's evenly spaced draws) and for mip-NeRF's frustums on the host, from
+    /// weights read back. Rendering's many small chunks measured faster on the host
+    /// (docs/benchmarks.md), a training step faster on the device.
     fn fine_pass(
         &self,
         net: &GpuVanillaNet,
@@ -200,19 +202,22 @@ impl GpuVanillaEngine {
     ) -> Result<Pass> {
         let gpu = &self.gpu;
         let config = &self.model.config;
-        if config.integrated {
-            let weights = gpu.read(&coarse.weights, coarse.samples.len)?;
-            let samples = self.model.pack_fine(ws, rays, &weights, rngs);
-            return Ok(self.pass(net, samples, backgrounds));
-        }
+        let rngs = match rngs {
+            Some(rngs) if !config.integrated => rngs,
+            rngs => {
+                let weights = gpu.read(&coarse.weights, coarse.samples.len)?;
+                let samples = self.model.pack_fine(ws, rays, &weights, rngs);
+                return Ok(self.pass(net, samples, backgrounds));
+            }
+        };
         let (n_c, n_f) = (config.n_coarse, config.n_fine);
-        let draws = rngs.map(|g| importance::sorted_draws(g, n_f));
+        let draws = importance::sorted_draws(rngs, n_f);
         let samples = importance::fine_samples(
             gpu,
             rays,
             &coarse.samples.t,
             &coarse.weights,
-            draws.as_deref(),
+            &draws,
             (n_c, n_f),
         );
         Ok(self.pass_on_device(net, samples, None, backgrounds))
