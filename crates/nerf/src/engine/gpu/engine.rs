@@ -664,8 +664,14 @@ impl Engine for GpuEngine {
         self.model.occupancy()
     }
 
+    /// A hardware GPU's whole rendering chunk; a software adapter runs a call as slowly as
+    /// a CPU, so it takes a CPU's few thousand rays and stops as soon.
     fn interactive_slab(&self) -> usize {
-        render_sizes(&self.gpu, self.field.is_fused()).chunk
+        if self.gpu.software {
+            crate::engine::INTERACTIVE_SLAB
+        } else {
+            render_sizes(&self.gpu, self.field.is_fused()).chunk
+        }
     }
 
     fn views_in_flight(&self) -> usize {
