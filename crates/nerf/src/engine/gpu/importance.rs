@@ -137,9 +137,9 @@ fn pack_samples(
     }
 }
 
-/// The fine pass's samples on the device: depths, deltas, positions and per-sample unit view
-/// directions (`n x 3` each).
-pub struct FineSamples {
+/// A pass's samples on the device: depths and deltas (packed per ray), positions and
+/// per-sample unit view directions (`n x 3` each).
+pub struct PassSamples {
     pub samples: GpuSamples,
     pub positions: Handle,
     pub dirs: Handle,
@@ -167,7 +167,7 @@ pub fn fine_samples(
     weights: &Handle,
     u: &[f32],
     (n_c, n_f): (usize, usize),
-) -> FineSamples {
+) -> PassSamples {
     let r = rays.len();
     let spr = n_c + n_f;
     let n = r * spr;
@@ -212,7 +212,7 @@ pub fn fine_samples(
         );
     }
     let offsets: Vec<u32> = (0..=r).map(|k| (k * spr) as u32).collect();
-    FineSamples {
+    PassSamples {
         samples: GpuSamples {
             offsets: gpu.upload_u32(&offsets),
             t,

@@ -32,9 +32,9 @@
 //!
 //! Not on the device: the paper's model's stratified coarse samples, mip-NeRF's frustums
 //! and rendering's fine samples (made on the host, uploaded; rendering's measured faster
-//! there), the uniform draws of its importance samples, and
-//! the random choice of each training ray's pixel (drawn on the host so both engines train
-//! on the same rays and samples; 6 words a ray go up).
+//! there), the uniform draws of its importance samples, and the random choice of each
+//! training ray's pixel (drawn on the host so both engines train on the same rays and
+//! samples; 6 words a ray go up).
 
 pub mod adam;
 pub mod antialias;

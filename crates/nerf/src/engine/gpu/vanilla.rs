@@ -7,13 +7,14 @@
 //! compositing weights by the host's rule (`importance`: the host sends only each ray's
 //! uniform draws, from the CPU engine's random streams), runs the fine pass forward and
 //! backward, and Adam. mip-NeRF's frustums, and rendering's fine samples (measured
-//! faster there), are made on the host from weights read back. The host reads back one float per ray per pass (the loss) and one count
-//! (non-finite gradients). Rendering goes through the same two passes in chunks of rays.
+//! faster there), are made on the host from weights read back. The host reads back one
+//! float per ray per pass (the loss) and one count (non-finite gradients). Rendering goes
+//! through the same two passes in chunks of rays.
 
 use cubecl::server::Handle;
 
 use super::device::Gpu;
-use super::importance::{self, FineSamples};
+use super::importance::{self, PassSamples};
 use super::loss;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
 use super::vanilla_net::{GpuVanillaNet, VanillaActs};
@@ -96,7 +97,7 @@ impl GpuVanillaEngine {
         let offsets: Vec<u32> = samples.offsets.iter().map(|&o| o as u32).collect();
         let spd = samples.samples_per_dir.max(1);
         let dirs: Vec<f32> = (0..n).flat_map(|s| samples.dirs[s / spd]).collect();
-        let on_device = FineSamples {
+        let on_device = PassSamples {
             samples: GpuSamples {
                 offsets: gpu.upload_u32(&offsets),
                 t: gpu.upload(&samples.t),
@@ -116,12 +117,12 @@ impl GpuVanillaEngine {
     fn pass_on_device(
         &self,
         net: &GpuVanillaNet,
-        samples: FineSamples,
+        samples: PassSamples,
         variances: Option<&Handle>,
         backgrounds: &Handle,
     ) -> Pass {
         let gpu = &self.gpu;
-        let FineSamples {
+        let PassSamples {
             samples: on_device,
             positions,
             dirs,
