@@ -15,6 +15,9 @@ pub enum Path {
     Tiled,
     /// The same with a block of outputs a thread (`gemm`'s blocked kernel).
     Blocked,
+    /// Up to 8 x 8 outputs a thread read through `vec4`s (`gemm_wide`) for layers wider
+    /// than 32, the blocked kernel for narrower ones.
+    Wide,
 }
 
 /// An opened adapter.
@@ -26,8 +29,8 @@ pub struct Gpu {
     /// A software adapter (lavapipe, llvmpipe, WARP): correct, but slower than the CPU
     /// engine.
     pub software: bool,
-    /// The dense layers' kernels: blocked products, the fastest measured on a hardware
-    /// GPU and on lavapipe alike (docs/benchmarks.md); `NERF_GPU_MATMUL=plain|tiled|blocked`
+    /// The dense layers' kernels: wide products, the fastest measured on a hardware GPU
+    /// and on lavapipe alike (docs/benchmarks.md); `NERF_GPU_MATMUL=plain|tiled|blocked|wide`
     /// overrides, for measuring.
     pub matmul: Path,
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
@@ -54,7 +57,8 @@ impl Gpu {
         let matmul = match std::env::var("NERF_GPU_MATMUL").as_deref() {
             Ok("plain") => Path::Plain,
             Ok("tiled") => Path::Tiled,
-            _ => Path::Blocked,
+            Ok("blocked") => Path::Blocked,
+            _ => Path::Wide,
         };
         let fused_field = std::env::var("NERF_GPU_FIELD").as_deref() == Ok("fused");
         Gpu {

@@ -649,7 +649,7 @@ pub(super) mod tests {
         };
         field.backward(&params, &mut ws, d, &mut grads.all());
 
-        for path in [Path::Plain, Path::Tiled, Path::Blocked] {
+        for path in [Path::Plain, Path::Tiled, Path::Blocked, Path::Wide] {
             let gpu = Gpu {
                 matmul: path,
                 ..gpu.clone()

@@ -9,7 +9,8 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
-use super::device::Gpu;
+use super::device::{Gpu, Path};
+use super::gemm_wide::{gemm_wide, Shape};
 
 /// Output tile side (and workgroup side).
 pub const TILE: usize = 16;
@@ -17,27 +18,27 @@ pub const TILE: usize = 16;
 /// Strides and epilogue of one product, in the order the kernel reads them.
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
 pub struct Gemm {
-    m: u32,
-    n: u32,
-    k: u32,
+    pub(super) m: u32,
+    pub(super) n: u32,
+    pub(super) k: u32,
     /// `A(i, l) = a[a_off + i a_si + l a_sl]`.
-    a_off: u32,
-    a_si: u32,
-    a_sl: u32,
+    pub(super) a_off: u32,
+    pub(super) a_si: u32,
+    pub(super) a_sl: u32,
     /// `B(l, j) = b[b_off + l b_sl + j b_sj]`.
-    b_off: u32,
-    b_sl: u32,
-    b_sj: u32,
+    pub(super) b_off: u32,
+    pub(super) b_sl: u32,
+    pub(super) b_sj: u32,
     /// `C(i, j) = c[c_off + part c_part + i n + j]`; part `p` sums `l` in
     /// `[p k_part, (p + 1) k_part)`.
-    c_part: u32,
-    k_part: u32,
+    pub(super) c_part: u32,
+    pub(super) k_part: u32,
     /// Epilogue: 1 adds `bias[bias_off + j]`; 1 applies a ReLU; 1 zeroes `C(i, j)` where
     /// `mask[i n + j] <= 0`.
-    has_bias: u32,
-    bias_off: u32,
-    relu: u32,
-    has_mask: u32,
+    pub(super) has_bias: u32,
+    pub(super) bias_off: u32,
+    pub(super) relu: u32,
+    pub(super) has_mask: u32,
 }
 
 #[cube(launch_unchecked)]
@@ -84,17 +85,17 @@ fn gemm_tiled(a: &[f32], b: &[f32], bias: &[f32], mask: &[f32], c: &mut [f32], g
 
 /// The epilogue's flags and the output's width, as [`store`] reads them.
 #[derive(CubeType, Clone, Copy)]
-struct Epi {
-    has_bias: u32,
-    bias_off: u32,
-    relu: u32,
-    has_mask: u32,
-    n: u32,
+pub(super) struct Epi {
+    pub(super) has_bias: u32,
+    pub(super) bias_off: u32,
+    pub(super) relu: u32,
+    pub(super) has_mask: u32,
+    pub(super) n: u32,
 }
 
 #[cube]
 impl Epi {
-    fn new(has_bias: u32, bias_off: u32, relu: u32, has_mask: u32, n: u32) -> Epi {
+    pub(super) fn new(has_bias: u32, bias_off: u32, relu: u32, has_mask: u32, n: u32) -> Epi {
         Epi {
             has_bias,
             bias_off,
@@ -108,7 +109,7 @@ impl Epi {
 /// Writes the sum `v` of `C(row, col)` through the epilogue `e` into `c` from `at`.
 #[cube]
 #[allow(clippy::too_many_arguments)]
-fn store(
+pub(super) fn store(
     v: f32,
     row: usize,
     col: usize,
@@ -256,7 +257,8 @@ pub struct Epilogue<'a> {
 }
 
 /// `C = A B` (`m x k` by `k x n`) into `c` (`parts x m x n` when the reduction is split
-/// into `parts` of `k_part`), through `epilogue`, by the blocked kernel or the 16 x 16 one.
+/// into `parts` of `k_part`), through `epilogue`, by the kernel of `path` (`Wide` takes the
+/// blocked kernel for products of at most [`NARROW`] columns; `Plain` is the caller's).
 /// Returns false (launching nothing) when the grid would exceed 65535 tiles down `m`: the
 /// caller takes its plain kernel then.
 #[allow(clippy::too_many_arguments)]
@@ -268,11 +270,18 @@ pub fn matmul(
     c: &Handle,
     k_part: usize,
     epilogue: Epilogue,
-    blocked: bool,
+    path: Path,
 ) -> bool {
     let parts = k.div_ceil(k_part.max(1)).max(1);
+    let wide = path == Path::Wide && n > NARROW;
+    let blocked = path == Path::Blocked || (path == Path::Wide && !wide);
     let cols = if n > NARROW { PER_THREAD } else { 1 };
-    let (gx, gy) = if blocked {
+    // The wide kernel's outputs a thread: 8 rows (columns) where the product has more
+    // than 64, else 4.
+    let (tm, tn) = (if m > BLOCK { 8 } else { 4 }, if n > BLOCK { 8 } else { 4 });
+    let (gx, gy) = if wide {
+        (n.div_ceil(TILE * tn), m.div_ceil(TILE * tm))
+    } else if blocked {
         (n.div_ceil(TILE * cols), m.div_ceil(BLOCK))
     } else {
         (n.div_ceil(TILE), m.div_ceil(TILE))
@@ -313,7 +322,25 @@ pub fn matmul(
             BufferArg::from_raw_parts(mask.clone(), mask_len),
             BufferArg::from_raw_parts(c.clone(), parts * m * n),
         );
-        if blocked {
+        if wide {
+            gemm_wide::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                args.0,
+                args.1,
+                args.2,
+                args.3,
+                args.4,
+                g,
+                Shape {
+                    tm,
+                    tn,
+                    a_rows_unit: a.outer == 1,
+                    b_cols_unit: b.outer == 1,
+                },
+            );
+        } else if blocked {
             gemm_blocked::launch_unchecked(
                 &gpu.client,
                 count,
@@ -358,12 +385,17 @@ mod tests {
             return;
         };
         let mut rng = Rng::new(11);
-        for (m, n, k, k_part, transposed) in [
-            (200, 64, 31, 31, false),
-            (130, 48, 64, 64, false),
-            (70, 37, 150, 64, true),
-            (150, 16, 64, 64, false),
-            (90, 3, 33, 16, true),
+        // (m, n, k, k_part, A transposed, B transposed): the wide kernel's four tile
+        // shapes and both staging orders of each operand among them.
+        for (m, n, k, k_part, transposed, b_transposed) in [
+            (200, 64, 31, 31, false, false),
+            (130, 48, 64, 64, false, true),
+            (70, 37, 150, 64, true, false),
+            (150, 16, 64, 64, false, false),
+            (90, 3, 33, 16, true, false),
+            (300, 150, 70, 70, false, true),
+            (60, 200, 90, 40, true, false),
+            (257, 130, 48, 48, true, true),
         ] {
             let av: Vec<f32> = (0..m * k).map(|_| rng.range(-1.0, 1.0)).collect();
             let bv: Vec<f32> = (0..k * n).map(|_| rng.range(-1.0, 1.0)).collect();
@@ -371,6 +403,8 @@ mod tests {
             let mask: Vec<f32> = (0..m * n).map(|_| rng.range(-1.0, 1.0)).collect();
             // A(i, l): row-major, or stored as its transpose (`k x m`).
             let (outer, reduce) = if transposed { (1, m) } else { (k, 1) };
+            // B(l, j): row-major, or stored as its transpose (`n x k`).
+            let (b_sl, b_sj) = if b_transposed { (1, k) } else { (n, 1) };
             let parts = k.div_ceil(k_part);
             let mut want = vec![0.0f32; parts * m * n];
             for p in 0..parts {
@@ -378,7 +412,7 @@ mod tests {
                     for j in 0..n {
                         let mut acc = 0.0;
                         for l in p * k_part..((p + 1) * k_part).min(k) {
-                            acc += av[i * outer + l * reduce] * bv[l * n + j];
+                            acc += av[i * outer + l * reduce] * bv[l * b_sl + j * b_sj];
                         }
                         if parts == 1 {
                             acc = (acc + bias[j]).max(0.0);
@@ -392,7 +426,7 @@ mod tests {
             }
             let (a, b) = (gpu.upload(&av), gpu.upload(&bv));
             let (bias_h, mask_h) = (gpu.upload(&bias), gpu.upload(&mask));
-            for blocked in [false, true] {
+            for path in [Path::Tiled, Path::Blocked, Path::Wide] {
                 let c = gpu.floats(parts * m * n);
                 let epilogue = if parts == 1 {
                     Epilogue {
@@ -414,17 +448,15 @@ mod tests {
                     buf: &b,
                     len: k * n,
                     off: 0,
-                    outer: 1,
-                    reduce: n,
+                    outer: b_sj,
+                    reduce: b_sl,
                 };
                 let (mnk, part) = ((m, n, k), k_part);
-                assert!(matmul(
-                    &gpu, mnk, a_view, b_view, &c, part, epilogue, blocked
-                ));
+                assert!(matmul(&gpu, mnk, a_view, b_view, &c, part, epilogue, path));
                 let got = gpu.read(&c, parts * m * n).expect("read");
                 let err = worst(&got, &want);
-                eprintln!("{m}x{n}x{k} in {parts} parts, blocked {blocked}: {err:.1e}");
-                assert!(err < 1e-4, "{m}x{n}x{k}, blocked {blocked}: {err}");
+                eprintln!("{m}x{n}x{k} in {parts} parts, {path:?}: {err:.1e}");
+                assert!(err < 1e-4, "{m}x{n}x{k}, {path:?}: {err}");
             }
         }
     }

@@ -25,6 +25,16 @@ const GROUP: u32 = 256;
 /// Samples summed by one thread of the weight-gradient kernel.
 pub const ROWS_PER_PARTIAL: usize = 256;
 
+/// Samples summed into one partial weight gradient by the tiled products of `path`: the
+/// wide kernel sums more, since its partials (a whole `ni x no` matrix each) are written
+/// and read again, and their count bounds how many threads add them.
+fn rows_per_partial(path: Path) -> usize {
+    match path {
+        Path::Wide => 4 * ROWS_PER_PARTIAL,
+        _ => ROWS_PER_PARTIAL,
+    }
+}
+
 /// A layer's shape and where it sits in the parameter vector.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Dense {
@@ -198,8 +208,7 @@ impl Dense {
                 relu: self.relu,
                 mask: None,
             };
-            let blocked = path == Path::Blocked;
-            if gemm::matmul(gpu, (n, no, ni), a, b, y, ni, epilogue, blocked) {
+            if gemm::matmul(gpu, (n, no, ni), a, b, y, ni, epilogue, path) {
                 return;
             }
         }
@@ -259,9 +268,11 @@ impl Dense {
             return;
         }
         let (ni, no) = (self.inputs, self.outputs);
-        let parts = n.div_ceil(ROWS_PER_PARTIAL);
-        // Partial sums of dW (`parts x ni x no`) and db (`parts x no`).
-        let partial_w = gpu.floats(parts * ni * no);
+        // Partial sums of dW (`parts x ni x no`), from a tiled product where its grid
+        // fits, else from the plain kernel.
+        let tiled_rows = rows_per_partial(path);
+        let tiled_parts = n.div_ceil(tiled_rows);
+        let tiled_w = gpu.floats(tiled_parts * ni * no);
         let x_view = View {
             buf: x,
             len: n * ni,
@@ -282,11 +293,12 @@ impl Dense {
                 (ni, no, n),
                 x_view,
                 dy_view,
-                &partial_w,
-                ROWS_PER_PARTIAL,
+                &tiled_w,
+                tiled_rows,
                 Epilogue::default(),
-                path == Path::Blocked,
+                path,
             );
+        let plain_parts = n.div_ceil(ROWS_PER_PARTIAL);
         // SAFETY: shapes as in `forward`; the partial buffers hold `parts x ni x no` and
         // `parts x no` floats, and each kernel bounds-checks the buffer it writes.
         unsafe {
@@ -306,10 +318,7 @@ impl Dense {
                     ROWS_PER_PARTIAL as u32,
                 )
             };
-            if !tiled {
-                weight_partials(ni, &partial_w, parts * ni * no);
-            }
-            let add = |partial: &Handle, len: usize, off: usize| {
+            let add = |partial: &Handle, parts: usize, len: usize, off: usize| {
                 let (count, dim) = grid(len, GROUP);
                 add_partials::launch_unchecked(
                     &gpu.client,
@@ -324,12 +333,18 @@ impl Dense {
                     off as u32,
                 )
             };
-            add(&partial_w, ni * no, self.weight);
+            if tiled {
+                add(&tiled_w, tiled_parts, ni * no, self.weight);
+            } else {
+                let partial_w = gpu.floats(plain_parts * ni * no);
+                weight_partials(ni, &partial_w, plain_parts * ni * no);
+                add(&partial_w, plain_parts, ni * no, self.weight);
+            }
             if let Some(b) = self.bias {
                 // With no input rows the partial kernel sums `dy` alone: the bias row.
-                let partial_b = gpu.floats(parts * no);
-                weight_partials(0, &partial_b, parts * no);
-                add(&partial_b, no, b);
+                let partial_b = gpu.floats(plain_parts * no);
+                weight_partials(0, &partial_b, plain_parts * no);
+                add(&partial_b, plain_parts, no, b);
             }
         }
         let Some((dx, relu_in)) = dx else { return };
@@ -352,8 +367,7 @@ impl Dense {
                 mask: relu_in.then_some((x, n * ni)),
                 ..Epilogue::default()
             };
-            let blocked = path == Path::Blocked;
-            if gemm::matmul(gpu, (n, ni, no), a, b, dx, no, epilogue, blocked) {
+            if gemm::matmul(gpu, (n, ni, no), a, b, dx, no, epilogue, path) {
                 return;
             }
         }
@@ -441,7 +455,7 @@ mod tests {
         }
 
         let (p, xh, dyh) = (gpu.upload(&params), gpu.upload(&x), gpu.upload(&dy));
-        for path in [Path::Plain, Path::Tiled, Path::Blocked] {
+        for path in [Path::Plain, Path::Tiled, Path::Blocked, Path::Wide] {
             let (y, dx) = (gpu.floats(n * no), gpu.floats(n * ni));
             // Gradients start non-zero: the layer adds into them.
             let start: Vec<f32> = (0..n_params).map(|i| i as f32 * 0.01).collect();

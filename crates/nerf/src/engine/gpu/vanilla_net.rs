@@ -642,7 +642,7 @@ mod tests {
             let base = 5;
             let mut all = vec![0.5; base];
             all.extend_from_slice(&params);
-            for path in [Path::Plain, Path::Tiled, Path::Blocked] {
+            for path in [Path::Plain, Path::Tiled, Path::Blocked, Path::Wide] {
                 let gpu = Gpu {
                     matmul: path,
                     ..gpu.clone()
