@@ -18,6 +18,9 @@ pub enum Path {
     /// Up to 8 x 8 outputs a thread read through `vec4`s (`gemm_wide`) for layers wider
     /// than 32, the blocked kernel for narrower ones.
     Wide,
+    /// Tensor cores (`gemm_cmma`: `f16` operands, `f32` sums) for the forward products of
+    /// layers wider than 32, where the adapter has them; the gradients' products are wide.
+    Cmma,
 }
 
 /// An opened adapter.
@@ -58,6 +61,14 @@ impl Gpu {
             Ok("plain") => Path::Plain,
             Ok("tiled") => Path::Tiled,
             Ok("blocked") => Path::Blocked,
+            Ok("cmma") if super::gemm_cmma::available(&client) => Path::Cmma,
+            Ok("cmma") => {
+                eprintln!(
+                    "NERF_GPU_MATMUL=cmma: this adapter has no f16 cooperative matrices (they \
+                     need a build with the `spirv` feature); the wide kernels run"
+                );
+                Path::Wide
+            }
             _ => Path::Wide,
         };
         let fused_field = std::env::var("NERF_GPU_FIELD").as_deref() == Ok("fused");
@@ -84,7 +95,22 @@ impl Gpu {
                  lavapipe for a software one (Debian/Ubuntu: apt-get install mesa-vulkan-drivers)"
             ))
         })?;
-        Ok(Gpu::from_device(device, "wgpu/vulkan"))
+        Gpu::from_device(device, "wgpu/vulkan").runs_spirv()
+    }
+
+    /// This adapter, unless this build compiles Vulkan kernels to SPIR-V (the `spirv`
+    /// feature) and the adapter is a software one: lavapipe crashes on CubeCL's SPIR-V, so
+    /// such builds refuse it with a reason rather than fault.
+    fn runs_spirv(self) -> Result<Gpu> {
+        if cfg!(feature = "spirv") && self.software && self.name.starts_with("wgpu/vulkan") {
+            return Err(NerfError::Device(format!(
+                "{}: this build compiles the GPU kernels to SPIR-V (the `spirv` feature), \
+                 which software Vulkan adapters crash on; use a build without it (the \
+                 default) or --device cpu",
+                self.name
+            )));
+        }
+        Ok(self)
     }
 
     /// `--device wgpu`: the best adapter on Vulkan, else Metal, else DirectX 12 (never
@@ -99,7 +125,7 @@ impl Gpu {
         let mut reasons = Vec::new();
         for (api, device) in tried {
             match device {
-                Ok(d) => return Ok(Gpu::from_device(d, api)),
+                Ok(d) => return Gpu::from_device(d, api).runs_spirv(),
                 Err(e) => reasons.push(format!("{api}: {e}")),
             }
         }

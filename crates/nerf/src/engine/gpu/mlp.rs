@@ -267,6 +267,9 @@ impl Dense {
         if n == 0 {
             return;
         }
+        // Gradients keep `f32` operands: tensor cores multiplying them in `f16` measured
+        // slower than the wide kernel, and small gradients lose their bits in `f16`.
+        let path = if path == Path::Cmma { Path::Wide } else { path };
         let (ni, no) = (self.inputs, self.outputs);
         // Partial sums of dW (`parts x ni x no`), from a tiled product where its grid
         // fits, else from the plain kernel.

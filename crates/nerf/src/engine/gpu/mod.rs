@@ -46,6 +46,7 @@ pub mod field;
 pub mod finite;
 pub mod fused;
 pub mod gemm;
+mod gemm_cmma;
 mod gemm_wide;
 pub mod harmonics;
 pub mod hash_grid;
