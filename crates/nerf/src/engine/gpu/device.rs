@@ -44,6 +44,24 @@ pub struct Gpu {
     /// on a data-centre GPU it rendered no faster than the layers while marching rounds
     /// set the pace, and its compilation delays the first frame (docs/benchmarks.md).
     pub fused_field: bool,
+    /// Whether the adapter multiplies 16 x 16 x 16 `f16` matrices into `f32` on warps of
+    /// [`WARP`] threads (cooperative matrices: a `spirv` build on a GPU with tensor cores).
+    pub tensor_cores: bool,
+}
+
+/// Threads a warp (plane) as the tensor-core kernel takes them.
+pub const WARP: u32 = 32;
+
+/// See [`Gpu::tensor_cores`].
+fn has_tensor_cores(client: &Client) -> bool {
+    let props = client.properties();
+    let f16 = ElemType::Float(FloatKind::F16);
+    let f32 = ElemType::Float(FloatKind::F32);
+    props.hardware.plane_size_min == WARP
+        && props.hardware.plane_size_max == WARP
+        && props.features.matmul.cmma.iter().any(|c| {
+            (c.a_type, c.b_type, c.cd_type) == (f16, f16, f32) && (c.m, c.n, c.k) == (16, 16, 16)
+        })
 }
 
 impl Gpu {
@@ -57,11 +75,12 @@ impl Gpu {
             .contains(cubecl::ir::features::AtomicUsage::Add);
         let identity = &client.properties().identity;
         let software = identity.physical.is_none();
+        let tensor_cores = has_tensor_cores(&client);
         let matmul = match std::env::var("NERF_GPU_MATMUL").as_deref() {
             Ok("plain") => Path::Plain,
             Ok("tiled") => Path::Tiled,
             Ok("blocked") => Path::Blocked,
-            Ok("cmma") if super::gemm_cmma::available(&client) => Path::Cmma,
+            Ok("cmma") if tensor_cores => Path::Cmma,
             Ok("cmma") => {
                 eprintln!(
                     "NERF_GPU_MATMUL=cmma: this adapter has no f16 cooperative matrices (they \
@@ -75,6 +94,7 @@ impl Gpu {
         Gpu {
             matmul,
             fused_field,
+            tensor_cores,
             name: format!(
                 "{runtime}: {}{}",
                 identity.name,

@@ -11,36 +11,11 @@ use cubecl::server::Handle;
 
 use super::device::{Gpu, Path};
 use super::gemm_cmma;
+use super::gemm_epilogue::{store, Epi, Gemm, GemmLaunch};
 use super::gemm_wide::{gemm_wide, Shape};
 
 /// Output tile side (and workgroup side).
 pub const TILE: usize = 16;
-
-/// Strides and epilogue of one product, in the order the kernel reads them.
-#[derive(CubeType, CubeLaunch, Clone, Copy)]
-pub struct Gemm {
-    pub(super) m: u32,
-    pub(super) n: u32,
-    pub(super) k: u32,
-    /// `A(i, l) = a[a_off + i a_si + l a_sl]`.
-    pub(super) a_off: u32,
-    pub(super) a_si: u32,
-    pub(super) a_sl: u32,
-    /// `B(l, j) = b[b_off + l b_sl + j b_sj]`.
-    pub(super) b_off: u32,
-    pub(super) b_sl: u32,
-    pub(super) b_sj: u32,
-    /// `C(i, j) = c[c_off + part c_part + i n + j]`; part `p` sums `l` in
-    /// `[p k_part, (p + 1) k_part)`.
-    pub(super) c_part: u32,
-    pub(super) k_part: u32,
-    /// Epilogue: 1 adds `bias[bias_off + j]`; 1 applies a ReLU; 1 zeroes `C(i, j)` where
-    /// `mask[i n + j] <= 0`.
-    pub(super) has_bias: u32,
-    pub(super) bias_off: u32,
-    pub(super) relu: u32,
-    pub(super) has_mask: u32,
-}
 
 #[cube(launch_unchecked)]
 fn gemm_tiled(a: &[f32], b: &[f32], bias: &[f32], mask: &[f32], c: &mut [f32], g: Gemm) {
@@ -82,56 +57,6 @@ fn gemm_tiled(a: &[f32], b: &[f32], bias: &[f32], mask: &[f32], c: &mut [f32], g
         let e = Epi::new(g.has_bias, g.bias_off, g.relu, g.has_mask, g.n);
         store(acc, row, col, at, bias, mask, c, e);
     }
-}
-
-/// The epilogue's flags and the output's width, as [`store`] reads them.
-#[derive(CubeType, Clone, Copy)]
-pub(super) struct Epi {
-    pub(super) has_bias: u32,
-    pub(super) bias_off: u32,
-    pub(super) relu: u32,
-    pub(super) has_mask: u32,
-    pub(super) n: u32,
-}
-
-#[cube]
-impl Epi {
-    pub(super) fn new(has_bias: u32, bias_off: u32, relu: u32, has_mask: u32, n: u32) -> Epi {
-        Epi {
-            has_bias,
-            bias_off,
-            relu,
-            has_mask,
-            n,
-        }
-    }
-}
-
-/// Writes the sum `v` of `C(row, col)` through the epilogue `e` into `c` from `at`.
-#[cube]
-#[allow(clippy::too_many_arguments)]
-pub(super) fn store(
-    v: f32,
-    row: usize,
-    col: usize,
-    at: usize,
-    bias: &[f32],
-    mask: &[f32],
-    c: &mut [f32],
-    e: Epi,
-) {
-    let n = e.n as usize;
-    let mut v = v;
-    if e.has_bias == 1 {
-        v += bias[e.bias_off as usize + col];
-    }
-    if e.relu == 1 {
-        v = f32::max(v, 0.0);
-    }
-    if e.has_mask == 1 && mask[row * n + col] <= 0.0 {
-        v = 0.0;
-    }
-    c[at + row * n + col] = v;
 }
 
 /// Rows of `C` each thread of the blocked kernel computes, `TILE` apart (and columns, for
@@ -319,7 +244,7 @@ pub fn matmul(
     unsafe {
         let count = CubeCount::Static(gx as u32, gy as u32, parts as u32);
         let dim = if cmma {
-            CubeDim::new_2d(gemm_cmma::WARP, 4)
+            CubeDim::new_2d(super::device::WARP, gemm_cmma::WARPS as u32)
         } else {
             CubeDim::new_2d(TILE as u32, TILE as u32)
         };
@@ -407,7 +332,7 @@ mod tests {
             return;
         };
         let mut paths = vec![Path::Tiled, Path::Blocked, Path::Wide];
-        if gemm_cmma::available(&gpu.client) {
+        if gpu.tensor_cores {
             paths.push(Path::Cmma);
         } else {
             eprintln!(

@@ -13,31 +13,45 @@
 use cubecl::prelude::*;
 use half::f16;
 
-use super::gemm::{store, Epi, Gemm};
+use super::device::WARP;
+use super::gemm_epilogue::{store, Epi, Gemm};
 
 /// Output tile side; the reduced index is staged 16 at a time.
 const TILE: usize = 64;
 const K: usize = 16;
-/// Threads a warp (plane); the kernel takes the adapter's warps to be this wide.
-pub const WARP: u32 = 32;
 /// Warps a workgroup.
-const WARPS: usize = 4;
+pub(super) const WARPS: usize = 4;
 
-/// Whether `gpu` multiplies 16 x 16 x 16 `f16` matrices into `f32` on its warps, and its
-/// warps are [`WARP`] threads wide.
-pub fn available(client: &cubecl::client::Client) -> bool {
-    use cubecl::ir::{ElemType, FloatKind};
-    let props = client.properties();
-    let f16 = ElemType::Float(FloatKind::F16);
-    let f32 = ElemType::Float(FloatKind::F32);
-    props.hardware.plane_size_min == WARP
-        && props.hardware.plane_size_max == WARP
-        && props.features.matmul.cmma.iter().any(|c| {
-            c.a_type == f16
-                && c.b_type == f16
-                && c.cd_type == f32
-                && (c.m, c.n, c.k) == (16, 16, 16)
-        })
+/// A 16 x 16 matrix of sums, zeroed.
+#[cube]
+fn zero_sums() -> cmma::Matrix<f32> {
+    cmma::Matrix::<f32>::from_value(
+        cmma::MatrixIdent::Accumulator,
+        16usize,
+        16usize,
+        16usize,
+        cmma::MatrixLayout::Undefined,
+        0.0,
+    )
+}
+
+/// A 16 x 16 operand (`ident`: `A` or `B`) read row-major from workgroup memory, rows
+/// `stride` apart.
+#[cube]
+fn operand(
+    #[comptime] ident: cmma::MatrixIdent,
+    tile: &[f16],
+    #[comptime] stride: usize,
+) -> cmma::Matrix<f16> {
+    cmma::Matrix::<f16>::from_slice(
+        ident,
+        16usize,
+        16usize,
+        16usize,
+        cmma::MatrixLayout::RowMajor,
+        tile,
+        stride as u32,
+    )
 }
 
 /// `C = A B` through the epilogue, as `gemm_tiled`, in 64 x 64 tiles on tensor cores.
@@ -70,38 +84,10 @@ pub(super) fn gemm_cmma(
     // This warp's 32 x 32 corner of the tile.
     let wr = (warp / 2) * 32;
     let wc = (warp % 2) * 32;
-    let acc00 = cmma::Matrix::<f32>::from_value(
-        cmma::MatrixIdent::Accumulator,
-        16usize,
-        16usize,
-        16usize,
-        cmma::MatrixLayout::Undefined,
-        0.0,
-    );
-    let acc01 = cmma::Matrix::<f32>::from_value(
-        cmma::MatrixIdent::Accumulator,
-        16usize,
-        16usize,
-        16usize,
-        cmma::MatrixLayout::Undefined,
-        0.0,
-    );
-    let acc10 = cmma::Matrix::<f32>::from_value(
-        cmma::MatrixIdent::Accumulator,
-        16usize,
-        16usize,
-        16usize,
-        cmma::MatrixLayout::Undefined,
-        0.0,
-    );
-    let acc11 = cmma::Matrix::<f32>::from_value(
-        cmma::MatrixIdent::Accumulator,
-        16usize,
-        16usize,
-        16usize,
-        cmma::MatrixLayout::Undefined,
-        0.0,
-    );
+    let acc00 = zero_sums();
+    let acc01 = zero_sums();
+    let acc10 = zero_sums();
+    let acc11 = zero_sums();
     let mut l0 = first;
     while l0 < last {
         #[unroll]
@@ -137,42 +123,14 @@ pub(super) fn gemm_cmma(
             b_tile[l * TILE + cc] = f16::cast_from(v);
         }
         sync_cube();
-        let a0 = cmma::Matrix::<f16>::from_slice(
+        let a0 = operand(cmma::MatrixIdent::A, &a_tile[wr * K..(wr + 16) * K], K);
+        let a1 = operand(
             cmma::MatrixIdent::A,
-            16usize,
-            16usize,
-            16usize,
-            cmma::MatrixLayout::RowMajor,
-            &a_tile[wr * K..(wr + 16) * K],
-            K as u32,
-        );
-        let a1 = cmma::Matrix::<f16>::from_slice(
-            cmma::MatrixIdent::A,
-            16usize,
-            16usize,
-            16usize,
-            cmma::MatrixLayout::RowMajor,
             &a_tile[(wr + 16) * K..(wr + 32) * K],
-            K as u32,
+            K,
         );
-        let b0 = cmma::Matrix::<f16>::from_slice(
-            cmma::MatrixIdent::B,
-            16usize,
-            16usize,
-            16usize,
-            cmma::MatrixLayout::RowMajor,
-            &b_tile[wc..K * TILE],
-            TILE as u32,
-        );
-        let b1 = cmma::Matrix::<f16>::from_slice(
-            cmma::MatrixIdent::B,
-            16usize,
-            16usize,
-            16usize,
-            cmma::MatrixLayout::RowMajor,
-            &b_tile[wc + 16..K * TILE],
-            TILE as u32,
-        );
+        let b0 = operand(cmma::MatrixIdent::B, &b_tile[wc..K * TILE], TILE);
+        let b1 = operand(cmma::MatrixIdent::B, &b_tile[wc + 16..K * TILE], TILE);
         cmma::execute(&a0, &b0, &acc00, &acc00);
         cmma::execute(&a0, &b1, &acc01, &acc01);
         cmma::execute(&a1, &b0, &acc10, &acc10);
@@ -182,29 +140,16 @@ pub(super) fn gemm_cmma(
     }
     let at0 = wr * TILE + wc;
     let end = TILE * TILE;
-    cmma::store(
-        &mut c_tile[at0..end],
-        &acc00,
-        TILE as u32,
-        cmma::MatrixLayout::RowMajor,
-    );
-    cmma::store(
-        &mut c_tile[at0 + 16..end],
-        &acc01,
-        TILE as u32,
-        cmma::MatrixLayout::RowMajor,
-    );
-    cmma::store(
-        &mut c_tile[at0 + 16 * TILE..end],
-        &acc10,
-        TILE as u32,
-        cmma::MatrixLayout::RowMajor,
-    );
+    let stride = TILE as u32;
+    let layout = cmma::MatrixLayout::RowMajor;
+    cmma::store(&mut c_tile[at0..end], &acc00, stride, layout);
+    cmma::store(&mut c_tile[at0 + 16..end], &acc01, stride, layout);
+    cmma::store(&mut c_tile[at0 + 16 * TILE..end], &acc10, stride, layout);
     cmma::store(
         &mut c_tile[at0 + 16 * TILE + 16..end],
         &acc11,
-        TILE as u32,
-        cmma::MatrixLayout::RowMajor,
+        stride,
+        layout,
     );
     sync_cube();
     let at = g.c_part as usize * part;

@@ -13,7 +13,7 @@
 
 use cubecl::prelude::*;
 
-use super::gemm::{store, Epi, Gemm};
+use super::gemm_epilogue::{store, Epi, Gemm};
 
 type V4 = Vector<f32, Const<4>>;
 
@@ -33,75 +33,61 @@ pub(super) struct Shape {
     pub b_cols_unit: bool,
 }
 
-/// The thread's `q`-th vec4 of `A`'s tile at `l0`: its value (zeros past the edges) and
-/// its index in the tile.
+/// One operand as staging reads it: element (outer index `i`, reduced index `l`) at
+/// `off + i outer + l reduce`, the tile's outer indices from `first`, `len` in all (`A`'s
+/// rows, `B`'s columns).
+#[derive(CubeType, Clone, Copy)]
+struct Operand {
+    off: usize,
+    outer: usize,
+    reduce: usize,
+    first: usize,
+    len: usize,
+}
+
 #[cube]
-fn fetch_a(
-    a: &[f32],
-    g: &Gemm,
-    t: usize,
-    q: usize,
+impl Operand {
+    fn new(off: u32, outer: u32, reduce: u32, first: usize, len: u32) -> Operand {
+        Operand {
+            off: off as usize,
+            outer: outer as usize,
+            reduce: reduce as usize,
+            first,
+            len: len as usize,
+        }
+    }
+}
+
+/// The `idx`-th vec4 of an operand's tile at `l0` (four adjacent outer indices at one
+/// reduced index; zeros past the edges) and its index in the tile, `groups` vec4s a row.
+/// `outer_unit`: adjacent outer indices are adjacent in memory, so consecutive threads
+/// take consecutive groups.
+#[cube]
+fn fetch(
+    buf: &[f32],
+    o: &Operand,
+    idx: usize,
     l0: usize,
-    row0: usize,
     last: usize,
-    #[comptime] s: Shape,
+    #[comptime] groups: usize,
+    #[comptime] outer_unit: bool,
 ) -> (V4, usize) {
-    let groups = SIDE * s.tm / 4;
-    let idx = t + SIDE * SIDE * q;
-    let mut rg = idx / SIDE;
+    let mut group = idx / SIDE;
     let mut l = idx % SIDE;
-    if s.a_rows_unit {
-        rg = idx % groups;
+    if outer_unit {
+        group = idx % groups;
         l = idx / groups;
     }
-    let la = l0 + l;
+    let reduced = l0 + l;
     let mut v = V4::broadcast(0.0);
     #[unroll]
     for e in 0..4 {
-        let row = row0 + 4 * rg + e;
-        if row < g.m as usize && la < last {
-            v.insert(
-                e,
-                a[g.a_off as usize + row * g.a_si as usize + la * g.a_sl as usize],
-            );
+        let i = o.first + 4 * group + e;
+        if i < o.len && reduced < last {
+            v.insert(e, buf[o.off + i * o.outer + reduced * o.reduce]);
         }
     }
-    (v, l * (groups + 1) + rg)
-}
-
-/// The thread's `q`-th vec4 of `B`'s tile at `l0`, as [`fetch_a`].
-#[cube]
-fn fetch_b(
-    b: &[f32],
-    g: &Gemm,
-    t: usize,
-    q: usize,
-    l0: usize,
-    col0: usize,
-    last: usize,
-    #[comptime] s: Shape,
-) -> (V4, usize) {
-    let groups = SIDE * s.tn / 4;
-    let idx = t + SIDE * SIDE * q;
-    let mut cg = idx / SIDE;
-    let mut l = idx % SIDE;
-    if s.b_cols_unit {
-        cg = idx % groups;
-        l = idx / groups;
-    }
-    let lb = l0 + l;
-    let mut v = V4::broadcast(0.0);
-    #[unroll]
-    for f in 0..4 {
-        let col = col0 + 4 * cg + f;
-        if col < g.n as usize && lb < last {
-            v.insert(
-                f,
-                b[g.b_off as usize + lb * g.b_sl as usize + col * g.b_sj as usize],
-            );
-        }
-    }
-    (v, l * (groups + 1) + cg)
+    (v, l * (groups + 1) + group)
 }
 
 /// `C = A B` through the epilogue, as `gemm_tiled`, with `16 tm` rows by `16 tn` columns a
@@ -138,16 +124,20 @@ pub(super) fn gemm_wide(
     }
     let mut a_reg = Array::<f32>::new(tm);
     let mut b_reg = Array::<f32>::new(tn);
+    let a_op = Operand::new(g.a_off, g.a_si, g.a_sl, row0, g.m);
+    let b_op = Operand::new(g.b_off, g.b_sj, g.b_sl, col0, g.n);
     let mut l0 = first;
     while l0 < last {
         #[unroll]
         for q in 0..tm / 4 {
-            let (v, at) = fetch_a(a, &g, t, q, l0, row0, last, s);
+            let idx = t + SIDE * SIDE * q;
+            let (v, at) = fetch(a, &a_op, idx, l0, last, SIDE * tm / 4, s.a_rows_unit);
             a_tile[at] = v;
         }
         #[unroll]
         for q in 0..tn / 4 {
-            let (v, at) = fetch_b(b, &g, t, q, l0, col0, last, s);
+            let idx = t + SIDE * SIDE * q;
+            let (v, at) = fetch(b, &b_op, idx, l0, last, SIDE * tn / 4, s.b_cols_unit);
             b_tile[at] = v;
         }
         sync_cube();

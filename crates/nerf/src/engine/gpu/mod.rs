@@ -47,6 +47,7 @@ pub mod finite;
 pub mod fused;
 pub mod gemm;
 mod gemm_cmma;
+mod gemm_epilogue;
 mod gemm_wide;
 pub mod harmonics;
 pub mod hash_grid;
