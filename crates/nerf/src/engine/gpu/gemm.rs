@@ -5,6 +5,10 @@
 //! (the third grid axis), each writing its own output, for weight gradients whose `k` is
 //! the batch. An epilogue adds a bias, applies a ReLU, or zeroes where a mask is not
 //! positive (the backward of the ReLU that made the mask).
+//!
+//! [`matmul`] launches the kernel its [`Path`] names: the 16 x 16 one and the blocked one
+//! (4 x 4 outputs a thread) here, the wide one (`gemm_wide`) and the tensor-core one
+//! (`gemm_cmma`) in their files.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
@@ -207,7 +211,7 @@ pub fn matmul(
     // than 64, else 4.
     let (tm, tn) = (if m > BLOCK { 8 } else { 4 }, if n > BLOCK { 8 } else { 4 });
     let (gx, gy) = if cmma {
-        (n.div_ceil(64), m.div_ceil(64))
+        (n.div_ceil(gemm_cmma::TILE), m.div_ceil(gemm_cmma::TILE))
     } else if wide {
         (n.div_ceil(TILE * tn), m.div_ceil(TILE * tm))
     } else if blocked {

@@ -17,7 +17,7 @@ use super::device::WARP;
 use super::gemm_epilogue::{store, Epi, Gemm};
 
 /// Output tile side; the reduced index is staged 16 at a time.
-const TILE: usize = 64;
+pub(super) const TILE: usize = 64;
 const K: usize = 16;
 /// Warps a workgroup.
 pub(super) const WARPS: usize = 4;

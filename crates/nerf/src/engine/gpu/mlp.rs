@@ -9,7 +9,8 @@
 //! global memory) are the reference the tiled paths are tested against and the fallback
 //! for grids too tall for one launch (`Gpu::matmul` chooses). The weight gradient
 //! `dW = x^T dy` is a reduction over samples: it is split
-//! into slices of [`ROWS_PER_PARTIAL`] samples, each writing a partial sum, and a second
+//! into slices of [`ROWS_PER_PARTIAL`] samples (more for the wide kernel:
+//! `rows_per_partial`), each writing a partial sum, and a second
 //! kernel adds the partials into the gradient buffer in a fixed order, so a step's
 //! gradients do not depend on thread timing.
 
