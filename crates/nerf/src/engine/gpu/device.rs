@@ -33,8 +33,8 @@ pub struct Gpu {
     /// engine.
     pub software: bool,
     /// The dense layers' kernels: wide products, the fastest measured on a hardware GPU
-    /// and on lavapipe alike (docs/benchmarks.md); `NERF_GPU_MATMUL=plain|tiled|blocked|wide`
-    /// overrides, for measuring.
+    /// and on lavapipe alike (docs/benchmarks.md);
+    /// `NERF_GPU_MATMUL=plain|tiled|blocked|wide|cmma` overrides, for measuring.
     pub matmul: Path,
     /// Whether the adapter adds `f32` atomically in hardware; without it, gradients are
     /// scattered with a compare-and-swap loop on their bits.

@@ -13,7 +13,7 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
-use super::device::{Gpu, Path};
+use super::device::{Gpu, Path, WARP};
 use super::gemm_cmma;
 use super::gemm_epilogue::{store, Epi, Gemm, GemmLaunch};
 use super::gemm_wide::{gemm_wide, Shape};
@@ -186,9 +186,66 @@ pub struct Epilogue<'a> {
     pub mask: Option<(&'a Handle, usize)>,
 }
 
+/// The kernel one product takes, with what it is compiled for.
+#[derive(Clone, Copy)]
+enum Kernel {
+    Tiled,
+    Blocked {
+        cols: usize,
+    },
+    Wide(Shape),
+    Cmma {
+        a_rows_unit: bool,
+        b_cols_unit: bool,
+    },
+}
+
+impl Kernel {
+    /// `path`'s kernel for an `m x n` product: the wide and tensor-core kernels take
+    /// products of more than [`NARROW`] columns, the blocked kernel the narrower ones.
+    /// `a_rows_unit`, `b_cols_unit`: `A`'s rows (`B`'s columns) are adjacent in memory.
+    fn for_product(path: Path, m: usize, n: usize, a_rows_unit: bool, b_cols_unit: bool) -> Kernel {
+        let narrow = n <= NARROW;
+        match path {
+            Path::Plain | Path::Tiled => Kernel::Tiled,
+            Path::Cmma if !narrow => Kernel::Cmma {
+                a_rows_unit,
+                b_cols_unit,
+            },
+            // Outputs a thread: 8 rows (columns) where the product has more than 64, else 4.
+            Path::Wide if !narrow => Kernel::Wide(Shape {
+                tm: if m > BLOCK { 8 } else { 4 },
+                tn: if n > BLOCK { 8 } else { 4 },
+                a_rows_unit,
+                b_cols_unit,
+            }),
+            Path::Blocked | Path::Wide | Path::Cmma => Kernel::Blocked {
+                cols: if narrow { 1 } else { PER_THREAD },
+            },
+        }
+    }
+
+    /// Workgroups across `n` and down `m`.
+    fn grid(self, m: usize, n: usize) -> (usize, usize) {
+        match self {
+            Kernel::Tiled => (n.div_ceil(TILE), m.div_ceil(TILE)),
+            Kernel::Blocked { cols } => (n.div_ceil(TILE * cols), m.div_ceil(BLOCK)),
+            Kernel::Wide(s) => (n.div_ceil(TILE * s.tn), m.div_ceil(TILE * s.tm)),
+            Kernel::Cmma { .. } => (n.div_ceil(gemm_cmma::TILE), m.div_ceil(gemm_cmma::TILE)),
+        }
+    }
+
+    fn workgroup(self) -> CubeDim {
+        match self {
+            Kernel::Cmma { .. } => CubeDim::new_2d(WARP, gemm_cmma::WARPS as u32),
+            _ => CubeDim::new_2d(TILE as u32, TILE as u32),
+        }
+    }
+}
+
 /// `C = A B` (`m x k` by `k x n`) into `c` (`parts x m x n` when the reduction is split
-/// into `parts` of `k_part`), through `epilogue`, by the kernel of `path` (`Wide` takes the
-/// blocked kernel for products of at most [`NARROW`] columns; `Plain` is the caller's).
+/// into `parts` of `k_part`), through `epilogue`, by the kernel of `path` ([`Kernel`];
+/// `Plain` is the caller's own, and takes the 16 x 16 kernel here).
 /// Returns false (launching nothing) when the grid would exceed 65535 tiles down `m`: the
 /// caller takes its plain kernel then.
 #[allow(clippy::too_many_arguments)]
@@ -203,22 +260,8 @@ pub fn matmul(
     path: Path,
 ) -> bool {
     let parts = k.div_ceil(k_part.max(1)).max(1);
-    let cmma = path == Path::Cmma && n > NARROW;
-    let wide = path == Path::Wide && n > NARROW;
-    let blocked = matches!(path, Path::Blocked | Path::Wide | Path::Cmma) && !wide && !cmma;
-    let cols = if n > NARROW { PER_THREAD } else { 1 };
-    // The wide kernel's outputs a thread: 8 rows (columns) where the product has more
-    // than 64, else 4.
-    let (tm, tn) = (if m > BLOCK { 8 } else { 4 }, if n > BLOCK { 8 } else { 4 });
-    let (gx, gy) = if cmma {
-        (n.div_ceil(gemm_cmma::TILE), m.div_ceil(gemm_cmma::TILE))
-    } else if wide {
-        (n.div_ceil(TILE * tn), m.div_ceil(TILE * tm))
-    } else if blocked {
-        (n.div_ceil(TILE * cols), m.div_ceil(BLOCK))
-    } else {
-        (n.div_ceil(TILE), m.div_ceil(TILE))
-    };
+    let kernel = Kernel::for_product(path, m, n, a.outer == 1, b.outer == 1);
+    let (gx, gy) = kernel.grid(m, n);
     if gy > 65535 || parts > 65535 || m == 0 || n == 0 {
         return m == 0 || n == 0;
     }
@@ -247,11 +290,7 @@ pub fn matmul(
     // layer's shapes); rows and columns past `m` and `n` are never read or written.
     unsafe {
         let count = CubeCount::Static(gx as u32, gy as u32, parts as u32);
-        let dim = if cmma {
-            CubeDim::new_2d(super::device::WARP, gemm_cmma::WARPS as u32)
-        } else {
-            CubeDim::new_2d(TILE as u32, TILE as u32)
-        };
+        let dim = kernel.workgroup();
         let args = (
             BufferArg::from_raw_parts(a.buf.clone(), a.len),
             BufferArg::from_raw_parts(b.buf.clone(), b.len),
@@ -259,8 +298,11 @@ pub fn matmul(
             BufferArg::from_raw_parts(mask.clone(), mask_len),
             BufferArg::from_raw_parts(c.clone(), parts * m * n),
         );
-        if cmma {
-            gemm_cmma::gemm_cmma::launch_unchecked(
+        match kernel {
+            Kernel::Cmma {
+                a_rows_unit,
+                b_cols_unit,
+            } => gemm_cmma::gemm_cmma::launch_unchecked(
                 &gpu.client,
                 count,
                 dim,
@@ -270,11 +312,10 @@ pub fn matmul(
                 args.3,
                 args.4,
                 g,
-                a.outer == 1,
-                b.outer == 1,
-            );
-        } else if wide {
-            gemm_wide::launch_unchecked(
+                a_rows_unit,
+                b_cols_unit,
+            ),
+            Kernel::Wide(shape) => gemm_wide::launch_unchecked(
                 &gpu.client,
                 count,
                 dim,
@@ -284,15 +325,9 @@ pub fn matmul(
                 args.3,
                 args.4,
                 g,
-                Shape {
-                    tm,
-                    tn,
-                    a_rows_unit: a.outer == 1,
-                    b_cols_unit: b.outer == 1,
-                },
-            );
-        } else if blocked {
-            gemm_blocked::launch_unchecked(
+                shape,
+            ),
+            Kernel::Blocked { cols } => gemm_blocked::launch_unchecked(
                 &gpu.client,
                 count,
                 dim,
@@ -303,9 +338,8 @@ pub fn matmul(
                 args.4,
                 g,
                 cols,
-            );
-        } else {
-            gemm_tiled::launch_unchecked(
+            ),
+            Kernel::Tiled => gemm_tiled::launch_unchecked(
                 &gpu.client,
                 count,
                 dim,
@@ -315,7 +349,7 @@ pub fn matmul(
                 args.3,
                 args.4,
                 g,
-            );
+            ),
         }
     }
     true
@@ -327,7 +361,7 @@ mod tests {
     use crate::engine::gpu::device::{test_gpu, worst};
     use crate::rng::Rng;
 
-    /// Both kernels against a host product on shapes that end mid-tile, with the
+    /// Every kernel against a host product on shapes that end mid-tile, with the
     /// reduction split into parts, `A` transposed (as weight gradients read it), and each
     /// epilogue.
     #[test]

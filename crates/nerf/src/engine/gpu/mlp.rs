@@ -276,7 +276,6 @@ impl Dense {
         // fits, else from the plain kernel.
         let tiled_rows = rows_per_partial(path);
         let tiled_parts = n.div_ceil(tiled_rows);
-        let tiled_w = gpu.floats(tiled_parts * ni * no);
         let x_view = View {
             buf: x,
             len: n * ni,
@@ -291,17 +290,21 @@ impl Dense {
             outer: 1,
             reduce: no,
         };
-        let tiled = path != Path::Plain
-            && gemm::matmul(
+        let tiled_w = (path != Path::Plain).then(|| gpu.floats(tiled_parts * ni * no));
+        // The partials from the tiled product, unless its grid does not fit.
+        let tiled_w = tiled_w.filter(|w| {
+            let epilogue = Epilogue::default();
+            gemm::matmul(
                 gpu,
                 (ni, no, n),
                 x_view,
                 dy_view,
-                &tiled_w,
+                w,
                 tiled_rows,
-                Epilogue::default(),
+                epilogue,
                 path,
-            );
+            )
+        });
         let plain_parts = n.div_ceil(ROWS_PER_PARTIAL);
         // SAFETY: shapes as in `forward`; the partial buffers hold `parts x ni x no` and
         // `parts x no` floats, and each kernel bounds-checks the buffer it writes.
@@ -337,8 +340,8 @@ impl Dense {
                     off as u32,
                 )
             };
-            if tiled {
-                add(&tiled_w, tiled_parts, ni * no, self.weight);
+            if let Some(tiled_w) = &tiled_w {
+                add(tiled_w, tiled_parts, ni * no, self.weight);
             } else {
                 let partial_w = gpu.floats(plain_parts * ni * no);
                 weight_partials(ni, &partial_w, plain_parts * ni * no);
