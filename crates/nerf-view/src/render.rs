@@ -308,6 +308,7 @@ mod tests {
             background: [1.0; 3],
             space: nerf::camera::ray_space::RaySpace::World,
             appearance: Default::default(),
+            time: None,
         };
         let at = |d: f32| {
             let b = bounds_at(s, 4.0, [0.0, d, 0.0]);

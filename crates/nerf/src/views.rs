@@ -22,6 +22,9 @@ pub struct RenderSettings {
     pub space: RaySpace,
     /// Which photo's look a model with appearance codes renders (default: the mean).
     pub appearance: Appearance,
+    /// The moment in [0, 1] a model of a moving scene renders (`None`: a still scene, or
+    /// the model's own moment).
+    pub time: Option<f32>,
 }
 
 impl RenderSettings {
@@ -33,6 +36,7 @@ impl RenderSettings {
             background,
             space: data.space,
             appearance: Appearance::Mean,
+            time: None,
         }
     }
 
@@ -45,6 +49,7 @@ impl RenderSettings {
             background,
             space: scene.space,
             appearance: Appearance::Mean,
+            time: None,
         }
     }
 
@@ -53,6 +58,9 @@ impl RenderSettings {
     pub fn ray_batch(&self, world: &[Ray], first: usize) -> RayBatch {
         let mut batch = RayBatch::new(self.near, self.far);
         batch.appearance = self.appearance;
+        if let Some(time) = self.time {
+            batch.times = vec![time; world.len()];
+        }
         let warped: Vec<([f32; 3], [f32; 3])> = world
             .par_iter()
             .map(|r| self.space.warp(r.origin, r.dir))

@@ -43,9 +43,16 @@ pub struct SynthArgs {
     supersample: usize,
     #[arg(long, default_value_t = 0)]
     seed: u64,
+    /// A moving scene: the furniture turns a quarter turn over the capture, one photo per
+    /// moment (each frame with its `time`, as D-NeRF's scenes), --layout blender only.
+    #[arg(long)]
+    animate: bool,
 }
 
 pub fn run(a: SynthArgs) -> Result<()> {
+    if a.layout == Layout::Llff && a.animate {
+        anyhow::bail!("--animate makes Blender-format scenes only (drop --layout llff)");
+    }
     if a.layout == Layout::Llff {
         let cameras = synth::llff::forward_facing_cameras(a.size, a.size * 3 / 4, 5, 6);
         let pb = bar(
@@ -78,6 +85,7 @@ pub fn run(a: SynthArgs) -> Result<()> {
         test_views: a.test_views,
         supersample: a.supersample,
         seed: a.seed,
+        animate: a.animate,
     };
     write(&opts, &a.out)
 }

@@ -130,6 +130,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         refine_cameras: Choice::Off,
         distortion: opts.distortion.map_or(Choice::Default, Choice::On),
         few_view: Choice::Default,
+        dynamic: Choice::Default,
     };
     let facts = defaults::SceneFacts {
         blender,
@@ -137,6 +138,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         multiscale: 1,
         contract: model.contract,
         train_views: data.views.len(),
+        dynamic: data.views.iter().any(|v| v.time.is_some()),
     };
     let chosen = defaults::decide(opts.device, &facts, &flags);
     for note in chosen.notes {
@@ -144,6 +146,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     }
     let antialias = chosen.antialias;
     model.distortion = chosen.distortion;
+    model.field.motion = chosen.dynamic.then(Default::default);
     model.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
         photos: data.views.len(),
     });

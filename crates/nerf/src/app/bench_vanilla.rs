@@ -184,6 +184,7 @@ pub fn run(opts: &BenchOptions, say: &mut dyn FnMut(String)) -> Result<BenchRepo
         background: [1.0; 3],
         space: Default::default(),
         appearance: Default::default(),
+        time: None,
     };
     let t = Instant::now();
     crate::views::render_view(trainer.engine.as_ref(), &band, &settings, &|_| {});

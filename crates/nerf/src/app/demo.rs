@@ -62,6 +62,7 @@ pub fn scene_options(size: usize) -> SynthOptions {
         test_views: 20,
         supersample: 2,
         seed: 0,
+        animate: false,
     }
 }
 
@@ -114,6 +115,7 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         multiscale: 1,
         contract: opened.contract,
         train_views: opened.train.len(),
+        dynamic: opened.is_dynamic(),
     };
     let flags = crate::train::defaults::Flags::default();
     let chosen = crate::train::defaults::decide(opts.device.device, &facts, &flags);
@@ -128,6 +130,7 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         m.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
             photos: opened.train.len(),
         });
+        m.field.motion = chosen.dynamic.then(Default::default);
     }
     let run_options = RunOptions {
         out: run_dir.clone(),

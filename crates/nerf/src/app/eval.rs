@@ -206,8 +206,10 @@ pub fn evaluate(
     let total_rays = data.views.iter().map(pixels).sum();
     let look_of = |k: usize| looks.as_ref().map(|l| &l[k % originals]);
     let view_cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
+    // Each view at its own look and, in a moving scene, its own moment.
     let settings_of = |k: usize| RenderSettings {
         appearance: look_of(k).map_or(Appearance::Mean, |l| l.appearance),
+        time: data.views[k].time,
         ..settings
     };
     // Each view's scores and pictures, made while the next views render.

@@ -74,6 +74,14 @@ pub struct FramesOptions {
     /// index in the training split or its file name) instead of the mean.
     #[arg(long)]
     pub appearance_of: Option<String>,
+    /// Models of a moving scene: the moment to render, from 0 (the first photo's) to 1
+    /// (the last's). Default 0.
+    #[arg(long, value_parser = crate::args::fraction, conflicts_with = "time_sweep")]
+    pub time: Option<f32>,
+    /// Models of a moving scene: time runs with the frames, from 0 at the first to 1 at
+    /// the last (the replay of the capture along the path).
+    #[arg(long)]
+    pub time_sweep: bool,
     /// Frames per second of the video.
     #[arg(long, default_value_t = 24.0, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub fps: f32,
@@ -95,6 +103,8 @@ impl FramesOptions {
             size: None,
             video: Some(video),
             appearance_of: None,
+            time: None,
+            time_sweep: false,
             fps: 24.0,
             depth_range: None,
         }
@@ -285,6 +295,15 @@ pub fn render_frames(
     if let Some(which) = &opts.appearance_of {
         settings.appearance = crate::app::looks::appearance_of(cfg, &scene, which)?;
     }
+    settings.time = opts.time;
+    let frame_count = cameras.len();
+    let settings_of = |k: usize| RenderSettings {
+        time: match opts.time_sweep {
+            true => Some(k as f32 / frame_count.saturating_sub(1).max(1) as f32),
+            false => settings.time,
+        },
+        ..settings
+    };
     let rays_total: usize = cameras.iter().map(|c| c.width * c.height).sum();
     let t0 = Instant::now();
     let frames_done = AtomicUsize::new(0);
@@ -328,7 +347,7 @@ pub fn render_frames(
         if let Some((first, rest)) = cameras.split_first() {
             // The first frame alone: it compiles a GPU's kernels, and sets the depth range.
             let started = Instant::now();
-            let r = render_view(run.engine.as_ref(), first, &settings, &progress);
+            let r = render_view(run.engine.as_ref(), first, &settings_of(0), &progress);
             first_frame_seconds = started.elapsed().as_secs_f64();
             let depth_range = opts.depth_range.unwrap_or_else(|| {
                 crate::app::video::auto_depth_range(&r.depth, &r.opacity)
@@ -340,7 +359,7 @@ pub fn render_frames(
                 render_views(
                     run.engine.as_ref(),
                     rest,
-                    &|_| settings,
+                    &|k| settings_of(k + 1),
                     run.engine.views_in_flight(),
                     &|n| progress(first_rays + n),
                     &|k, view| emit(k + 1, view, depth_range),

@@ -84,6 +84,7 @@ impl TrainingRays {
             r.backgrounds.extend_from_slice(&b.rays.backgrounds);
             r.pixels.extend_from_slice(&b.rays.pixels);
             r.radii.extend_from_slice(&b.rays.radii);
+            r.times.extend_from_slice(&b.rays.times);
             self.targets.extend_from_slice(&b.targets);
             self.rngs.extend(b.rngs);
         }
@@ -113,6 +114,9 @@ impl TrainingRays {
             ((v as u64) << 32) | pixel as u64,
             radius,
         );
+        if let Some(time) = view.time {
+            self.rays.times.push(time);
+        }
         self.targets
             .push(view.image.composite_pixel(pixel, background));
         self.rngs.push(rng);

@@ -107,18 +107,14 @@ impl HashGrid {
     /// Lays out the level tables as tensors `{prefix}level_NN` of shape `[entries, 2]`.
     pub fn new(config: HashGridConfig, prefix: &str, layout: &mut ParamLayout) -> Self {
         let max_entries = 1usize << config.log2_table_size;
-        let (lo, hi) = (
-            config.base_resolution as f64,
-            config.max_resolution.max(config.base_resolution) as f64,
-        );
-        let growth = if config.levels > 1 {
-            ((hi.ln() - lo.ln()) / (config.levels - 1) as f64).exp()
-        } else {
-            1.0
-        };
         let levels = (0..config.levels)
             .map(|l| {
-                let resolution = ((lo * growth.powi(l as i32)).round() as u32).max(1);
+                let resolution = geometric(
+                    config.base_resolution,
+                    config.max_resolution,
+                    config.levels,
+                    l,
+                );
                 let vertices = (resolution as usize + 1).pow(3);
                 let dense = vertices <= max_entries;
                 let entries = if dense { vertices } else { max_entries };
@@ -280,10 +276,22 @@ impl HashGrid {
     }
 }
 
+/// Level `l`'s resolution of `levels` growing geometrically from `base` to `max` (at
+/// least `base`, at least 1).
+pub(crate) fn geometric(base: usize, max: usize, levels: usize, l: usize) -> u32 {
+    let (lo, hi) = (base as f64, max.max(base) as f64);
+    let growth = if levels > 1 {
+        ((hi.ln() - lo.ln()) / (levels - 1) as f64).exp()
+    } else {
+        1.0
+    };
+    ((lo * growth.powi(l as i32)).round() as u32).max(1)
+}
+
 /// Samples whose corners are computed (and their table lines prefetched) before any is
 /// read: the tables of fine levels are far larger than the caches, so the gathers are
 /// memory-bound, and issuing a group's loads early lets them overlap.
-const GROUP: usize = 32;
+pub(crate) const GROUP: usize = 32;
 
 struct Corners {
     idx: [[u32; 8]; GROUP],
@@ -315,7 +323,7 @@ impl Corners {
 
 /// Hints the cache to fetch `data[at]`; a no-op off x86-64 and out of bounds.
 #[inline(always)]
-fn prefetch(data: &[f32], at: usize) {
+pub(crate) fn prefetch(data: &[f32], at: usize) {
     #[cfg(target_arch = "x86_64")]
     if let Some(v) = data.get(at) {
         // SAFETY: prefetching has no architectural effect; the address is inside `data`.

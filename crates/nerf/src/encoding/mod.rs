@@ -3,6 +3,7 @@
 pub mod frequency;
 pub mod hash_grid;
 pub mod integrated;
+pub mod space_time_grid;
 pub mod spherical_harmonics;
 
 pub use frequency::FrequencyEncoding;

@@ -31,27 +31,31 @@ pub enum Feature {
     Mip,
     /// Few-view training: the space too few photos see kept empty (`--few-view`).
     FewView,
+    /// A field of space and time for a moving scene (`--dynamic`).
+    Dynamic,
 }
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
-const TABLE: [(Feature, bool, bool); 6] = [
+const TABLE: [(Feature, bool, bool); 7] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, false),
     (Feature::Distortion, true, true),
     (Feature::Mip, true, true),
     (Feature::FewView, true, true),
+    (Feature::Dynamic, true, false),
 ];
 
 impl Feature {
     /// Every feature, in the table's order.
-    pub const ALL: [Feature; 6] = [
+    pub const ALL: [Feature; 7] = [
         Feature::Antialias,
         Feature::Appearance,
         Feature::CameraRefinement,
         Feature::Distortion,
         Feature::Mip,
         Feature::FewView,
+        Feature::Dynamic,
     ];
 
     /// Its name and the flags that ask for it and turn it off, for messages.
@@ -69,6 +73,10 @@ impl Feature {
             }
             Feature::Mip => "mip-NeRF's frustums and shared network (--preset mip)",
             Feature::FewView => "few-view training (--few-view; turned off by --no-few-view)",
+            Feature::Dynamic => {
+                "the moving scene's field of space and time (--dynamic; turned off by \
+                 --no-dynamic)"
+            }
         }
     }
 
@@ -82,6 +90,7 @@ impl Feature {
                 (Feature::CameraRefinement, ModelConfig::Fast(c)) => c.refine_cameras.is_some(),
                 (Feature::Distortion, ModelConfig::Fast(c)) => c.distortion > 0.0,
                 (Feature::FewView, ModelConfig::Fast(c)) => c.few_view.is_some(),
+                (Feature::Dynamic, ModelConfig::Fast(c)) => c.field.motion.is_some(),
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
                 _ => false,
             })

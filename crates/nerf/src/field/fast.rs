@@ -18,6 +18,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
+use crate::encoding::space_time_grid::{SpaceTimeConfig, SpaceTimeGrid};
 use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
 use crate::nn::linalg::{matmul, MatRef};
@@ -51,6 +52,10 @@ pub struct FastFieldConfig {
     /// its footprint. `None`: point samples, as Instant-NGP.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub antialias: Option<Antialias>,
+    /// A moving scene (`--dynamic`): a hash grid of space and time whose features join the
+    /// still grid's in the density network's first layer. `None`: a still scene.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub motion: Option<SpaceTimeConfig>,
 }
 
 /// Zip-NeRF's feature down-weighting: level `l` (`N_l` cells per axis) of a sample whose
@@ -88,6 +93,7 @@ impl Default for FastFieldConfig {
             appearance_dims: 0,
             appearance_images: 0,
             antialias: None,
+            motion: None,
         }
     }
 }
@@ -108,12 +114,32 @@ pub struct FastField {
     /// `level_weights`: the straight-through coarse-to-fine schedule smooths the cameras'
     /// gradient without holding the field's own fit back.
     pub position_level_weights: Vec<f32>,
+    /// Moving scenes: the space-time grid, and the offset of its first-layer weights
+    /// (`motion dims x hidden`).
+    pub motion: Option<SpaceTimeGrid>,
+    motion_weight: Option<usize>,
+    /// Moving scenes: the moment samples without their own times are seen at. `None`: 0
+    /// for colour, and for density queries a moment drawn from each point's coordinates,
+    /// so that queries over many points (the occupancy grid's refreshes) see every moment.
+    pub moment: Option<f32>,
+}
+
+/// A moment in [0, 1) drawn from a unit-cube point's coordinates: the same point, the same
+/// moment; points a jitter apart, unrelated ones.
+fn moment_of_point(u: &[f32]) -> f32 {
+    let bits = u[0].to_bits() ^ u[1].to_bits().rotate_left(11) ^ u[2].to_bits().rotate_left(22);
+    let h = bits.wrapping_mul(0x9e37_79b1) ^ (bits >> 15);
+    (h.wrapping_mul(0x85eb_ca6b) >> 8) as f32 / (1u32 << 24) as f32
 }
 
 /// Reused buffers of one thread (activations and their gradients).
 #[derive(Default, Debug)]
 pub struct FastWorkspace {
     unit: Vec<f32>,
+    /// Moving scenes: `unit` with each sample's moment (`n x 4`), and its encoding.
+    unit_time: Vec<f32>,
+    enc_motion: Vec<f32>,
+    d_enc_motion: Vec<f32>,
     /// Anti-aliased fields: each sample's weight of each level (`n x levels`).
     level_scale: Vec<f32>,
     enc: Vec<f32>,
@@ -174,6 +200,11 @@ impl FastField {
     pub fn new(config: FastFieldConfig) -> Self {
         let mut layout = ParamLayout::default();
         let grid = HashGrid::new(config.grid, "hash.", &mut layout);
+        // Its tables right after the still grid's: hash tables update lazily, and the lazy
+        // part of the parameter vector is its start.
+        let motion = config
+            .motion
+            .map(|c| SpaceTimeGrid::new(c, "motion.", &mut layout));
         let (w, g) = (config.hidden, config.geo_features);
         let (images, dims) = (config.appearance_images, config.appearance_dims);
         let dims = if images > 0 { dims } else { 0 };
@@ -185,6 +216,9 @@ impl FastField {
             layout.push("colour.1.weight", &[w, w]),
             layout.push("colour.2.weight", &[w, 3]),
         ];
+        let motion_weight = motion
+            .as_ref()
+            .map(|m| layout.push("density.motion.weight", &[m.dims(), w]));
         // Last, so a model without codes has the same layout as before they existed.
         let codes = (dims > 0).then(|| layout.push(APPEARANCE_CODES, &[images, dims]));
         FastField {
@@ -195,6 +229,9 @@ impl FastField {
             codes,
             level_weights: Vec::new(),
             position_level_weights: Vec::new(),
+            motion,
+            motion_weight,
+            moment: None,
         }
     }
 
@@ -273,7 +310,11 @@ impl FastField {
 
     /// The parameters of the two MLPs (everything after the hash tables).
     pub fn mlp_range(&self) -> std::ops::Range<usize> {
-        self.grid.param_range().end..self.layout.total
+        let tables_end = match &self.motion {
+            Some(m) => m.param_range().end,
+            None => self.grid.param_range().end,
+        };
+        tables_end..self.layout.total
     }
 
     /// Offsets of the weight matrices in the parameter vector, in order: density 0, 1,
@@ -292,6 +333,9 @@ impl FastField {
         let mut rng = Rng::new(seed ^ 0xfa57);
         let mut p = self.layout.init_glorot(&mut rng);
         self.grid.init(&mut p, &mut rng);
+        if let Some(m) = &self.motion {
+            m.init(&mut p, &mut rng);
+        }
         if let Some(at) = self.codes {
             let n = self.config.appearance_images * self.config.appearance_dims;
             p[at..at + n].iter_mut().for_each(|v| *v = 0.0);
@@ -323,7 +367,41 @@ impl FastField {
     /// Multiply-adds of one sample through both networks (the encoding not counted).
     pub fn macs_per_sample(&self) -> usize {
         let (w, g) = (self.config.hidden, self.config.geo_features);
-        self.grid.dims() * w + w * g + self.colour_in_dims() * w + w * w + w * 3
+        let motion = self.motion.as_ref().map_or(0, |m| m.dims());
+        (self.grid.dims() + motion) * w + w * g + self.colour_in_dims() * w + w * w + w * 3
+    }
+
+    /// Moving scenes: `ws.unit` with each of the `n` samples' moment (`times`, else the
+    /// field's [`moment`](Self::moment), else one drawn from the point where `any_moment`,
+    /// else 0) into `ws.unit_time`, and its space-time encoding into `ws.enc_motion`.
+    fn encode_motion(
+        &self,
+        params: &[f32],
+        times: &[f32],
+        any_moment: bool,
+        n: usize,
+        ws: &mut FastWorkspace,
+    ) {
+        let Some(motion) = &self.motion else {
+            return;
+        };
+        grow(&mut ws.unit_time, n * 4);
+        grow(&mut ws.enc_motion, n * motion.dims());
+        for (s, (u, out)) in ws
+            .unit
+            .chunks_exact(3)
+            .zip(ws.unit_time.chunks_exact_mut(4))
+            .take(n)
+            .enumerate()
+        {
+            out[..3].copy_from_slice(u);
+            out[3] = match (times.get(s), self.moment) {
+                (Some(&t), _) | (None, Some(t)) => t,
+                (None, None) if any_moment => moment_of_point(u),
+                (None, None) => 0.0,
+            };
+        }
+        motion.encode(params, &ws.unit_time[..n * 4], &mut ws.enc_motion);
     }
 
     /// World positions (packed `n x 3`) into the unit cube of the scene box.
@@ -342,6 +420,8 @@ impl FastField {
         params: &[f32],
         positions: &[f32],
         footprints: &[f32],
+        times: &[f32],
+        any_moment: bool,
         ws: &mut FastWorkspace,
     ) {
         let n = positions.len() / 3;
@@ -359,6 +439,7 @@ impl FastField {
         self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
         self.level_scales(footprints, n, &mut ws.level_scale);
         self.weigh_levels(&mut ws.enc[..n * e], &ws.level_scale);
+        self.encode_motion(params, times, any_moment, n, ws);
         let h = &mut ws.h[..n * w];
         matmul(
             h,
@@ -366,6 +447,15 @@ impl FastField {
             self.weight(params, 0, e, w),
             false,
         );
+        if let (Some(m), Some(at)) = (&self.motion, self.motion_weight) {
+            let md = m.dims();
+            matmul(
+                h,
+                MatRef::new(&ws.enc_motion, n, md),
+                MatRef::new(&params[at..][..md * w], md, w),
+                true,
+            );
+        }
         relu(h);
         matmul(
             &mut ws.geo,
@@ -386,7 +476,7 @@ impl FastField {
         }
         WS.with(|ws| {
             let ws = &mut ws.borrow_mut();
-            self.eval_density(params, positions, &[], ws);
+            self.eval_density(params, positions, &[], &[], true, ws);
             out.copy_from_slice(&ws.sigma[..out.len()]);
         })
     }
@@ -401,6 +491,7 @@ impl FastField {
             samples_per_dir: spd,
             appearance,
             footprints,
+            times,
             ..
         } = input;
         let n = positions.len() / 3;
@@ -410,7 +501,7 @@ impl FastField {
             self.colour_in_dims(),
         );
         let dims = self.appearance_dims();
-        self.eval_density(params, positions, footprints, ws);
+        self.eval_density(params, positions, footprints, times, false, ws);
         self.gather_codes(params, appearance, n, ws);
         let codes = self.codes(params);
         grow(&mut ws.colour_in, n * ci);
@@ -571,10 +662,33 @@ impl FastField {
             true,
         );
         matmul(&mut ws.d_enc, d_h, self.weight(params, 0, e, w).t(), false);
+        if let (Some(m), Some(at)) = (&self.motion, self.motion_weight) {
+            let md = m.dims();
+            matmul(
+                &mut values[at..][..md * w],
+                MatRef::new(&ws.enc_motion, n, md).t(),
+                d_h,
+                true,
+            );
+            grow(&mut ws.d_enc_motion, n * md);
+            matmul(
+                &mut ws.d_enc_motion,
+                d_h,
+                MatRef::new(&params[at..][..md * w], md, w).t(),
+                false,
+            );
+        }
         self.weigh_levels(&mut ws.d_enc[..n * e], &ws.level_scale);
         grads.mark(self.mlp_range());
         self.grid
             .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
+        if let Some(m) = &self.motion {
+            m.encode_bwd(
+                &ws.unit_time[..n * 4],
+                &ws.d_enc_motion[..n * m.dims()],
+                grads,
+            );
+        }
     }
 
     /// [`Field::backward`], and also `dL/d position` (`n x 3`, field space) into
@@ -658,7 +772,7 @@ impl Field for FastField {
     }
 
     fn density(&self, params: &[f32], positions: &[f32], ctx: &mut FastWorkspace, out: &mut [f32]) {
-        self.eval_density(params, positions, &[], ctx);
+        self.eval_density(params, positions, &[], &[], true, ctx);
         out.copy_from_slice(&ctx.sigma[..out.len()]);
     }
 }
@@ -676,6 +790,7 @@ mod tests {
             appearance: &[],
             footprints: &[],
             variances: &[],
+            times: &[],
         }
     }
 
@@ -697,7 +812,21 @@ mod tests {
             appearance_dims,
             appearance_images,
             antialias: None,
+            motion: None,
         })
+    }
+
+    fn tiny_moving() -> FastField {
+        let mut config = tiny().config;
+        config.motion = Some(SpaceTimeConfig {
+            levels: 2,
+            log2_table_size: 7,
+            base_resolution: 2,
+            max_resolution: 6,
+            base_time_resolution: 2,
+            max_time_resolution: 5,
+        });
+        FastField::new(config)
     }
 
     fn tiny_antialiased(reference_footprint: f32) -> FastField {
@@ -711,6 +840,48 @@ mod tests {
     #[test]
     fn backward_matches_finite_differences() {
         backward_matches_finite_differences_of(&tiny(), &[], &[]);
+    }
+
+    /// The space-time grid's tables and first-layer weights included.
+    #[test]
+    fn moving_backward_matches_finite_differences() {
+        let field = tiny_moving();
+        assert!(field
+            .layout
+            .tensors
+            .iter()
+            .any(|t| t.name == "density.motion.weight"));
+        backward_matches_finite_differences_of(&field, &[], &[]);
+    }
+
+    #[test]
+    fn a_moving_field_differs_between_moments_and_keeps_its_tables_lazy() {
+        let field = tiny_moving();
+        let motion = field.motion.as_ref().expect("a moving field");
+        // The lazy (hash-table) part ends after both grids' tables.
+        assert_eq!(field.mlp_range().start, motion.param_range().end);
+        assert_eq!(motion.param_range().start, field.grid.param_range().end);
+        let mut rng = Rng::new(3);
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let pos = [0.2, -0.3, 0.4, 0.2, -0.3, 0.4];
+        let dirs = [0.0, 0.0, 1.0, 0.0, 0.0, 1.0];
+        let mut ws = FastWorkspace::default();
+        let mut inp = input(&pos, &dirs);
+        inp.times = &[0.1, 0.9];
+        let out = field.forward(&params, inp, &mut ws);
+        assert!(
+            (out.sigma[0] - out.sigma[1]).abs() > 1e-4,
+            "{:?}",
+            out.sigma
+        );
+        // Density queries without times: the field's moment when set.
+        let mut at = field.clone();
+        at.moment = Some(0.9);
+        let mut sigma = [0.0; 2];
+        at.density_into(&params, &pos, &mut sigma);
+        assert!((sigma[1] - out.sigma[1]).abs() < 1e-5 * out.sigma[1].max(1.0));
     }
 
     /// The anti-aliased field's gradients, with footprints that weigh the
@@ -902,11 +1073,17 @@ mod tests {
         let dirs = rng.unit_directions(n);
         let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+        // Moving fields: each sample at its own moment.
+        let times: Vec<f32> = match field.motion {
+            Some(_) => (0..n).map(|_| rng.uniform()).collect(),
+            None => Vec::new(),
+        };
         let loss = |p: &[f32]| -> f64 {
             let mut ws = FastWorkspace::default();
             let mut inp = input(&pos, &dirs);
             inp.appearance = looks;
             inp.footprints = footprints;
+            inp.times = &times;
             let out = field.forward(p, inp, &mut ws);
             let ls: f64 = out.sigma.iter().zip(&a).map(|(s, a)| (s * a) as f64).sum();
             let lc: f64 = out.rgb.iter().zip(&b).map(|(c, b)| (c * b) as f64).sum();
@@ -916,6 +1093,7 @@ mod tests {
         let mut inp = input(&pos, &dirs);
         inp.appearance = looks;
         inp.footprints = footprints;
+        inp.times = &times;
         field.forward(&params, inp, &mut ws);
         let mut grads = GradBuffer::new(field.num_params());
         let d = FieldGrad {
@@ -972,6 +1150,7 @@ mod tests {
             appearance: &[],
             footprints: &[],
             variances: &[],
+            times: &[],
         };
         let rgb = field.forward(&params, shared, &mut ws).rgb.to_vec();
         let per_sample = [0.0, 0.0, 1.0, 0.0, 0.0, 1.0];

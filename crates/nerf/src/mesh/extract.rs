@@ -152,6 +152,7 @@ pub fn colour_vertices(engine: &dyn Engine, mesh: &Mesh, offset: f32) -> Vec<[f3
         // The mesh lives in the model's own space already.
         space: crate::camera::ray_space::RaySpace::World,
         appearance: Default::default(),
+        time: None,
     };
     render_rays(engine, &origins, &dirs, &settings)
         .iter()

@@ -335,7 +335,10 @@ impl FastModel {
             if !s.footprints.is_empty() {
                 ws.samples
                     .footprints
-                    .extend_from_slice(&s.footprints[range]);
+                    .extend_from_slice(&s.footprints[range.clone()]);
+            }
+            if !s.times.is_empty() {
+                ws.samples.times.extend_from_slice(&s.times[range]);
             }
             ws.samples.end_ray();
             ws.backgrounds.push(block.rays.rays.backgrounds[r]);

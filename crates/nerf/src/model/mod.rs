@@ -108,8 +108,19 @@ impl ModelConfig {
             ),
             ModelConfig::Fast(m) => {
                 let g = &m.field.grid;
+                let motion = m.field.motion.map_or(String::new(), |t| {
+                    format!(
+                        ", space-time grid {} levels x 2^{} entries ({}..{} cells, {}..{} moments)",
+                        t.levels,
+                        t.log2_table_size,
+                        t.base_resolution,
+                        t.max_resolution,
+                        t.base_time_resolution,
+                        t.max_time_resolution
+                    )
+                });
                 format!(
-                    "hash grid {} levels x 2^{} entries ({}..{} cells), {}-wide MLPs, {}^3 occupancy grid, {} samples/step",
+                    "hash grid {} levels x 2^{} entries ({}..{} cells){motion}, {}-wide MLPs, {}^3 occupancy grid, {} samples/step",
                     g.levels,
                     g.log2_table_size,
                     g.base_resolution,

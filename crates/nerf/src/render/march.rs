@@ -161,6 +161,9 @@ impl Marcher {
         let added = out.t.len() - before;
         out.appearance
             .extend(std::iter::repeat_n(rays.appearance_of(r), added));
+        if let Some(&time) = rays.times.get(r) {
+            out.times.extend(std::iter::repeat_n(time, added));
+        }
         let footprints = !rays.radii.is_empty();
         for &tt in &out.t[before..] {
             let p = [
@@ -280,6 +283,9 @@ pub fn render_marched<F: Field>(
                 ws.round
                     .appearance
                     .extend(std::iter::repeat_n(rays.appearance_of(k), added));
+                if let Some(&time) = rays.times.get(k) {
+                    ws.round.times.extend(std::iter::repeat_n(time, added));
+                }
                 for &tt in &ws.round.t[start..] {
                     let p = [o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]];
                     ws.round.positions.push(marcher.field_point(p));

@@ -39,6 +39,9 @@ pub struct RayBatch {
     /// Which learned per-photo appearance colours the batch (fields with appearance
     /// codes, `--appearance`; others ignore it).
     pub appearance: Appearance,
+    /// `n`, or empty (a still scene, or its field's own moment): the moment in [0, 1] each
+    /// ray sees in a moving scene. Fields of space and time read it; others ignore it.
+    pub times: Vec<f32>,
 }
 
 /// Which per-photo appearance code (exposure, white balance: `--appearance`) a batch of
@@ -93,6 +96,7 @@ impl RayBatch {
         self.backgrounds.clear();
         self.pixels.clear();
         self.radii.clear();
+        self.times.clear();
     }
 
     /// Appends a ray already in ray space, seen from `view_dir`.
@@ -139,13 +143,18 @@ impl RayBatch {
             pixels: self.pixels[range.clone()].to_vec(),
             radii: self
                 .radii
-                .get(range)
+                .get(range.clone())
                 .map(<[f32]>::to_vec)
                 .unwrap_or_default(),
             cylinders: self.cylinders,
             near: self.near,
             far: self.far,
             appearance: self.appearance,
+            times: self
+                .times
+                .get(range)
+                .map(<[f32]>::to_vec)
+                .unwrap_or_default(),
         }
     }
 }
@@ -175,6 +184,8 @@ pub struct PackedSamples {
     pub footprints: Vec<f32>,
     /// `n x 3` covariance diagonals, or empty (see [`FieldInput::variances`]).
     pub variances: Vec<f32>,
+    /// `n` moments, or empty (see [`FieldInput::times`]).
+    pub times: Vec<f32>,
 }
 
 impl PackedSamples {
@@ -204,6 +215,7 @@ impl PackedSamples {
         self.appearance.clear();
         self.footprints.clear();
         self.variances.clear();
+        self.times.clear();
     }
 
     /// Closes the current ray (its samples are those pushed since the last close).
@@ -220,6 +232,7 @@ impl PackedSamples {
             appearance: &self.appearance,
             footprints: &self.footprints,
             variances: &self.variances,
+            times: &self.times,
         }
     }
 }
@@ -244,6 +257,9 @@ pub struct FieldInput<'a> {
     /// stands for (mip-NeRF; the positions are its means). Fields with an integrated
     /// positional encoding read them; others ignore them.
     pub variances: &'a [f32],
+    /// `n` moments in [0, 1], or empty: when in a moving scene each sample is seen. Fields
+    /// of space and time read them (empty: the field's own moment); others ignore them.
+    pub times: &'a [f32],
 }
 
 impl FieldInput<'_> {

@@ -13,7 +13,11 @@
 //! 3. the distortion loss: on for forward-facing scenes, which grow fog in front of what
 //!    they see ([`FORWARD_FACING_DISTORTION`]);
 //! 4. few-view training: on for runs on at most `model::few_view::FEW_VIEWS` photos of a
-//!    scene it applies to (bounded, in world space: `model::few_view::applies`).
+//!    scene it applies to (bounded, in world space: `model::few_view::applies`);
+//! 5. a field of space and time: on for moving scenes (every photo has a time), which then
+//!    get no appearance codes or camera refinement by default (on a moving subject they
+//!    would absorb the motion). A still field would average the motion into a blur, so
+//!    with `--device auto` a moving scene trains where this field runs.
 //!
 //! A default turns a feature on only where the run's engine runs it (`engine::caps`), and
 //! says so when it leaves one off for that reason. With `--device auto` on a machine with a
@@ -67,6 +71,7 @@ pub struct Flags {
     /// With the loss's weight.
     pub distortion: Choice<f32>,
     pub few_view: Choice,
+    pub dynamic: Choice,
 }
 
 /// What a scene is, as far as the defaults care.
@@ -81,6 +86,8 @@ pub struct SceneFacts {
     pub contract: bool,
     /// The photos the run trains on.
     pub train_views: usize,
+    /// The photos show moments of a moving scene (each has a time).
+    pub dynamic: bool,
 }
 
 impl SceneFacts {
@@ -89,9 +96,10 @@ impl SceneFacts {
         self.space != RaySpace::World
     }
 
-    /// A real capture that learns per-photo corrections by default.
+    /// A real capture that learns per-photo corrections by default (a still one: on a
+    /// moving subject the corrections would absorb the motion).
     pub fn real_capture(&self) -> bool {
-        !self.blender && !self.forward_facing() && self.multiscale == 1
+        !self.blender && !self.forward_facing() && self.multiscale == 1 && !self.dynamic
     }
 }
 
@@ -106,14 +114,22 @@ pub struct Defaults {
     pub refine_asked: bool,
     pub distortion: f32,
     pub few_view: bool,
+    /// A field of space and time.
+    pub dynamic: bool,
     /// What the user should hear: each default that turned a feature on or left one off.
     pub notes: Vec<String>,
 }
 
-/// The engine a run on `device` will be on: the CPU for `cpu` and for `auto` without a
-/// hardware GPU (`has_gpu`); with one, `auto` takes the GPU unless `flags` ask for a
-/// feature only the CPU engine runs, which is said.
-pub fn engine_for(device: Device, has_gpu: bool, flags: &Flags) -> (EngineKind, Option<String>) {
+/// The engine a run of `scene` on `device` will be on: the CPU for `cpu` and for `auto`
+/// without a hardware GPU (`has_gpu`); with one, `auto` takes the GPU unless `flags` ask
+/// for a feature only the CPU engine runs (or the scene moves and its field is one), which
+/// is said.
+pub fn engine_for(
+    device: Device,
+    has_gpu: bool,
+    scene: &SceneFacts,
+    flags: &Flags,
+) -> (EngineKind, Option<String>) {
     match device {
         Device::Cpu => (EngineKind::Cpu, None),
         Device::Wgpu | Device::Cuda => (EngineKind::Gpu, None),
@@ -125,6 +141,10 @@ pub fn engine_for(device: Device, has_gpu: bool, flags: &Flags) -> (EngineKind, 
                 (flags.refine_cameras.asked(), Feature::CameraRefinement),
                 (flags.distortion.asked(), Feature::Distortion),
                 (flags.few_view.asked(), Feature::FewView),
+                (
+                    flags.dynamic.asked() || (scene.dynamic && flags.dynamic == Choice::Default),
+                    Feature::Dynamic,
+                ),
             ];
             let cpu_only: Vec<Feature> = asked
                 .into_iter()
@@ -153,7 +173,7 @@ pub fn engine_for(device: Device, has_gpu: bool, flags: &Flags) -> (EngineKind, 
 /// the adapters only for `auto`) and then [`fast_defaults`], the engine's note first.
 pub fn decide(device: Device, scene: &SceneFacts, flags: &Flags) -> Defaults {
     let has_gpu = device == Device::Auto && crate::engine::hardware_gpu_present();
-    let (engine, note) = engine_for(device, has_gpu, flags);
+    let (engine, note) = engine_for(device, has_gpu, scene, flags);
     let mut d = fast_defaults(scene, engine, flags);
     d.notes.splice(0..0, note);
     d
@@ -262,6 +282,17 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         ),
     };
 
+    let dynamic = match flags.dynamic {
+        Choice::On(()) => true,
+        Choice::Off => false,
+        Choice::Default => by_default(
+            Feature::Dynamic,
+            scene.dynamic,
+            "the photos show a moving scene: training a field of space and time (the default \
+             when every photo has a time; --no-dynamic trains a still one)",
+        ),
+    };
+
     Defaults {
         antialias,
         appearance,
@@ -269,6 +300,7 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         refine_asked: flags.refine_cameras.asked(),
         distortion,
         few_view,
+        dynamic,
         notes,
     }
 }
@@ -284,6 +316,7 @@ mod tests {
             multiscale: 1,
             contract: false,
             train_views: 100,
+            dynamic: false,
         }
     }
 
@@ -359,6 +392,25 @@ mod tests {
     }
 
     #[test]
+    fn moving_scenes_get_a_field_of_space_and_time_and_no_corrections() {
+        let capture = SceneFacts {
+            dynamic: true,
+            ..facts(false, RaySpace::World)
+        };
+        let d = fast_defaults(&capture, CPU, &Flags::default());
+        assert!(d.dynamic && !d.refine_cameras && d.appearance.is_none());
+        assert!(d.notes.iter().any(|n| n.contains("space and time")));
+        let d = fast_defaults(&facts(true, RaySpace::World), CPU, &Flags::default());
+        assert!(!d.dynamic);
+        // Where the engine lacks it, it is off and said.
+        if !EngineKind::Gpu.runs(Feature::Dynamic) {
+            let d = fast_defaults(&capture, EngineKind::Gpu, &Flags::default());
+            assert!(!d.dynamic);
+            assert!(d.notes.iter().any(|n| n.contains("--no-dynamic")));
+        }
+    }
+
+    #[test]
     fn flags_win_over_every_rule() {
         let flags = Flags {
             antialias: Choice::Off,
@@ -366,8 +418,10 @@ mod tests {
             refine_cameras: Choice::On(()),
             distortion: Choice::On(0.01),
             few_view: Choice::On(()),
+            dynamic: Choice::On(()),
         };
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
+        assert!(d.dynamic);
         assert!(!d.antialias && d.refine_cameras && d.refine_asked && d.few_view);
         assert_eq!((d.appearance, d.distortion), (Some(8), 0.01));
         let off = Flags {
@@ -376,13 +430,14 @@ mod tests {
             refine_cameras: Choice::Off,
             distortion: Choice::Off,
             few_view: Choice::Off,
+            dynamic: Choice::Off,
         };
         let few = SceneFacts {
             train_views: 3,
             ..facts(false, NDC)
         };
         let d = fast_defaults(&few, CPU, &off);
-        assert!(d.antialias && !d.few_view);
+        assert!(d.antialias && !d.few_view && !d.dynamic);
         assert_eq!(
             (d.appearance, d.refine_cameras, d.distortion),
             (None, false, 0.0)
@@ -443,20 +498,41 @@ mod tests {
     #[test]
     fn auto_goes_to_the_cpu_for_what_only_the_cpu_runs_and_says_so() {
         let none = Flags::default();
+        let still = facts(true, RaySpace::World);
         assert_eq!(
-            engine_for(Device::Auto, false, &none),
+            engine_for(Device::Auto, false, &still, &none),
             (EngineKind::Cpu, None)
         );
         assert_eq!(
-            engine_for(Device::Auto, true, &none),
+            engine_for(Device::Auto, true, &still, &none),
             (EngineKind::Gpu, None)
         );
-        assert_eq!(engine_for(Device::Cpu, true, &none), (CPU, None));
+        assert_eq!(engine_for(Device::Cpu, true, &still, &none), (CPU, None));
+        // A moving scene goes where its field runs, unless a still field is asked for.
+        let moving = SceneFacts {
+            dynamic: true,
+            ..still
+        };
+        let (kind, note) = engine_for(Device::Auto, true, &moving, &none);
+        if EngineKind::Gpu.runs(Feature::Dynamic) {
+            assert_eq!((kind, note), (EngineKind::Gpu, None));
+        } else {
+            assert_eq!(kind, EngineKind::Cpu);
+            assert!(note.is_some_and(|n| n.contains("--dynamic")));
+        }
+        let still_field = Flags {
+            dynamic: Choice::Off,
+            ..none
+        };
+        assert_eq!(
+            engine_for(Device::Auto, true, &moving, &still_field).0,
+            EngineKind::Gpu
+        );
         let asks = Flags {
             antialias: Choice::On(()),
             ..Flags::default()
         };
-        let (kind, note) = engine_for(Device::Auto, true, &asks);
+        let (kind, note) = engine_for(Device::Auto, true, &still, &asks);
         if EngineKind::Gpu.runs(Feature::Antialias) {
             assert_eq!((kind, note), (EngineKind::Gpu, None));
         } else {
@@ -466,7 +542,7 @@ mod tests {
         }
         // Asked for explicitly, a device is the user's choice: `open` refuses by name.
         assert_eq!(
-            engine_for(Device::Wgpu, true, &asks),
+            engine_for(Device::Wgpu, true, &still, &asks),
             (EngineKind::Gpu, None)
         );
     }

@@ -159,6 +159,13 @@ pub struct TrainOptions {
     /// Fast: train as on many views, however few there are.
     #[arg(long)]
     pub no_few_view: bool,
+    /// Fast: a field of space and time for a moving scene (each photo at its own moment),
+    /// the default when every photo has a time.
+    #[arg(long, conflicts_with = "no_dynamic")]
+    pub dynamic: bool,
+    /// Fast: a still field, even where the photos have times.
+    #[arg(long)]
+    pub no_dynamic: bool,
     /// Area-average downscale factor of the images (default 1).
     #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=64))]
     pub downscale: Option<usize>,
@@ -233,6 +240,7 @@ impl TrainOptions {
                 (None, false) => Choice::Default,
             },
             few_view: Choice::from_flags(self.few_view, self.no_few_view),
+            dynamic: Choice::from_flags(self.dynamic, self.no_dynamic),
         }
     }
 
@@ -327,10 +335,15 @@ impl TrainOptions {
         {
             on_notice(&format!("warning: {w}"));
         }
-        if scene.is_dynamic() {
+        let still_field = match c.model {
+            ModelConfig::Fast(_) => self.no_dynamic,
+            ModelConfig::Vanilla(_) => true,
+        };
+        if scene.is_dynamic() && still_field {
             on_notice(
                 "warning: the scene's photos show a moving subject (each frame has a time): \
-                 the models train a still field, which averages the motion into a blur",
+                 a still field averages the motion into a blur (the fast model's default \
+                 field of space and time does not)",
             );
         }
         match &mut c.model {
@@ -367,6 +380,7 @@ impl TrainOptions {
                     multiscale: c.multiscale,
                     contract: m.contract,
                     train_views: photos,
+                    dynamic: scene.is_dynamic(),
                 };
                 let d = defaults::decide(self.device.device, &facts, &self.feature_flags());
                 for note in &d.notes {
@@ -376,6 +390,22 @@ impl TrainOptions {
                     m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
                 }
                 m.distortion = d.distortion;
+                if d.dynamic {
+                    if d.refine_cameras {
+                        return refuse(
+                            "--refine-cameras cannot be combined with a field of space and \
+                             time yet (--no-dynamic trains a still one)"
+                                .into(),
+                        );
+                    }
+                    if !scene.is_dynamic() {
+                        on_notice(
+                            "warning: --dynamic on a scene without times: every photo is seen \
+                             at moment 0, so the field learns a still scene",
+                        );
+                    }
+                    m.field.motion = Some(Default::default());
+                }
                 if d.few_view {
                     m.few_view = Some(crate::model::few_view::FewView { photos });
                 }
@@ -433,6 +463,9 @@ impl TrainOptions {
             }
             ModelConfig::Vanilla(_) if self.few_view => {
                 return refuse("--few-view applies to --model fast only".into());
+            }
+            ModelConfig::Vanilla(_) if self.dynamic => {
+                return refuse("--dynamic applies to --model fast only".into());
             }
             ModelConfig::Vanilla(_)
                 if self.appearance.is_some()
@@ -635,12 +668,14 @@ impl TrainOptions {
             || self.no_distortion
             || self.few_view
             || self.no_few_view
+            || self.dynamic
+            || self.no_dynamic
         {
             out.push(
                 "--paper-pe / --no-contract / --appearance / --no-appearance / \
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
                  --antialias / --no-antialias / --distortion / --no-distortion / --few-view / \
-                 --no-few-view (set when the run was made)"
+                 --no-few-view / --dynamic / --no-dynamic (set when the run was made)"
                     .into(),
             );
         }

@@ -473,7 +473,10 @@ fn validation_view(config: &TrainConfig) -> Result<Option<View>> {
 
 fn validate(trainer: &Trainer, view: &View, path: &Path) -> Result<f32> {
     let bg = trainer.config.background.eval_colour();
-    let settings = RenderSettings::of_dataset(&trainer.data, bg);
+    let settings = RenderSettings {
+        time: view.time,
+        ..RenderSettings::of_dataset(&trainer.data, bg)
+    };
     let r = crate::views::render_view(trainer.engine.as_ref(), &view.camera, &settings, &|_| {});
     if let Some(dir) = path.parent() {
         crate::io::create_dir(dir)?;

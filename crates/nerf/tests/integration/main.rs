@@ -5,6 +5,7 @@
 mod common;
 
 mod antialias;
+mod dynamic;
 mod end_to_end;
 mod fast_model;
 mod few_view;

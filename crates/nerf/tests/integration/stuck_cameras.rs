@@ -30,6 +30,7 @@ fn damaged_scene(dir: &Path) -> nerf::camera::Pose {
         test_views: 2,
         supersample: 2,
         seed: 1,
+        animate: false,
     };
     synth::generate(&opts, dir, &mut |_, _| {}).expect("synth");
     let path = dir.join("transforms_train.json");

@@ -29,6 +29,7 @@ pub fn trained_run(dir: &Path) -> PathBuf {
         test_views: 2,
         supersample: 1,
         seed: 1,
+        animate: false,
     };
     synth::generate(&opts, &data, &mut |_, _| {}).expect("synth");
     let mut c = TrainConfig::fast(data);

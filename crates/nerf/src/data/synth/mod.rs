@@ -7,6 +7,10 @@
 //! of them that hit the object, colour the mean of the hits (straight alpha, as Blender
 //! writes it). Depth is the mean z-depth of the hits, as a 16-bit PNG in millimetres
 //! (0 = background), listed per frame as `depth_file_path`.
+//!
+//! Animated (`--animate`), the furniture turns a quarter turn about +Z over the capture,
+//! one photo per moment as D-NeRF's scenes are made: training photos from moment 0 to 1,
+//! the other splits' at the moments between them, each frame with its `time`.
 
 pub mod llff;
 pub mod materials;
@@ -46,6 +50,8 @@ pub struct SynthOptions {
     /// Rays per pixel along each axis.
     pub supersample: usize,
     pub seed: u64,
+    /// The scene turns over the capture (a moving scene, each frame at its own moment).
+    pub animate: bool,
 }
 
 impl Default for SynthOptions {
@@ -58,6 +64,7 @@ impl Default for SynthOptions {
             test_views: 40,
             supersample: 2,
             seed: 0,
+            animate: false,
         }
     }
 }
@@ -81,6 +88,52 @@ pub fn poses(split: Split, count: usize, seed: u64) -> Vec<Pose> {
             look_at(spherical(RADIUS, az, el), [0.0; 3], [0.0, 0.0, 1.0])
         })
         .collect()
+}
+
+/// How far an animated scene turns about +Z (radians) from its first moment to its last.
+pub const TURN: f32 = std::f32::consts::FRAC_PI_2;
+
+/// The moment of photo `k` of the `count` of `split` in an animated scene: the training
+/// photos' from 0 to 1, the other splits' between them (moments no training photo shows).
+pub fn moment(split: Split, k: usize, count: usize) -> f32 {
+    match split {
+        Split::Train => k as f32 / count.saturating_sub(1).max(1) as f32,
+        _ => (k as f32 + 0.5) / count.max(1) as f32,
+    }
+}
+
+/// The pose from which the still scene looks as the scene turned for moment `time` does
+/// from `pose`: the camera turned back about +Z by the scene's turn.
+pub fn seen_at(pose: &Pose, time: f32) -> Pose {
+    let (s, c) = (-TURN * time).sin_cos();
+    let mut turned = *pose;
+    for j in 0..4 {
+        turned[0][j] = c * pose[0][j] - s * pose[1][j];
+        turned[1][j] = s * pose[0][j] + c * pose[1][j];
+    }
+    turned
+}
+
+/// Split `split`'s photo `k` of `count` at `pose`: the camera as recorded, the one to
+/// render the still scene from, and the moment (animated scenes).
+fn shot(opts: &SynthOptions, split: Split, k: usize, count: usize, pose: Pose) -> Shot {
+    let time = opts.animate.then(|| moment(split, k, count));
+    let recorded = Camera::from_fov_x(opts.size, opts.size, FOV_X, pose);
+    let mut rendered = recorded.clone();
+    if let Some(t) = time {
+        rendered.c2w = seen_at(&pose, t);
+    }
+    Shot {
+        recorded,
+        rendered,
+        time,
+    }
+}
+
+struct Shot {
+    recorded: Camera,
+    rendered: Camera,
+    time: Option<f32>,
 }
 
 /// One rendered view: straight-alpha RGBA and z-depth (0 where empty).
@@ -163,8 +216,8 @@ pub fn generate(
         crate::io::create_dir(&dir)?;
         let mut frames = Vec::new();
         for (k, pose) in poses(split, count, opts.seed).into_iter().enumerate() {
-            let camera = Camera::from_fov_x(opts.size, opts.size, FOV_X, pose);
-            let img = render(&scene, &camera, opts.supersample);
+            let shot = shot(opts, split, k, count, pose);
+            let img = render(&scene, &shot.rendered, opts.supersample);
             save_rgba_png(
                 &dir.join(format!("r_{k}.png")),
                 opts.size,
@@ -184,9 +237,9 @@ pub fn generate(
             )?;
             frames.push(Frame {
                 file_path: format!("./{}/r_{k}", split.name()),
-                transform_matrix: pose_to_matrix(&camera.c2w),
+                transform_matrix: pose_to_matrix(&shot.recorded.c2w),
                 depth_file_path: Some(format!("./{}/r_{k}_depth.png", split.name())),
-                time: None,
+                time: shot.time,
             });
             done += 1;
             on_image(done, total);
@@ -210,15 +263,15 @@ pub fn dataset(opts: &SynthOptions, split: Split, count: usize) -> super::Datase
         .into_iter()
         .enumerate()
         .map(|(k, pose)| {
-            let camera = Camera::from_fov_x(opts.size, opts.size, FOV_X, pose);
-            let rgba = render(&scene, &camera, opts.supersample).rgba;
+            let shot = shot(opts, split, k, count, pose);
+            let rgba = render(&scene, &shot.rendered, opts.supersample).rgba;
             let image = super::RgbaImage::from_straight_alpha(opts.size, opts.size, rgba);
             super::View {
-                camera,
+                camera: shot.recorded,
                 image,
                 name: format!("{}/r_{k}", split.name()),
                 kept_pixels: None,
-                time: None,
+                time: shot.time,
             }
         })
         .collect();

@@ -639,6 +639,7 @@ pub(super) mod tests {
             appearance: &indices,
             footprints: &fp,
             variances: &[],
+            times: &[],
         };
         let out = field.forward(&params, input, &mut ws);
         let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());

@@ -282,6 +282,7 @@ mod tests {
             appearance: &[],
             footprints: &[],
             variances: &[],
+            times: &[],
         };
         let want = field.forward(&params, input, &mut ws);
         let p = gpu.upload(&params);

@@ -691,6 +691,7 @@ mod tests {
                 background: [1.0; 3],
                 space,
                 appearance: crate::stage::Appearance::Mean,
+                time: None,
             };
             let (world, cones): (Vec<_>, Vec<f32>) = pixels
                 .clone()

@@ -625,6 +625,7 @@ mod tests {
                 appearance: &[],
                 footprints: &[],
                 variances: &var,
+                times: &[],
             };
             let out = net.forward(&params, input, &mut ws);
             let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());

@@ -17,6 +17,7 @@ pub fn chair_scene(dir: &Path, size: usize, train_views: usize, test_views: usiz
         test_views,
         supersample: 2,
         seed,
+        animate: false,
     };
     synth::generate(&opts, dir, &mut |_, _| {}).expect("synth");
 }
