@@ -39,6 +39,10 @@ pub struct MeshArgs {
     /// undistorted inner half when space is contracted; 1.5 for vanilla runs).
     #[arg(long, value_parser = nerf::args::positive, allow_negative_numbers = true)]
     bound: Option<f32>,
+    /// Models of a moving scene: the moment to mesh, from 0 (the first photo's) to 1 (the
+    /// last's).
+    #[arg(long, default_value_t = 0.0, value_parser = nerf::args::fraction)]
+    time: f32,
 }
 
 pub fn run(a: MeshArgs) -> Result<()> {
@@ -64,6 +68,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
         threshold: a.threshold,
         bound,
         keep_largest: a.keep_largest,
+        time: a.time,
     };
     let t0 = Instant::now();
     let pb = bar(resolution as u64, "density slabs");
@@ -79,7 +84,7 @@ pub fn run(a: MeshArgs) -> Result<()> {
     }
     // Colour from a few grid cells outside the surface.
     let offset = 4.0 * 2.0 * bound / resolution as f32;
-    let colours = colour_vertices(run.engine.as_ref(), &mesh, offset);
+    let colours = colour_vertices(run.engine.as_ref(), &mesh, offset, a.time);
     // Forward-facing scenes are modelled in NDC: export in world coordinates.
     let space = run.config.open_scene(1).map(|s| s.space);
     match space {

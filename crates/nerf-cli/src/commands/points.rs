@@ -30,6 +30,10 @@ pub struct PointsArgs {
     /// Keep pixels at least this opaque (drops background and soft edges).
     #[arg(long, default_value_t = 0.95, value_parser = nerf::args::fraction, allow_negative_numbers = true)]
     min_opacity: f32,
+    /// Models of a moving scene: the moment every view is rendered at, from 0 (the first
+    /// photo's) to 1 (the last's).
+    #[arg(long, default_value_t = 0.0, value_parser = nerf::args::fraction)]
+    time: f32,
 }
 
 pub fn run(a: PointsArgs) -> Result<()> {
@@ -54,7 +58,10 @@ pub fn run(a: PointsArgs) -> Result<()> {
         }
     }
     let cameras: Vec<_> = cameras.into_iter().step_by(a.every).collect();
-    let settings = nerf::views::RenderSettings::of_scene(&scene, config.background.eval_colour());
+    let settings = nerf::views::RenderSettings {
+        time: Some(a.time),
+        ..nerf::views::RenderSettings::of_scene(&scene, config.background.eval_colour())
+    };
     let t0 = Instant::now();
     let pb = bar(cameras.len() as u64, "views");
     let (points, colours) = nerf::mesh::points::from_views(

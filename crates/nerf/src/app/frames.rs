@@ -75,7 +75,8 @@ pub struct FramesOptions {
     #[arg(long)]
     pub appearance_of: Option<String>,
     /// Models of a moving scene: the moment to render, from 0 (the first photo's) to 1
-    /// (the last's). Default 0.
+    /// (the last's). Default: each frame's own (`--path test`: the test photo's; `--path
+    /// file`: the frame's `time` in the file), else 0.
     #[arg(long, value_parser = crate::args::fraction, conflicts_with = "time_sweep")]
     pub time: Option<f32>,
     /// Models of a moving scene: time runs with the frames, from 0 at the first to 1 at
@@ -124,6 +125,20 @@ pub fn parse_range(s: &str) -> std::result::Result<(f32, f32), String> {
 }
 
 /// The cameras of `opts.path` in `scene`.
+/// The moments the frames of `opts`' path show by themselves (one per frame, or empty):
+/// a camera-path file's per-frame `time`s, the test photos' moments.
+fn frame_times(scene: &Scene, opts: &FramesOptions) -> Result<Vec<Option<f32>>> {
+    Ok(match (opts.path, &opts.camera_path) {
+        (PathKind::File, Some(file)) => crate::camera::path::load_camera_path_times(file)?,
+        (PathKind::Test, _) => scene
+            .indices(Split::Test)
+            .iter()
+            .map(|&i| scene.frames.get(i).and_then(|f| f.time))
+            .collect(),
+        _ => Vec::new(),
+    })
+}
+
 pub fn cameras(scene: &Scene, opts: &FramesOptions) -> Result<Vec<Camera>> {
     if opts.camera_path.is_some() && opts.path != PathKind::File {
         return Err(NerfError::Config(format!(
@@ -295,12 +310,13 @@ pub fn render_frames(
     if let Some(which) = &opts.appearance_of {
         settings.appearance = crate::app::looks::appearance_of(cfg, &scene, which)?;
     }
-    settings.time = opts.time;
+    let path_times = frame_times(&scene, opts)?;
     let frame_count = cameras.len();
     let settings_of = |k: usize| RenderSettings {
-        time: match opts.time_sweep {
-            true => Some(k as f32 / frame_count.saturating_sub(1).max(1) as f32),
-            false => settings.time,
+        time: match (opts.time_sweep, opts.time) {
+            (true, _) => Some(k as f32 / frame_count.saturating_sub(1).max(1) as f32),
+            (false, Some(t)) => Some(t),
+            (false, None) => path_times.get(k).copied().flatten(),
         },
         ..settings
     };

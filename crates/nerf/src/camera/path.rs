@@ -233,6 +233,8 @@ struct PathFrame {
     fov: f32,
     aspect: Option<f32>,
     camera_type: Option<String>,
+    /// Moving scenes: the moment in [0, 1] the frame shows.
+    time: Option<f32>,
 }
 
 #[derive(Deserialize)]
@@ -258,6 +260,22 @@ impl Matrix {
         };
         super::pose_from_rows(&rows).map_err(|m| m.replace("the matrix", "camera_to_world"))
     }
+}
+
+/// The moments of a camera path's frames (each frame's optional `time`, in [0, 1]: paths
+/// through a moving scene), one per frame of [`load_camera_path`].
+pub fn load_camera_path_times(path: &Path) -> Result<Vec<Option<f32>>> {
+    let file: PathFile = crate::io::read_json(path)?;
+    let frames = file.camera_path.unwrap_or_default();
+    for (k, f) in frames.iter().enumerate() {
+        if let Some(t) = f.time.filter(|t| !(0.0..=1.0).contains(t)) {
+            return Err(NerfError::Format {
+                path: path.to_path_buf(),
+                message: format!("camera_path[{k}].time {t} is not a moment in [0, 1]"),
+            });
+        }
+    }
+    Ok(frames.iter().map(|f| f.time).collect())
 }
 
 /// The cameras of a nerfstudio `camera_path.json` (its per-frame `camera_path` list: a

@@ -204,12 +204,12 @@ impl<M: Model> Engine for CpuEngine<M> {
         });
     }
 
-    fn density(&self, positions: &[f32], out: &mut [f32]) {
+    fn density(&self, positions: &[f32], time: Option<f32>, out: &mut [f32]) {
         assert_eq!(positions.len(), out.len() * 3);
         out.par_chunks_mut(DENSITY_CHUNK)
             .zip(positions.par_chunks(DENSITY_CHUNK * 3))
             .for_each(|(out, pos)| {
-                self.with_workspace(|ws| self.model.density(&self.params, pos, ws, out))
+                self.with_workspace(|ws| self.model.density(&self.params, pos, time, ws, out))
             });
     }
 
@@ -271,10 +271,10 @@ mod tests {
             .collect();
         for engine in engines() {
             let mut sigma = vec![0.0; 5000];
-            engine.density(&pos, &mut sigma);
+            engine.density(&pos, None, &mut sigma);
             // The last point, evaluated alone, gives the same value.
             let mut one = [0.0];
-            engine.density(&pos[4999 * 3..], &mut one);
+            engine.density(&pos[4999 * 3..], None, &mut one);
             assert!((one[0] - sigma[4999]).abs() <= 1e-5 * (1.0 + one[0].abs()));
             assert!(sigma.iter().all(|s| s.is_finite() && *s >= 0.0));
         }

@@ -198,8 +198,9 @@ pub trait Engine: Send + Sync {
         1
     }
 
-    /// Densities at world `positions` (`n x 3`) into `out` (`n`).
-    fn density(&self, positions: &[f32], out: &mut [f32]);
+    /// Densities at world `positions` (`n x 3`) into `out` (`n`), at moment `time` of a
+    /// moving scene (`None`: any moment; still scenes ignore it).
+    fn density(&self, positions: &[f32], time: Option<f32>, out: &mut [f32]);
 
     /// Host copies of the state.
     fn state(&self) -> EngineState;

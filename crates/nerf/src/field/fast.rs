@@ -481,6 +481,26 @@ impl FastField {
         })
     }
 
+    /// Densities at `positions` into `out` at moment `time` of a moving scene (`None`: as
+    /// [`Field::density`], any moment; still fields ignore it).
+    pub fn density_at(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        time: Option<f32>,
+        ws: &mut FastWorkspace,
+        out: &mut [f32],
+    ) {
+        match time {
+            Some(t) if self.motion.is_some() => {
+                let times = vec![t; out.len()];
+                self.eval_density(params, positions, &[], &times, false, ws);
+                out.copy_from_slice(&ws.sigma[..out.len()]);
+            }
+            _ => self.density(params, positions, ws, out),
+        }
+    }
+
     /// Density and colour of the `n` samples of `input` (positions, unit directions shared
     /// by `samples_per_dir` consecutive samples, appearance indices, footprints), into
     /// `ws.sigma` and `ws.rgb`.

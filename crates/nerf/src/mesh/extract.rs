@@ -23,6 +23,8 @@ pub struct ExtractOptions {
     pub bound: f32,
     /// Keep only this many largest connected pieces (by triangle count).
     pub keep_largest: Option<usize>,
+    /// The moment of a moving scene to mesh (still scenes ignore it).
+    pub time: f32,
 }
 
 /// Density on `resolution^3` grid points over the box; `on_slab(done, total)` after each
@@ -43,7 +45,7 @@ pub fn density_grid(
                 positions.extend([x, y, z].map(|i| -opts.bound + i as f32 * spacing));
             }
         }
-        engine.density(&positions, slab);
+        engine.density(&positions, Some(opts.time), slab);
         on_slab(z + 1, r);
     }
     (values, spacing)
@@ -137,7 +139,7 @@ pub fn vertex_normals(mesh: &Mesh) -> Vec<[f32; 3]> {
 /// Colours (straight RGB in [0, 1]) of the vertices: each is rendered along a ray that
 /// starts `offset` outside the surface on its normal and looks back at it, so the colour is
 /// what a camera there would see (view-dependent effects included).
-pub fn colour_vertices(engine: &dyn Engine, mesh: &Mesh, offset: f32) -> Vec<[f32; 3]> {
+pub fn colour_vertices(engine: &dyn Engine, mesh: &Mesh, offset: f32, time: f32) -> Vec<[f32; 3]> {
     let normals = vertex_normals(mesh);
     let mut origins = Vec::with_capacity(mesh.vertices.len() * 3);
     let mut dirs = Vec::with_capacity(mesh.vertices.len() * 3);
@@ -152,7 +154,7 @@ pub fn colour_vertices(engine: &dyn Engine, mesh: &Mesh, offset: f32) -> Vec<[f3
         // The mesh lives in the model's own space already.
         space: crate::camera::ray_space::RaySpace::World,
         appearance: Default::default(),
-        time: None,
+        time: Some(time),
     };
     render_rays(engine, &origins, &dirs, &settings)
         .iter()

@@ -659,8 +659,16 @@ impl Model for FastModel {
         );
     }
 
-    fn density(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace, out: &mut [f32]) {
-        self.field.density(params, positions, &mut ws.field, out);
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        time: Option<f32>,
+        ws: &mut FastWorkspace,
+        out: &mut [f32],
+    ) {
+        self.field
+            .density_at(params, positions, time, &mut ws.field, out);
     }
 
     fn occupancy(&self) -> Option<f64> {

@@ -193,8 +193,16 @@ pub trait Model: Send + Sync + 'static {
         out: &mut [RayOutput],
     );
 
-    /// Densities at world `positions` (`n x 3`) into `out` (`n`).
-    fn density(&self, params: &[f32], positions: &[f32], ws: &mut Self::Workspace, out: &mut [f32]);
+    /// Densities at world `positions` (`n x 3`) into `out` (`n`), at moment `time` of a
+    /// moving scene (`None`: any moment; still models ignore it).
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        time: Option<f32>,
+        ws: &mut Self::Workspace,
+        out: &mut [f32],
+    );
 
     /// Fraction of the scene box marked occupied, for models that skip empty space.
     fn occupancy(&self) -> Option<f64> {

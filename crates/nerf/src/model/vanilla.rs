@@ -489,7 +489,14 @@ impl Model for VanillaModel {
     }
 
     /// The fine pass's density (the coarse one's without a fine pass), at points.
-    fn density(&self, params: &[f32], positions: &[f32], ws: &mut ChunkWorkspace, out: &mut [f32]) {
+    fn density(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        _time: Option<f32>,
+        ws: &mut ChunkWorkspace,
+        out: &mut [f32],
+    ) {
         match self.fine_pass() {
             Some((net, range)) => net.density(&params[range], positions, &mut ws.net, out),
             None => {

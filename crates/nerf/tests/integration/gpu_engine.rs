@@ -453,8 +453,8 @@ fn checkpoints_move_between_devices() {
         .map(|i| ((i * 37) % 101) as f32 / 50.0 - 1.0)
         .collect();
     let (mut da, mut db) = (vec![0.0; 100], vec![0.0; 100]);
-    on_cpu.engine.density(&points, &mut da);
-    on_gpu.engine.density(&points, &mut db);
+    on_cpu.engine.density(&points, None, &mut da);
+    on_gpu.engine.density(&points, None, &mut db);
     for (x, y) in da.iter().zip(&db) {
         assert!(
             (x - y).abs() <= 1e-3 * (1.0 + x.abs()),

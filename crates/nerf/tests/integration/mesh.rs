@@ -124,6 +124,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
         threshold: DEFAULT_THRESHOLD,
         bound: 1.5,
         keep_largest: Some(1),
+        time: 0.0,
     };
     let mesh = extract(run.engine.as_ref(), &options, &mut |_, _| {});
     assert!(
@@ -164,7 +165,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
         "{near_chair} of {} points within 5 cm of the chair's box",
         points.len()
     );
-    let colours = colour_vertices(run.engine.as_ref(), &mesh, 0.05);
+    let colours = colour_vertices(run.engine.as_ref(), &mesh, 0.05, 0.0);
     // The chair is wood and fabric, not black or white: most vertices get a real colour.
     let coloured = colours
         .iter()

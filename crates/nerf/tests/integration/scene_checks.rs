@@ -401,6 +401,23 @@ fn camera_paths() {
         json!({"render_height": 200000, "render_width": 200000, "camera_path": [frame(pose(1))]}),
         "larger than the limit",
     );
+
+    // Moving scenes: a frame's optional moment, read alongside its camera.
+    let timed = |t: Value| json!({"camera_to_world": pose(1), "fov": 50.0, "time": t});
+    write(
+        &path,
+        &json!({"camera_path": [timed(json!(0.25)), frame(pose(1))]}),
+    );
+    let times = nerf::camera::path::load_camera_path_times(&path).expect("times");
+    assert_eq!(times, [Some(0.25), None]);
+    write(&path, &json!({"camera_path": [timed(json!(1.5))]}));
+    let err = nerf::camera::path::load_camera_path_times(&path)
+        .expect_err("a moment outside [0, 1]")
+        .to_string();
+    assert!(
+        err.contains("camera_path[0].time 1.5") && err.contains("camera_path.json"),
+        "{err}"
+    );
 }
 
 /// A 4x4 row list of a camera at `eye` looking at `target` (+Z up).

@@ -642,7 +642,8 @@ impl Engine for GpuEngine {
             .max(crate::engine::RENDER_SLAB)
     }
 
-    fn density(&self, positions: &[f32], out: &mut [f32]) {
+    /// Moving scenes do not run on this engine (`engine::caps`): `time` has no use here.
+    fn density(&self, positions: &[f32], _time: Option<f32>, out: &mut [f32]) {
         density_in_chunks(positions, out, DENSITY_CHUNK, |p, o| {
             self.density_chunk(p, o)
         });

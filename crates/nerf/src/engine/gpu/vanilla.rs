@@ -383,7 +383,7 @@ impl Engine for GpuVanillaEngine {
     }
 
     /// The fine network's density (the coarse one's without a fine network).
-    fn density(&self, positions: &[f32], out: &mut [f32]) {
+    fn density(&self, positions: &[f32], _time: Option<f32>, out: &mut [f32]) {
         let net = self.fine.as_ref().unwrap_or(&self.coarse);
         density_in_chunks(positions, out, DENSITY_CHUNK, |p, o| {
             let n = o.len();
