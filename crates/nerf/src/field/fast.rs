@@ -874,6 +874,28 @@ mod tests {
         backward_matches_finite_differences_of(&field, &[], &[]);
     }
 
+    /// The occupancy grid's refreshes query points jittered inside cells: the moments
+    /// drawn from them must cover [0, 1] evenly, or a limb that is there only at some
+    /// moments would be left out of the grid and never marched.
+    #[test]
+    fn moments_drawn_from_points_cover_every_moment() {
+        let mut rng = Rng::new(9);
+        let mut deciles = [0usize; 10];
+        let n = 4000;
+        for _ in 0..n {
+            // Points of neighbouring cells of a 128^3 grid, as a refresh draws them.
+            let u = [0.5, 0.5, 0.5].map(|c: f32| c + rng.range(0.0, 3.0 / 128.0));
+            let t = moment_of_point(&u);
+            assert!((0.0..1.0).contains(&t), "{t}");
+            deciles[(t * 10.0) as usize] += 1;
+        }
+        for (d, &count) in deciles.iter().enumerate() {
+            let share = count as f64 / n as f64;
+            assert!((0.07..0.13).contains(&share), "decile {d}: {share}");
+        }
+        assert_eq!(moment_of_point(&[0.1, 0.2, 0.3]), moment_of_point(&[0.1, 0.2, 0.3]));
+    }
+
     #[test]
     fn a_moving_field_differs_between_moments_and_keeps_its_tables_lazy() {
         let field = tiny_moving();
