@@ -31,6 +31,9 @@ let mode = "rgb";
 // Runs trained with --appearance: the training photo whose learned look colours the
 // views and rendered paths (null: the mean of the photos').
 let appearance = null;
+// Models of a moving scene: the moment shown, in [0, 1], and the motion's playback.
+let time = 0;
+let timePlaying = null;
 let restTimer = null;
 let lastSent = 0;
 let sentAt = new Map();
@@ -87,7 +90,7 @@ function requestView(moving) {
   seq += 1;
   sentAt.set(seq, performance.now());
   if (sentAt.size > 200) sentAt.delete(sentAt.keys().next().value);
-  send({ type: "view", seq, mode, moving, appearance, camera: { c2w: pose(), fov_y: view.fov, width, height } });
+  send({ type: "view", seq, mode, moving, appearance, time, camera: { c2w: pose(), fov_y: view.fov, width, height } });
   lastSent = performance.now();
   drawOverlay();
 }
@@ -430,6 +433,34 @@ function setAppearance(index) {
   requestView(false);
 }
 
+// Shows moment `t` of a moving scene.
+function setTime(t) {
+  time = t;
+  $("time").value = String(t);
+  $("time-value").textContent = t.toFixed(2);
+}
+
+// Plays the motion from the current moment, looping every five seconds (previews while
+// it plays, the full frame where it is paused).
+function playTime() {
+  if (timePlaying) {
+    cancelAnimationFrame(timePlaying);
+    timePlaying = null;
+    $("time-play").textContent = "Play the motion";
+    requestView(false);
+    return;
+  }
+  $("time-play").textContent = "Pause";
+  let last = performance.now();
+  const step = (now) => {
+    setTime((time + (now - last) / 5000) % 1);
+    last = now;
+    changed();
+    timePlaying = requestAnimationFrame(step);
+  };
+  timePlaying = requestAnimationFrame(step);
+}
+
 // ---- start ----
 async function start() {
   const response = await fetch(withToken("/api/scene"));
@@ -454,6 +485,7 @@ async function start() {
     for (let i = 0; i < scene.appearance_photos; i++) list.add(new Option(`photo #${i}`, String(i)));
     $("appearance-box").hidden = false;
   }
+  if (scene.dynamic) $("time-box").hidden = false;
   installControls();
   $("mode").onchange = (e) => { mode = e.target.value; requestView(false); };
   $("fov").oninput = (e) => { view.fov = Number(e.target.value); $("fov-value").textContent = `${view.fov}°`; changed(); };
@@ -462,6 +494,8 @@ async function start() {
   $("reset").onclick = () => { Object.assign(view, { eye: home.eye, target: home.target, fov: home.fov }); setPose(pose(), home.fov); requestView(false); };
   $("appearance").onchange = (e) => { setAppearance(e.target.value === "" ? null : Number(e.target.value)); };
   $("photo-look").onclick = () => setAppearance(selected);
+  $("time").oninput = (e) => { setTime(Number(e.target.value)); changed(); };
+  $("time-play").onclick = playTime;
   $("photo-close").onclick = () => { $("photo-box").hidden = true; selected = -1; drawOverlay(); };
   $("key-add").onclick = () => { keys.push({ c2w: pose(), fov_y: view.fov }); keysChanged(); };
   for (const id of ["seconds", "fps", "loop"]) $(id).onchange = keysChanged;

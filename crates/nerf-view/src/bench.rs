@@ -68,6 +68,7 @@ pub fn run(
         mode: Mode::Rgb,
         moving: false,
         appearance: Default::default(),
+        time: None,
     };
     let mut sizes = Vec::new();
     for &h in heights {

@@ -87,6 +87,9 @@ pub enum ClientMessage {
         /// look; absent or null: the mean of the photos'.
         #[serde(default)]
         appearance: Option<u32>,
+        /// Models of a moving scene: the moment to show, in [0, 1]; absent or null: 0.
+        #[serde(default)]
+        time: Option<f32>,
     },
     /// The smooth path through the keyframes, as poses (for the preview and scrubbing).
     PreviewPath { path: CameraPath },
@@ -240,7 +243,12 @@ impl ClientMessage {
         let msg: ClientMessage =
             serde_json::from_str(text).map_err(|e| ProtocolError::Malformed(e.to_string()))?;
         match &msg {
-            ClientMessage::View { camera, .. } => {
+            ClientMessage::View { camera, time, .. } => {
+                if let Some(t) = time.filter(|t| !(0.0..=1.0).contains(t)) {
+                    return Err(ProtocolError::OutOfRange(format!(
+                        "view: time {t} is not a moment in [0, 1]"
+                    )));
+                }
                 check_pose(&camera.c2w, "view")?;
                 check_fov(camera.fov_y, "view")?;
                 check_size(camera.width, camera.height, "view")?;
@@ -320,6 +328,13 @@ mod tests {
             panic!("not a view: {m:?}")
         };
         assert_eq!((seq, mode, moving), (3, Mode::Depth, false));
+        // A moving scene's moment travels with the request.
+        let timed = view("").replace(r#""mode":"depth""#, r#""mode":"depth","time":0.25"#);
+        let m = ClientMessage::parse(&timed).expect("parses");
+        let ClientMessage::View { time, .. } = m else {
+            panic!("not a view: {m:?}")
+        };
+        assert_eq!(time, Some(0.25));
     }
 
     #[test]
@@ -332,6 +347,10 @@ mod tests {
             (view("").replace("\"width\":64", "\"width\":0"), "size"),
             (view("").replace("\"fov_y\":40", "\"fov_y\":0"), "field of view"),
             (view("").replace("[1,0,0,0]", "[2,0,0,0]"), "rotation"),
+            (
+                view("").replace(r#""mode":"depth""#, r#""mode":"depth","time":1.5"#),
+                "time 1.5",
+            ),
             (
                 r#"{"type":"save_path","name":"../x","path":{"keyframes":[],"seconds":1,"fps":24,"width":8,"height":8}}"#
                     .to_string(),

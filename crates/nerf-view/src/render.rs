@@ -48,6 +48,8 @@ pub struct ViewRequest {
     pub moving: bool,
     /// Which learned photo appearance colours it (models trained with `--appearance`).
     pub appearance: Appearance,
+    /// The moment of a moving scene it shows.
+    pub time: Option<f32>,
 }
 
 /// One encoded frame: header and JPEG.
@@ -169,20 +171,23 @@ pub fn render(
     model: &Model,
     camera: &Camera,
     appearance: Appearance,
+    time: Option<f32>,
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Option<Vec<RayOutput>> {
-    model.on_its_threads(|| render_here(model, camera, appearance, cancelled))
+    model.on_its_threads(|| render_here(model, camera, appearance, time, cancelled))
 }
 
 fn render_here(
     model: &Model,
     camera: &Camera,
     appearance: Appearance,
+    time: Option<f32>,
     cancelled: &(dyn Fn() -> bool + Sync),
 ) -> Option<Vec<RayOutput>> {
     let run = model.run.read().unwrap_or_else(|e| e.into_inner());
     let settings = RenderSettings {
         appearance,
+        time,
         ..model.settings_at(camera.origin())
     };
     let engine = run.engine.as_ref();
@@ -244,11 +249,12 @@ pub fn render_level(
         camera: ref view,
         mode,
         appearance,
+        time,
         ..
     } = *request;
     let camera = camera_at(view, w, h);
     let t0 = Instant::now();
-    let out = render(model, &camera, appearance, cancelled)?;
+    let out = render(model, &camera, appearance, time, cancelled)?;
     let seconds = t0.elapsed().as_secs_f64();
     pacer.record(w * h, seconds);
     let header = FrameHeader {

@@ -161,6 +161,7 @@ fn handle(
             mode,
             moving,
             appearance,
+            time,
         } => match viewer.appearance(appearance) {
             Ok(appearance) => latest.post(ViewRequest {
                 seq,
@@ -168,6 +169,7 @@ fn handle(
                 mode,
                 moving,
                 appearance,
+                time,
             }),
             Err(e) => {
                 let _ = tx.send(error(e));

@@ -46,6 +46,8 @@ pub struct SceneInfo {
     /// Training photos with a learned appearance code (`--appearance`; 0 without): the
     /// page offers to render with any one's look.
     pub appearance_photos: usize,
+    /// A model of a moving scene: the page shows a time slider and a play button.
+    pub dynamic: bool,
 }
 
 /// One viewer's shared state.
@@ -88,6 +90,7 @@ impl Viewer {
             radius: mean_distance(&cameras, [0.0; 3]),
             live,
             appearance_photos: run.config.model.appearance_photos(),
+            dynamic: run.config.model.is_dynamic(),
         };
         Ok(Viewer {
             model: Arc::new(Model {

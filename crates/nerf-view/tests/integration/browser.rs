@@ -316,6 +316,38 @@ fn the_page_draws_the_model_follows_the_mouse_and_saves_paths() {
     );
     browser.screenshot("look.png");
     browser.js("const a = document.getElementById('appearance'); a.value = ''; a.dispatchEvent(new Event('change')); return true;");
+    let (_, _, _, at_start) = final_frame(&browser, "the frame with the mean look again");
+
+    // The turning chair at its last moment, picked with the time slider, is what `nerf
+    // render --time 1` renders.
+    let shown = browser.js("return !document.getElementById('time-box').hidden;");
+    assert_eq!(shown, json!(true), "the time slider is hidden");
+    browser.js("const t = document.getElementById('time'); t.value = '1'; \
+         t.dispatchEvent(new Event('input')); return true;");
+    browser.wait_for("the request at the last moment", "return time === 1;");
+    let (_, _, _, last) = final_frame(&browser, "the frame at the last moment");
+    let at_end = nerf::views::RenderSettings {
+        time: Some(1.0),
+        ..settings
+    };
+    let want_end = nerf::views::render_view(
+        run.engine.as_ref(),
+        &camera_at(&camera, w, h),
+        &at_end,
+        &|_| {},
+    );
+    let (same, first) = (
+        psnr_to(&last, &want_end.rgb),
+        psnr_to(&at_start, &want_end.rgb),
+    );
+    eprintln!("the last moment on the page: {same:.1} dB against its render, the first moment {first:.1} dB against it");
+    assert!(
+        same > 30.0 && first < same - 3.0,
+        "{same:.1} / {first:.1} dB"
+    );
+    browser.screenshot("time.png");
+    browser.js("const t = document.getElementById('time'); t.value = '0'; \
+         t.dispatchEvent(new Event('input')); return true;");
 
     // A drag orbits the camera: a new frame for a new view.
     browser.js("document.getElementById('key-add').click(); return true;");

@@ -1,6 +1,7 @@
 //! The demo pipeline (`nerf demo`): the built-in chair -> the fast model -> evaluation on
-//! the test views -> an orbit video, all under one folder, no data needed. Front ends show
-//! progress through [`DemoHooks`].
+//! the test views -> an orbit video, all under one folder, no data needed; `--animate`
+//! makes it a moving scene (the chair turning, trained as a field of space and time, the
+//! orbit replaying the motion). Front ends show progress through [`DemoHooks`].
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -25,6 +26,10 @@ pub struct DemoOptions {
     /// Image size of the built-in scene.
     #[arg(long, default_value_t = 128)]
     pub size: usize,
+    /// A moving scene: the chair turns a quarter turn over the capture, one photo per
+    /// moment; the orbit video replays the motion.
+    #[arg(long)]
+    pub animate: bool,
     #[command(flatten)]
     pub device: crate::engine::DeviceArg,
 }
@@ -52,8 +57,9 @@ pub struct DemoReport {
     pub seconds: f64,
 }
 
-/// The built-in scene of the demo: the chair, 100 training and 20 test views.
-pub fn scene_options(size: usize) -> SynthOptions {
+/// The built-in scene of the demo: the chair, 100 training and 20 test views, turning
+/// when `animate`.
+pub fn scene_options(size: usize, animate: bool) -> SynthOptions {
     SynthOptions {
         scene: SceneKind::Chair,
         size,
@@ -62,7 +68,7 @@ pub fn scene_options(size: usize) -> SynthOptions {
         test_views: 20,
         supersample: 2,
         seed: 0,
-        animate: false,
+        animate,
     }
 }
 
@@ -80,9 +86,13 @@ pub fn train_config(data: PathBuf, steps: u64) -> TrainConfig {
 /// trained run).
 pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> {
     let t0 = Instant::now();
-    let scene = opts.out.join("chair");
+    let scene = opts.out.join(if opts.animate {
+        "chair_turning"
+    } else {
+        "chair"
+    });
     if !blender::transforms_path(&scene, Split::Test).exists() {
-        let synth = scene_options(opts.size);
+        let synth = scene_options(opts.size, opts.animate);
         let n = synth::generate(&synth, &scene, &mut |done, total| {
             hooks.synth_progress(done, total)
         })?;
@@ -94,7 +104,9 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
     } else {
         hooks.say(&format!("using the existing scene in {}", scene.display()));
     }
-    let run_dir = opts.out.join("run");
+    let run_dir = opts
+        .out
+        .join(if opts.animate { "run_turning" } else { "run" });
     if run_dir.join(CHECKPOINT_FILE).exists() {
         return Err(NerfError::Config(format!(
             "{} already holds a trained run: delete it, or use `nerf eval --run {}`",
@@ -151,7 +163,10 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         }
     })?;
     let orbit_dir = run_dir.join("render_orbit");
-    let frames = FramesOptions::orbit(36, 4.0, run_dir.join("orbit.gif"));
+    let frames = FramesOptions {
+        time_sweep: opts.animate,
+        ..FramesOptions::orbit(36, 4.0, run_dir.join("orbit.gif"))
+    };
     let orbit = crate::app::frames::render_frames(&loaded, &frames, &orbit_dir, &|p| {
         hooks.frames_progress(p)
     })?;

@@ -233,15 +233,21 @@ pub fn evaluate(
             r.height,
             &r.depth_image(data.near, data.far),
         )?;
+        // Scored as saved, in 8 bits (the protocol of the papers' figures).
+        let shown: Vec<f32> = r
+            .rgb
+            .iter()
+            .map(|&v| f32::from(crate::data::image::to_u8(v)) / 255.0)
+            .collect();
         let lpips = match &options.lpips {
-            Some(net) => net.distance(&r.rgb, &truth, r.width, r.height).ok(),
+            Some(net) => net.distance(&shown, &truth, r.width, r.height).ok(),
             None => None,
         };
         let metrics = ViewMetrics {
             index: i,
             name: view.name.clone(),
-            psnr: psnr(&r.rgb, &truth),
-            ssim: ssim(&r.rgb, &truth, r.width, r.height),
+            psnr: psnr(&shown, &truth),
+            ssim: ssim(&shown, &truth, r.width, r.height),
             lpips,
             image,
             depth,

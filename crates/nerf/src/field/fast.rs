@@ -124,6 +124,9 @@ pub struct FastField {
     pub moment: Option<f32>,
 }
 
+/// The time-smoothness prior looks at every this-many-th sample of a batch.
+pub const SMOOTH_STRIDE: usize = 4;
+
 /// A moment in [0, 1) drawn from a unit-cube point's coordinates: the same point, the same
 /// moment; points a jitter apart, unrelated ones.
 fn moment_of_point(u: &[f32]) -> f32 {
@@ -140,6 +143,12 @@ pub struct FastWorkspace {
     unit_time: Vec<f32>,
     enc_motion: Vec<f32>,
     d_enc_motion: Vec<f32>,
+    /// The smoothness prior's points, the same a moment later, the latter's encoding, and
+    /// the gradients of both.
+    now: Vec<f32>,
+    later: Vec<f32>,
+    enc_later: Vec<f32>,
+    d_smooth: Vec<f32>,
     /// Anti-aliased fields: each sample's weight of each level (`n x levels`).
     level_scale: Vec<f32>,
     enc: Vec<f32>,
@@ -711,6 +720,62 @@ impl FastField {
         }
     }
 
+    /// Moving fields: the prior that the scene changes smoothly in time, for the last
+    /// forward's `n` samples (every [`SMOOTH_STRIDE`]-th): `weight` times the sum over them
+    /// of `|m(x, t) - m(x, t + dt)|^2`, `m` the space-time grid's features and `dt` one
+    /// cell of its finest time level (back from the last moment). Adds its gradient to
+    /// `grads` and returns its value (0 for still fields).
+    pub fn time_smoothness_bwd(
+        &self,
+        params: &[f32],
+        ws: &mut FastWorkspace,
+        n: usize,
+        weight: f32,
+        grads: &mut Grads,
+    ) -> f64 {
+        let Some(motion) = &self.motion else {
+            return 0.0;
+        };
+        if weight == 0.0 || n == 0 {
+            return 0.0;
+        }
+        let md = motion.dims();
+        let k = n.div_ceil(SMOOTH_STRIDE);
+        let dt = 1.0 / motion.config.max_time_resolution.max(1) as f32;
+        grow(&mut ws.now, k * 4);
+        grow(&mut ws.later, k * 4);
+        grow(&mut ws.enc_later, k * md);
+        grow(&mut ws.d_smooth, k * md);
+        let sampled = ws.unit_time[..n * 4].chunks_exact(4).step_by(SMOOTH_STRIDE);
+        for ((p, now), later) in sampled
+            .zip(ws.now.chunks_exact_mut(4))
+            .zip(ws.later.chunks_exact_mut(4))
+        {
+            now.copy_from_slice(p);
+            later.copy_from_slice(p);
+            later[3] = if p[3] + dt <= 1.0 {
+                p[3] + dt
+            } else {
+                p[3] - dt
+            };
+        }
+        motion.encode(params, &ws.later[..k * 4], &mut ws.enc_later);
+        let scale = 2.0 * weight;
+        let mut value = 0.0f64;
+        for j in 0..k {
+            let a = &ws.enc_motion[j * SMOOTH_STRIDE * md..][..md];
+            let b = &ws.enc_later[j * md..][..md];
+            for ((d, &x), &y) in ws.d_smooth[j * md..][..md].iter_mut().zip(a).zip(b) {
+                value += f64::from((x - y) * (x - y));
+                *d = scale * (x - y);
+            }
+        }
+        motion.encode_bwd(&ws.now[..k * 4], &ws.d_smooth[..k * md], grads);
+        ws.d_smooth[..k * md].iter_mut().for_each(|d| *d = -*d);
+        motion.encode_bwd(&ws.later[..k * 4], &ws.d_smooth[..k * md], grads);
+        value * f64::from(weight)
+    }
+
     /// [`Field::backward`], and also `dL/d position` (`n x 3`, field space) into
     /// `d_positions` and `dL/d direction` (one per sample, `n x 3`, of the unit view
     /// direction `dirs`) into `d_dirs`: camera refinement moves and turns rays.
@@ -874,6 +939,58 @@ mod tests {
         backward_matches_finite_differences_of(&field, &[], &[]);
     }
 
+    /// The time-smoothness prior's gradient against central differences of its value, on
+    /// samples at moments near the end too (the later moment is taken backwards there).
+    #[test]
+    fn time_smoothness_gradient_matches_finite_differences() {
+        let field = tiny_moving();
+        let mut rng = Rng::new(5);
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let n = 9;
+        let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+        let dirs = rng.unit_directions(n);
+        let mut times: Vec<f32> = (0..n).map(|_| rng.uniform()).collect();
+        times[4] = 0.99;
+        let weight = 0.3;
+        let value = |p: &[f32], grads: &mut GradBuffer| -> f64 {
+            let mut ws = FastWorkspace::default();
+            let mut inp = input(&pos, &dirs);
+            inp.times = &times;
+            field.forward(p, inp, &mut ws);
+            field.time_smoothness_bwd(p, &mut ws, n, weight, &mut grads.all())
+        };
+        let mut grads = GradBuffer::new(field.num_params());
+        let v = value(&params, &mut grads);
+        assert!(v > 0.0);
+        let motion = field.motion.as_ref().expect("a moving field").param_range();
+        let (mut err, mut norm, mut checked) = (0.0f64, 0.0f64, 0);
+        for i in motion.clone() {
+            let g = f64::from(grads.values[i]);
+            if g == 0.0 {
+                continue;
+            }
+            let h = 1e-3;
+            let (mut a, mut b) = (params.clone(), params.clone());
+            a[i] += h;
+            b[i] -= h;
+            let mut scratch = GradBuffer::new(field.num_params());
+            let fd = (value(&a, &mut scratch) - value(&b, &mut scratch)) / (2.0 * h as f64);
+            err += (fd - g).powi(2);
+            norm += g * g;
+            checked += 1;
+        }
+        assert!(checked > 20, "only {checked} parameters had gradients");
+        let rel = (err / norm).sqrt();
+        assert!(rel < 1e-2, "relative error {rel} over {checked} parameters");
+        // The prior touches the space-time tables alone.
+        let outside = (0..field.num_params())
+            .filter(|i| !motion.contains(i))
+            .any(|i| grads.values[i] != 0.0);
+        assert!(!outside);
+    }
+
     /// The occupancy grid's refreshes query points jittered inside cells: the moments
     /// drawn from them must cover [0, 1] evenly, or a limb that is there only at some
     /// moments would be left out of the grid and never marched.
@@ -893,7 +1010,10 @@ mod tests {
             let share = count as f64 / n as f64;
             assert!((0.07..0.13).contains(&share), "decile {d}: {share}");
         }
-        assert_eq!(moment_of_point(&[0.1, 0.2, 0.3]), moment_of_point(&[0.1, 0.2, 0.3]));
+        assert_eq!(
+            moment_of_point(&[0.1, 0.2, 0.3]),
+            moment_of_point(&[0.1, 0.2, 0.3])
+        );
     }
 
     #[test]

@@ -66,6 +66,12 @@ pub struct FastModelConfig {
     /// Few-view training: the space too few photos see kept empty (see `few_view`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub few_view: Option<FewView>,
+    /// Moving scenes: weight of the prior that the space-time grid's features change
+    /// smoothly in time (`FastField::time_smoothness_bwd`), per ray: its mean over the
+    /// step's rays of the squared change over one time cell of every fourth sample's
+    /// features; 0: none.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub time_smoothness: f32,
 }
 
 fn is_zero(x: &f32) -> bool {
@@ -86,6 +92,7 @@ impl Default for FastModelConfig {
             refine_cameras: None,
             distortion: 0.0,
             few_view: None,
+            time_smoothness: 0.0,
         }
     }
 }
@@ -400,6 +407,17 @@ impl FastModel {
                 params,
                 &mut ws.field,
                 ws.loss.field_grad(),
+                &mut grads.all(),
+            );
+        }
+        if n > 0 && self.config.time_smoothness > 0.0 {
+            // The step's gradient is scaled by 1 / (3 rays) (see `render::loss`): 3 times
+            // the weight makes the prior the weight times its mean over the step's rays.
+            self.field.time_smoothness_bwd(
+                params,
+                &mut ws.field,
+                n,
+                3.0 * self.config.time_smoothness,
                 &mut grads.all(),
             );
         }

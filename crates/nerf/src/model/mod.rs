@@ -75,6 +75,11 @@ impl ModelConfig {
     }
 
     /// Training photos with a per-photo appearance code (`--appearance`); 0 without codes.
+    /// Whether the model is a field of space and time (a moving scene, `--dynamic`).
+    pub fn is_dynamic(&self) -> bool {
+        matches!(self, ModelConfig::Fast(m) if m.field.motion.is_some())
+    }
+
     pub fn appearance_photos(&self) -> usize {
         match self {
             ModelConfig::Fast(m) if m.field.appearance_dims > 0 => m.field.appearance_images,

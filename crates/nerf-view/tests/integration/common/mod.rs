@@ -16,7 +16,8 @@ pub const LOUD_PHOTO: usize = 3;
 /// page's frames several times slower on two cores (docs/benchmarks.md, the CI section).
 pub const TRAINED_STEPS: u64 = 500;
 
-/// A small chair trained for a few steps into `dir/run`, with a code per photo
+/// A small chair, turning over the capture (a moving scene, trained as a field of space
+/// and time), trained for a few steps into `dir/run`, with a code per photo
 /// (`--appearance`); photo [`LOUD_PHOTO`]'s code is then set far from the others, so
 /// rendering with its look visibly differs from the mean.
 pub fn trained_run(dir: &Path) -> PathBuf {
@@ -29,7 +30,7 @@ pub fn trained_run(dir: &Path) -> PathBuf {
         test_views: 2,
         supersample: 1,
         seed: 1,
-        animate: false,
+        animate: true,
     };
     synth::generate(&opts, &data, &mut |_, _| {}).expect("synth");
     let mut c = TrainConfig::fast(data);
@@ -39,6 +40,10 @@ pub fn trained_run(dir: &Path) -> PathBuf {
         m.occupancy.resolution = 32;
         m.field.appearance_dims = 8;
         m.field.appearance_images = 12;
+        m.field.motion = Some(nerf::encoding::space_time_grid::SpaceTimeConfig {
+            log2_table_size: 12,
+            ..Default::default()
+        });
     }
     c.steps = TRAINED_STEPS;
     c.val_every = 0;
