@@ -72,7 +72,7 @@ impl Level {
     /// The eight corners of the cell holding unit-cube point `u`: table indices and
     /// trilinear weights.
     #[inline(always)]
-    fn corners(&self, u: [f32; 3]) -> ([usize; 8], [f32; 8]) {
+    fn corners(&self, u: [f32; 3]) -> ([u32; 8], [f32; 8]) {
         let n = self.resolution;
         let mut cell = [0u32; 3];
         let mut frac = [0f32; 3];
@@ -82,11 +82,11 @@ impl Level {
             cell[a] = c;
             frac[a] = p - c as f32;
         }
-        let mut idx = [0usize; 8];
+        let mut idx = [0u32; 8];
         let mut w = [0f32; 8];
         for k in 0..8 {
             let (bx, by, bz) = ((k & 1) as u32, ((k >> 1) & 1) as u32, ((k >> 2) & 1) as u32);
-            idx[k] = self.index(cell[0] + bx, cell[1] + by, cell[2] + bz);
+            idx[k] = self.index(cell[0] + bx, cell[1] + by, cell[2] + bz) as u32;
             let wx = if bx == 1 { frac[0] } else { 1.0 - frac[0] };
             let wy = if by == 1 { frac[1] } else { 1.0 - frac[1] };
             let wz = if bz == 1 { frac[2] } else { 1.0 - frac[2] };
@@ -155,27 +155,7 @@ impl HashGrid {
 
     /// Encodes `n` unit-cube points (packed `n x 3`) into `out` (`n x dims()`).
     pub fn encode(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
-        let d = self.dims();
-        let n = points.len() / 3;
-        assert!(out.len() >= n * d);
-        let mut corners = Corners::default();
-        for (l, level) in self.levels.iter().enumerate() {
-            let table = &params[level.offset..][..level.entries * FEATURES];
-            for first in (0..n).step_by(GROUP) {
-                let len = GROUP.min(n - first);
-                corners.compute(level, table, &points[first * 3..(first + len) * 3]);
-                for j in 0..len {
-                    let (idx, w) = (&corners.idx[j], &corners.w[j]);
-                    let mut f = [0f32; FEATURES];
-                    for k in 0..8 {
-                        let e = &table[idx[k] as usize * FEATURES..][..FEATURES];
-                        f[0] += w[k] * e[0];
-                        f[1] += w[k] * e[1];
-                    }
-                    out[(first + j) * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
-                }
-            }
-        }
+        encode_levels(&self.levels, params, points, out);
     }
 
     /// The plain per-sample loop that [`encode`](Self::encode) replaced (no grouping, no
@@ -188,7 +168,7 @@ impl HashGrid {
                 let (idx, w) = level.corners([u[0], u[1], u[2]]);
                 let mut f = [0f32; FEATURES];
                 for k in 0..8 {
-                    let e = &table[idx[k] * FEATURES..][..FEATURES];
+                    let e = &table[idx[k] as usize * FEATURES..][..FEATURES];
                     f[0] += w[k] * e[0];
                     f[1] += w[k] * e[1];
                 }
@@ -200,27 +180,7 @@ impl HashGrid {
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
     pub fn encode_bwd(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        let d = self.dims();
-        let n = points.len() / 3;
-        let mut corners = Corners::default();
-        for (l, level) in self.levels.iter().enumerate() {
-            for first in (0..n).step_by(GROUP) {
-                let len = GROUP.min(n - first);
-                let table = &grads.values_mut()[level.offset..][..level.entries * FEATURES];
-                corners.compute(level, table, &points[first * 3..(first + len) * 3]);
-                for j in 0..len {
-                    let g = &d_out[(first + j) * d + l * FEATURES..][..FEATURES];
-                    if g[0] == 0.0 && g[1] == 0.0 {
-                        continue;
-                    }
-                    for k in 0..8 {
-                        let at = level.offset + corners.idx[j][k] as usize * FEATURES;
-                        let w = corners.w[j][k];
-                        grads.add_pair(at, [w * g[0], w * g[1]]);
-                    }
-                }
-            }
-        }
+        encode_levels_bwd(&self.levels, points, d_out, grads);
     }
 }
 
@@ -260,7 +220,7 @@ impl HashGrid {
                     };
                 }
                 for k in 0..8 {
-                    let e = &table[idx[k] * FEATURES..][..FEATURES];
+                    let e = &table[idx[k] as usize * FEATURES..][..FEATURES];
                     let ge = g[0] * e[0] + g[1] * e[1];
                     let b = [k & 1, (k >> 1) & 1, (k >> 2) & 1];
                     let w: [f32; 3] =
@@ -291,39 +251,131 @@ pub(crate) fn geometric(base: usize, max: usize, levels: usize, l: usize) -> u32
 /// Samples whose corners are computed (and their table lines prefetched) before any is
 /// read: the tables of fine levels are far larger than the caches, so the gathers are
 /// memory-bound, and issuing a group's loads early lets them overlap.
-pub(crate) const GROUP: usize = 32;
+const GROUP: usize = 32;
 
-struct Corners {
-    idx: [[u32; 8]; GROUP],
-    w: [[f32; 8]; GROUP],
+struct Corners<const C: usize> {
+    idx: [[u32; C]; GROUP],
+    w: [[f32; C]; GROUP],
 }
 
-impl Default for Corners {
+impl<const C: usize> Default for Corners<C> {
     fn default() -> Self {
         Corners {
-            idx: [[0; 8]; GROUP],
-            w: [[0.0; 8]; GROUP],
+            idx: [[0; C]; GROUP],
+            w: [[0.0; C]; GROUP],
         }
     }
 }
 
-impl Corners {
+impl<const C: usize> Corners<C> {
+    /// The corners of `points` (packed `D` coordinates each) in `level`, their table lines
+    /// prefetched.
     #[inline(always)]
-    fn compute(&mut self, level: &Level, table: &[f32], points: &[f32]) {
-        for (j, u) in points.chunks_exact(3).enumerate() {
-            let (idx, w) = level.corners([u[0], u[1], u[2]]);
-            for k in 0..8 {
-                self.idx[j][k] = idx[k] as u32;
-                prefetch(table, idx[k] * FEATURES);
+    fn compute<const D: usize, L: Lattice<D, C>>(
+        &mut self,
+        level: &L,
+        table: &[f32],
+        points: &[f32],
+    ) {
+        for (j, u) in points.chunks_exact(D).enumerate() {
+            let (idx, w) = level.corners(std::array::from_fn(|a| u[a]));
+            for &i in &idx {
+                prefetch(table, i as usize * FEATURES);
             }
+            self.idx[j] = idx;
             self.w[j] = w;
+        }
+    }
+}
+
+/// A level of a hash grid over `D` coordinates (cells of `C = 2^D` corners): the
+/// interpolation shared by the still grid and the space-time one.
+pub(crate) trait Lattice<const D: usize, const C: usize> {
+    /// Where the level's table starts in the parameter vector (floats), and its entries.
+    fn table(&self) -> (usize, usize);
+    /// The corners of the cell holding `u` (coordinates in [0, 1]): table indices and
+    /// interpolation weights.
+    fn corners(&self, u: [f32; D]) -> ([u32; C], [f32; C]);
+}
+
+impl Lattice<3, 8> for Level {
+    fn table(&self) -> (usize, usize) {
+        (self.offset, self.entries)
+    }
+    #[inline(always)]
+    fn corners(&self, u: [f32; 3]) -> ([u32; 8], [f32; 8]) {
+        Level::corners(self, u)
+    }
+}
+
+/// Encodes `n` points (packed `n x D`) into `out` (`n x levels x FEATURES`), level by level
+/// (one table in cache at a time), a [`GROUP`] of samples' corners computed before any is
+/// read.
+pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
+    levels: &[L],
+    params: &[f32],
+    points: &[f32],
+    out: &mut [f32],
+) {
+    let d = levels.len() * FEATURES;
+    let n = points.len() / D;
+    assert!(out.len() >= n * d);
+    let mut corners = Corners::<C>::default();
+    for (l, level) in levels.iter().enumerate() {
+        let (offset, entries) = level.table();
+        let table = &params[offset..][..entries * FEATURES];
+        for first in (0..n).step_by(GROUP) {
+            let len = GROUP.min(n - first);
+            corners.compute(level, table, &points[first * D..(first + len) * D]);
+            for j in 0..len {
+                let (idx, w) = (&corners.idx[j], &corners.w[j]);
+                let mut f = [0f32; FEATURES];
+                for k in 0..C {
+                    let e = &table[idx[k] as usize * FEATURES..][..FEATURES];
+                    f[0] += w[k] * e[0];
+                    f[1] += w[k] * e[1];
+                }
+                out[(first + j) * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
+            }
+        }
+    }
+}
+
+/// Backward of [`encode_levels`]: scatters `d_out` into the tables' gradients, marking
+/// the blocks it touches.
+pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>>(
+    levels: &[L],
+    points: &[f32],
+    d_out: &[f32],
+    grads: &mut Grads,
+) {
+    let d = levels.len() * FEATURES;
+    let n = points.len() / D;
+    let mut corners = Corners::<C>::default();
+    for (l, level) in levels.iter().enumerate() {
+        let (offset, entries) = level.table();
+        for first in (0..n).step_by(GROUP) {
+            let len = GROUP.min(n - first);
+            let table = &grads.values_mut()[offset..][..entries * FEATURES];
+            corners.compute(level, table, &points[first * D..(first + len) * D]);
+            for j in 0..len {
+                let g = &d_out[(first + j) * d + l * FEATURES..][..FEATURES];
+                if g[0] == 0.0 && g[1] == 0.0 {
+                    continue;
+                }
+                for k in 0..C {
+                    let at = offset + corners.idx[j][k] as usize * FEATURES;
+                    let w = corners.w[j][k];
+                    grads.add_pair(at, [w * g[0], w * g[1]]);
+                }
+            }
         }
     }
 }
 
 /// Hints the cache to fetch `data[at]`; a no-op off x86-64 and out of bounds.
 #[inline(always)]
-pub(crate) fn prefetch(data: &[f32], at: usize) {
+fn prefetch(data: &[f32], at: usize) {
     #[cfg(target_arch = "x86_64")]
     if let Some(v) = data.get(at) {
         // SAFETY: prefetching has no architectural effect; the address is inside `data`.

@@ -12,7 +12,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::hash_grid::{geometric, prefetch, FEATURES, GROUP};
+use super::hash_grid::{encode_levels, encode_levels_bwd, geometric, Lattice, FEATURES};
 use crate::nn::{Grads, ParamLayout};
 use crate::rng::Rng;
 
@@ -179,82 +179,23 @@ impl SpaceTimeGrid {
     /// Encodes `n` points (packed `n x 4`: unit-cube position, then time) into `out`
     /// (`n x dims()`).
     pub fn encode(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
-        let d = self.dims();
-        let n = points.len() / 4;
-        assert!(out.len() >= n * d);
-        let mut corners = Corners::default();
-        for (l, level) in self.levels.iter().enumerate() {
-            let table = &params[level.offset..][..level.entries * FEATURES];
-            for first in (0..n).step_by(GROUP) {
-                let len = GROUP.min(n - first);
-                corners.compute(level, table, &points[first * 4..(first + len) * 4]);
-                for j in 0..len {
-                    let (idx, w) = (&corners.idx[j], &corners.w[j]);
-                    let mut f = [0f32; FEATURES];
-                    for k in 0..CORNERS {
-                        let e = &table[idx[k] as usize * FEATURES..][..FEATURES];
-                        f[0] += w[k] * e[0];
-                        f[1] += w[k] * e[1];
-                    }
-                    out[(first + j) * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
-                }
-            }
-        }
+        encode_levels(&self.levels, params, points, out);
     }
 
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
     pub fn encode_bwd(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        let d = self.dims();
-        let n = points.len() / 4;
-        let mut corners = Corners::default();
-        for (l, level) in self.levels.iter().enumerate() {
-            for first in (0..n).step_by(GROUP) {
-                let len = GROUP.min(n - first);
-                let table = &grads.values_mut()[level.offset..][..level.entries * FEATURES];
-                corners.compute(level, table, &points[first * 4..(first + len) * 4]);
-                for j in 0..len {
-                    let g = &d_out[(first + j) * d + l * FEATURES..][..FEATURES];
-                    if g[0] == 0.0 && g[1] == 0.0 {
-                        continue;
-                    }
-                    for k in 0..CORNERS {
-                        let at = level.offset + corners.idx[j][k] as usize * FEATURES;
-                        let w = corners.w[j][k];
-                        grads.add_pair(at, [w * g[0], w * g[1]]);
-                    }
-                }
-            }
-        }
+        encode_levels_bwd(&self.levels, points, d_out, grads);
     }
 }
 
-/// A group's corners, computed (and their table lines prefetched) before any is read.
-struct Corners {
-    idx: [[u32; CORNERS]; GROUP],
-    w: [[f32; CORNERS]; GROUP],
-}
-
-impl Default for Corners {
-    fn default() -> Self {
-        Corners {
-            idx: [[0; CORNERS]; GROUP],
-            w: [[0.0; CORNERS]; GROUP],
-        }
+impl Lattice<4, CORNERS> for SpaceTimeLevel {
+    fn table(&self) -> (usize, usize) {
+        (self.offset, self.entries)
     }
-}
-
-impl Corners {
     #[inline(always)]
-    fn compute(&mut self, level: &SpaceTimeLevel, table: &[f32], points: &[f32]) {
-        for (j, u) in points.chunks_exact(4).enumerate() {
-            let (idx, w) = level.corners([u[0], u[1], u[2], u[3]]);
-            for &i in &idx {
-                prefetch(table, i as usize * FEATURES);
-            }
-            self.idx[j] = idx;
-            self.w[j] = w;
-        }
+    fn corners(&self, u: [f32; 4]) -> ([u32; CORNERS], [f32; CORNERS]) {
+        SpaceTimeLevel::corners(self, u)
     }
 }
 
