@@ -167,8 +167,7 @@ pub struct TrainOptions {
     #[arg(long)]
     pub no_dynamic: bool,
     /// Fast, moving scenes: weight of a prior that the space-time features change smoothly
-    /// over time (per ray; default 0: on D-NeRF's jumping jacks 1e-3 changed nothing and
-    /// 0.1 cost 0.24 dB).
+    /// over time (per ray; default 0, as it measured no better: docs/benchmarks.md).
     #[arg(long, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub time_smoothness: Option<f32>,
     /// Area-average downscale factor of the images (default 1).

@@ -40,9 +40,14 @@ pub fn trained_run(dir: &Path) -> PathBuf {
         m.occupancy.resolution = 32;
         m.field.appearance_dims = 8;
         m.field.appearance_images = 12;
+        // A coarse one: a quarter turn of a 32-pixel chair needs no more.
         m.field.motion = Some(nerf::encoding::space_time_grid::SpaceTimeConfig {
+            levels: 4,
             log2_table_size: 12,
-            ..Default::default()
+            base_resolution: 8,
+            max_resolution: 32,
+            base_time_resolution: 2,
+            max_time_resolution: 8,
         });
     }
     c.steps = TRAINED_STEPS;
