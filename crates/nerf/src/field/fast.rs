@@ -118,10 +118,29 @@ pub struct FastField {
     /// (`motion dims x hidden`).
     pub motion: Option<SpaceTimeGrid>,
     motion_weight: Option<usize>,
-    /// Moving scenes: the moment samples without their own times are seen at. `None`: 0
-    /// for colour, and for density queries a moment drawn from each point's coordinates,
-    /// so that queries over many points (the occupancy grid's refreshes) see every moment.
-    pub moment: Option<f32>,
+}
+
+/// When a moving field sees the samples of a call.
+#[derive(Clone, Copy, Debug)]
+enum Moments<'a> {
+    /// Each its own (`n`).
+    Each(&'a [f32]),
+    /// All the same one.
+    At(f32),
+    /// Any: a moment drawn from each point's coordinates, so that density queries over
+    /// many points (the occupancy grid's refreshes) see every moment.
+    Any,
+}
+
+impl<'a> Moments<'a> {
+    /// A forward's samples: their own moments, or moment 0 where they carry none.
+    fn of(times: &'a [f32]) -> Self {
+        if times.is_empty() {
+            Moments::At(0.0)
+        } else {
+            Moments::Each(times)
+        }
+    }
 }
 
 /// The time-smoothness prior looks at every this-many-th sample of a batch.
@@ -240,7 +259,6 @@ impl FastField {
             position_level_weights: Vec::new(),
             motion,
             motion_weight,
-            moment: None,
         }
     }
 
@@ -380,17 +398,9 @@ impl FastField {
         (self.grid.dims() + motion) * w + w * g + self.colour_in_dims() * w + w * w + w * 3
     }
 
-    /// Moving scenes: `ws.unit` with each of the `n` samples' moment (`times`, else the
-    /// field's [`moment`](Self::moment), else one drawn from the point where `any_moment`,
-    /// else 0) into `ws.unit_time`, and its space-time encoding into `ws.enc_motion`.
-    fn encode_motion(
-        &self,
-        params: &[f32],
-        times: &[f32],
-        any_moment: bool,
-        n: usize,
-        ws: &mut FastWorkspace,
-    ) {
+    /// Moving scenes: `ws.unit` with each of the `n` samples' moment into `ws.unit_time`,
+    /// and its space-time encoding into `ws.enc_motion`.
+    fn encode_motion(&self, params: &[f32], moments: Moments, n: usize, ws: &mut FastWorkspace) {
         let Some(motion) = &self.motion else {
             return;
         };
@@ -404,10 +414,10 @@ impl FastField {
             .enumerate()
         {
             out[..3].copy_from_slice(u);
-            out[3] = match (times.get(s), self.moment) {
-                (Some(&t), _) | (None, Some(t)) => t,
-                (None, None) if any_moment => moment_of_point(u),
-                (None, None) => 0.0,
+            out[3] = match moments {
+                Moments::Each(times) => times[s],
+                Moments::At(t) => t,
+                Moments::Any => moment_of_point(u),
             };
         }
         motion.encode(params, &ws.unit_time[..n * 4], &mut ws.enc_motion);
@@ -429,8 +439,7 @@ impl FastField {
         params: &[f32],
         positions: &[f32],
         footprints: &[f32],
-        times: &[f32],
-        any_moment: bool,
+        moments: Moments,
         ws: &mut FastWorkspace,
     ) {
         let n = positions.len() / 3;
@@ -448,7 +457,7 @@ impl FastField {
         self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
         self.level_scales(footprints, n, &mut ws.level_scale);
         self.weigh_levels(&mut ws.enc[..n * e], &ws.level_scale);
-        self.encode_motion(params, times, any_moment, n, ws);
+        self.encode_motion(params, moments, n, ws);
         let h = &mut ws.h[..n * w];
         matmul(
             h,
@@ -485,7 +494,7 @@ impl FastField {
         }
         WS.with(|ws| {
             let ws = &mut ws.borrow_mut();
-            self.eval_density(params, positions, &[], &[], true, ws);
+            self.eval_density(params, positions, &[], Moments::Any, ws);
             out.copy_from_slice(&ws.sigma[..out.len()]);
         })
     }
@@ -500,14 +509,9 @@ impl FastField {
         ws: &mut FastWorkspace,
         out: &mut [f32],
     ) {
-        match time {
-            Some(t) if self.motion.is_some() => {
-                let times = vec![t; out.len()];
-                self.eval_density(params, positions, &[], &times, false, ws);
-                out.copy_from_slice(&ws.sigma[..out.len()]);
-            }
-            _ => self.density(params, positions, ws, out),
-        }
+        let moments = time.map_or(Moments::Any, Moments::At);
+        self.eval_density(params, positions, &[], moments, ws);
+        out.copy_from_slice(&ws.sigma[..out.len()]);
     }
 
     /// Density and colour of the `n` samples of `input` (positions, unit directions shared
@@ -530,7 +534,7 @@ impl FastField {
             self.colour_in_dims(),
         );
         let dims = self.appearance_dims();
-        self.eval_density(params, positions, footprints, times, false, ws);
+        self.eval_density(params, positions, footprints, Moments::of(times), ws);
         self.gather_codes(params, appearance, n, ws);
         let codes = self.codes(params);
         grow(&mut ws.colour_in, n * ci);
@@ -857,7 +861,7 @@ impl Field for FastField {
     }
 
     fn density(&self, params: &[f32], positions: &[f32], ctx: &mut FastWorkspace, out: &mut [f32]) {
-        self.eval_density(params, positions, &[], &[], true, ctx);
+        self.eval_density(params, positions, &[], Moments::Any, ctx);
         out.copy_from_slice(&ctx.sigma[..out.len()]);
     }
 }
@@ -1038,11 +1042,15 @@ mod tests {
             "{:?}",
             out.sigma
         );
-        // Density queries without times: the field's moment when set.
-        let mut at = field.clone();
-        at.moment = Some(0.9);
+        // Density queries at a moment see what the forward saw then.
         let mut sigma = [0.0; 2];
-        at.density_into(&params, &pos, &mut sigma);
+        field.density_at(
+            &params,
+            &pos,
+            Some(0.9),
+            &mut FastWorkspace::default(),
+            &mut sigma,
+        );
         assert!((sigma[1] - out.sigma[1]).abs() < 1e-5 * out.sigma[1].max(1.0));
     }
 
