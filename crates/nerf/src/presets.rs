@@ -1,9 +1,10 @@
 //! Named configurations: the paper's model and the rows of its ablation table (NeRF,
-//! Table 2, Realistic Synthetic 360), plus a reduced model for quick CPU demos.
+//! Table 2, Realistic Synthetic 360), mip-NeRF's and D-NeRF's models, and a reduced model for
+//! quick CPU demos.
 
 use crate::encoding::FrequencyEncoding;
 use crate::error::{NerfError, Result};
-use crate::field::VanillaConfig;
+use crate::field::{DeformationConfig, VanillaConfig};
 use crate::model::VanillaModelConfig;
 
 /// A named configuration of the model and the training views it sees.
@@ -66,6 +67,11 @@ pub const PRESETS: &[Preset] = &[
     Preset {
         name: "mip",
         help: "mip-NeRF: conical frustums, integrated PE (L=16), one network for both passes; not in the NeRF paper",
+        paper_psnr: None,
+    },
+    Preset {
+        name: "dnerf",
+        help: "D-NeRF for moving scenes: a deformation MLP (8x256, PE of x and t, L=10) into the paper's canonical field, none at t=0; not in the NeRF paper",
         paper_psnr: None,
     },
     Preset {
@@ -144,6 +150,7 @@ pub fn build(name: &str) -> Result<(VanillaModelConfig, Option<usize>)> {
             m.integrated = true;
             m.shared_network = true;
         }
+        "dnerf" => m.net.deformation = Some(DeformationConfig::dnerf()),
         "demo" => {
             m.net = VanillaConfig {
                 depth: 4,
@@ -152,6 +159,7 @@ pub fn build(name: &str) -> Result<(VanillaModelConfig, Option<usize>)> {
                 position_encoding: frequencies(8),
                 direction_encoding: Some(frequencies(4)),
                 view_width: 32,
+                deformation: None,
             };
             m.n_coarse = 32;
             m.n_fine = 32;
@@ -185,6 +193,11 @@ mod tests {
                 "pe-5" => assert_eq!(m.net.position_encoding.dims(), 33),
                 "pe-15" => assert_eq!(m.net.position_encoding.dims(), 93),
                 "demo" => assert!(m.net.width < 256),
+                "dnerf" => assert!(
+                    m.net.deformation == Some(DeformationConfig::dnerf())
+                        && m.net.width == 256
+                        && m.hierarchical()
+                ),
                 "mip" => assert!(
                     m.integrated && m.shared_network && m.net.position_encoding.frequencies == 16
                 ),

@@ -74,8 +74,8 @@ impl Feature {
             Feature::Mip => "mip-NeRF's frustums and shared network (--preset mip)",
             Feature::FewView => "few-view training (--few-view; turned off by --no-few-view)",
             Feature::Dynamic => {
-                "the moving scene's field of space and time (--dynamic; turned off by \
-                 --no-dynamic)"
+                "the moving scene's field of space and time (--dynamic or --preset dnerf; \
+                 --no-dynamic trains a still fast field)"
             }
         }
     }
@@ -90,7 +90,7 @@ impl Feature {
                 (Feature::CameraRefinement, ModelConfig::Fast(c)) => c.refine_cameras.is_some(),
                 (Feature::Distortion, ModelConfig::Fast(c)) => c.distortion > 0.0,
                 (Feature::FewView, ModelConfig::Fast(c)) => c.few_view.is_some(),
-                (Feature::Dynamic, ModelConfig::Fast(c)) => c.field.motion.is_some(),
+                (Feature::Dynamic, _) => model.is_dynamic(),
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
                 _ => false,
             })

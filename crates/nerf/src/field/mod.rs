@@ -1,7 +1,9 @@
 //! Radiance fields: functions from a position and a view direction to density and colour.
 
+pub mod deformation;
 pub mod fast;
 pub mod vanilla;
 
+pub use deformation::DeformationConfig;
 pub use fast::{FastField, FastFieldConfig, FastWorkspace};
 pub use vanilla::{VanillaConfig, VanillaNet, VanillaWorkspace};

@@ -17,9 +17,12 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::deformation::{Deformation, DeformationConfig, DeformationWorkspace};
 use crate::encoding::FrequencyEncoding;
-use crate::nn::activation::{col_sum_into, relu, relu_bwd_bias, sigmoid};
+use crate::nn::activation::{col_sum_into, relu, sigmoid};
+use crate::nn::dense::Dense;
 use crate::nn::linalg::{matmul, MatRef};
+use crate::nn::trunk::Trunk;
 use crate::nn::{Grads, ParamLayout};
 use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput};
 
@@ -38,6 +41,10 @@ pub struct VanillaConfig {
     pub direction_encoding: Option<FrequencyEncoding>,
     /// Width of the view branch (paper: 128).
     pub view_width: usize,
+    /// D-NeRF: a deformation carries each point, at the moment it is seen, into the
+    /// canonical scene this network describes (`None`: a still scene).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub deformation: Option<DeformationConfig>,
 }
 
 impl VanillaConfig {
@@ -55,16 +62,9 @@ impl VanillaConfig {
                 paper_form: false,
             }),
             view_width: 128,
+            deformation: None,
         }
     }
-}
-
-#[derive(Clone, Copy, Debug)]
-struct Dense {
-    w: usize,
-    b: usize,
-    fan_in: usize,
-    fan_out: usize,
 }
 
 /// Where each layer's weights sit in the flat parameter vector.
@@ -72,8 +72,9 @@ struct Dense {
 pub struct VanillaNet {
     pub config: VanillaConfig,
     pub layout: ParamLayout,
-    trunk: Vec<Dense>,
+    trunk: Trunk,
     heads: Heads,
+    deformation: Option<Deformation>,
 }
 
 #[derive(Clone, Debug)]
@@ -89,53 +90,46 @@ enum Heads {
     Direct { output: Dense },
 }
 
-fn dense(layout: &mut ParamLayout, name: &str, fan_in: usize, fan_out: usize) -> Dense {
-    let w = layout.push(format!("{name}.weight"), &[fan_in, fan_out]);
-    let b = layout.push(format!("{name}.bias"), &[fan_out]);
-    Dense {
-        w,
-        b,
-        fan_in,
-        fan_out,
-    }
-}
-
 impl VanillaNet {
     /// Lays out the parameters under `prefix` (e.g. `"coarse."`).
     pub fn new(config: VanillaConfig, prefix: &str) -> Self {
         let mut layout = ParamLayout::default();
         let in_x = config.position_encoding.dims();
         let w = config.width;
-        let trunk = (0..config.depth)
-            .map(|l| {
-                let mut fan_in = if l == 0 { in_x } else { w };
-                if l > 0 && config.skip == Some(l - 1) {
-                    fan_in += in_x;
-                }
-                dense(&mut layout, &format!("{prefix}pts_{l}"), fan_in, w)
-            })
-            .collect();
+        let trunk = Trunk::new(
+            &mut layout,
+            &format!("{prefix}pts_"),
+            in_x,
+            config.depth,
+            w,
+            config.skip,
+        );
         let heads = match config.direction_encoding {
             Some(dir) => Heads::ViewDependent {
-                sigma: dense(&mut layout, &format!("{prefix}sigma"), w, 1),
-                feature: dense(&mut layout, &format!("{prefix}feature"), w, w),
-                view: dense(
+                sigma: Dense::push(&mut layout, &format!("{prefix}sigma"), w, 1),
+                feature: Dense::push(&mut layout, &format!("{prefix}feature"), w, w),
+                view: Dense::push(
                     &mut layout,
                     &format!("{prefix}view"),
                     w + dir.dims(),
                     config.view_width,
                 ),
-                rgb: dense(&mut layout, &format!("{prefix}rgb"), config.view_width, 3),
+                rgb: Dense::push(&mut layout, &format!("{prefix}rgb"), config.view_width, 3),
             },
             None => Heads::Direct {
-                output: dense(&mut layout, &format!("{prefix}output"), w, 4),
+                output: Dense::push(&mut layout, &format!("{prefix}output"), w, 4),
             },
         };
+        let deformation = config.deformation.clone().map(|d| {
+            let prefix = format!("{prefix}time_");
+            Deformation::new(d, config.position_encoding, &mut layout, &prefix)
+        });
         VanillaNet {
             config,
             layout,
             trunk,
             heads,
+            deformation,
         }
     }
 
@@ -143,34 +137,48 @@ impl VanillaNet {
         self.layout.total
     }
 
+    /// Finishes a fresh initialisation of this network's `params` (see
+    /// [`Deformation::start_still`]).
+    pub fn finish_init(&self, params: &mut [f32]) {
+        if let Some(d) = &self.deformation {
+            d.start_still(params);
+        }
+    }
+
     /// Multiply-adds of one forward evaluation of one sample (the per-ray direction term is
     /// counted per sample, as an unfused implementation would do it).
     pub fn macs_per_sample(&self) -> usize {
-        let trunk: usize = self.trunk.iter().map(|d| d.fan_in * d.fan_out).sum();
+        let trunk = self.trunk.macs();
         let heads = match &self.heads {
             Heads::ViewDependent {
                 sigma,
                 feature,
                 view,
                 rgb,
-            } => [sigma, feature, view, rgb]
-                .iter()
-                .map(|d| d.fan_in * d.fan_out)
-                .sum(),
-            Heads::Direct { output } => output.fan_in * output.fan_out,
+            } => [sigma, feature, view, rgb].iter().map(|d| d.macs()).sum(),
+            Heads::Direct { output } => output.macs(),
         };
-        trunk + heads
+        trunk
+            + heads
+            + self
+                .deformation
+                .as_ref()
+                .map_or(0, Deformation::macs_per_sample)
     }
 
     /// Evaluates `n = dirs.len() / 3 * samples_per_ray` samples. `positions` is `n x 3`,
     /// `variances` `n x 3` covariance diagonals (mip-NeRF's frustums, encoded by the
-    /// integrated encoding) or empty (points), `dirs` one unit direction per ray (`r x 3`). Fills `ws.sigma` (`n`, after ReLU)
-    /// and `ws.rgb` (`n x 3`, after sigmoid) and keeps what [`Self::eval_rays_bwd`] needs.
+    /// integrated encoding) or empty (points), `times` `n` moments or empty (all at 0, the
+    /// canonical moment), `dirs` one unit direction per ray (`r x 3`). Fills `ws.sigma` (`n`,
+    /// after ReLU) and `ws.rgb` (`n x 3`, after sigmoid) and keeps what
+    /// [`Self::eval_rays_bwd`] needs.
+    #[allow(clippy::too_many_arguments)]
     pub fn eval_rays(
         &self,
         params: &[f32],
         positions: &[f32],
         variances: &[f32],
+        times: &[f32],
         dirs: &[f32],
         samples_per_ray: usize,
         ws: &mut VanillaWorkspace,
@@ -185,6 +193,19 @@ impl VanillaNet {
         ws.resize(&self.config, n, rays);
         let cfg = &self.config;
         let (in_x, w) = (cfg.position_encoding.dims(), cfg.width);
+        ws.times.clear();
+        let positions = match &self.deformation {
+            Some(d) if !times.is_empty() => {
+                assert!(
+                    variances.is_empty(),
+                    "no integrated encoding with a deformation"
+                );
+                d.forward(params, positions, times, &mut ws.deform);
+                ws.times.extend_from_slice(times);
+                &ws.deform.moved[..n * 3]
+            }
+            _ => positions,
+        };
         if variances.is_empty() {
             cfg.position_encoding
                 .encode_all(positions, &mut ws.enc[..n * in_x]);
@@ -199,35 +220,7 @@ impl VanillaNet {
             }
         }
 
-        for (l, layer) in self.trunk.iter().enumerate() {
-            let (before, rest) = ws.hidden.split_at_mut(l);
-            let out = &mut rest[0][..n * w];
-            fill_bias(out, &params[layer.b..][..w]);
-            if l == 0 {
-                matmul(
-                    out,
-                    MatRef::new(&ws.enc, n, in_x),
-                    weight(params, layer, 0, in_x),
-                    true,
-                );
-            } else {
-                matmul(
-                    out,
-                    MatRef::new(&before[l - 1], n, w),
-                    weight(params, layer, 0, w),
-                    true,
-                );
-                if cfg.skip == Some(l - 1) {
-                    matmul(
-                        out,
-                        MatRef::new(&ws.enc, n, in_x),
-                        weight(params, layer, w, in_x),
-                        true,
-                    );
-                }
-            }
-            relu(out);
-        }
+        self.trunk.forward(params, &ws.enc, n, &mut ws.hidden);
         let last = &ws.hidden[cfg.depth - 1][..n * w];
         match &self.heads {
             Heads::ViewDependent {
@@ -241,11 +234,11 @@ impl VanillaNet {
                 for (s, h) in ws.raw_sigma[..n].iter_mut().zip(last.chunks_exact(w)) {
                     *s = params[sigma.b] + dot(h, ws_sigma);
                 }
-                fill_bias(&mut ws.feature[..n * w], &params[feature.b..][..w]);
+                feature.fill_bias(params, &mut ws.feature[..n * w]);
                 matmul(
                     &mut ws.feature[..n * w],
                     MatRef::new(last, n, w),
-                    weight(params, feature, 0, w),
+                    feature.weight(params, 0, w),
                     true,
                 );
                 // View branch: feature part per sample, direction part once per ray.
@@ -254,11 +247,11 @@ impl VanillaNet {
                     .expect("view-dependent heads have a direction encoding");
                 let (in_d, vw) = (dir_enc.dims(), cfg.view_width);
                 dir_enc.encode_all(dirs, &mut ws.dir_enc[..rays * in_d]);
-                fill_bias(&mut ws.dir_proj[..rays * vw], &params[view.b..][..vw]);
+                view.fill_bias(params, &mut ws.dir_proj[..rays * vw]);
                 matmul(
                     &mut ws.dir_proj[..rays * vw],
                     MatRef::new(&ws.dir_enc, rays, in_d),
-                    weight(params, view, w, in_d),
+                    view.weight(params, w, in_d),
                     true,
                 );
                 for (r, rows) in ws.view_hidden[..n * vw]
@@ -273,7 +266,7 @@ impl VanillaNet {
                 matmul(
                     &mut ws.view_hidden[..n * vw],
                     MatRef::new(&ws.feature, n, w),
-                    weight(params, view, 0, w),
+                    view.weight(params, 0, w),
                     true,
                 );
                 relu(&mut ws.view_hidden[..n * vw]);
@@ -343,7 +336,7 @@ impl VanillaNet {
                 let (in_d, vw) = (dir_enc.dims(), cfg.view_width);
                 // RGB layer (sigmoid): d_raw = d_rgb * rgb (1 - rgb).
                 let wr = &params[rgb.w..][..vw * 3];
-                let (gw, gb) = grad_pair(grads, rgb);
+                let (gw, gb) = rgb.grads(grads);
                 for (s, (h, dh)) in ws.view_hidden[..n * vw]
                     .chunks_exact(vw)
                     .zip(ws.d_view.chunks_exact_mut(vw))
@@ -373,7 +366,7 @@ impl VanillaNet {
                 // View layer: feature rows per sample, direction rows from per-ray sums.
                 let d_view = &ws.d_view[..n * vw];
                 {
-                    let (gw, gb) = grad_pair(grads, view);
+                    let (gw, gb) = view.grads(grads);
                     col_sum_into(d_view, vw, gb);
                     matmul(
                         &mut gw[..w * vw],
@@ -401,12 +394,12 @@ impl VanillaNet {
                 matmul(
                     d_feat,
                     MatRef::new(d_view, n, vw),
-                    weight(params, view, 0, w).t(),
+                    view.weight(params, 0, w).t(),
                     false,
                 );
                 // Feature layer (linear).
                 {
-                    let (gw, gb) = grad_pair(grads, feature);
+                    let (gw, gb) = feature.grads(grads);
                     col_sum_into(d_feat, w, gb);
                     matmul(
                         gw,
@@ -419,12 +412,12 @@ impl VanillaNet {
                 matmul(
                     d_last,
                     MatRef::new(&ws.d_a, n, w),
-                    weight(params, feature, 0, w).t(),
+                    feature.weight(params, 0, w).t(),
                     false,
                 );
                 // Density head (ReLU on the raw output).
                 let w_sigma = &params[sigma.w..][..w];
-                let (gw, gb) = grad_pair(grads, sigma);
+                let (gw, gb) = sigma.grads(grads);
                 for s in 0..n {
                     let ds = if ws.raw_sigma[s] > 0.0 {
                         d_sigma[s]
@@ -458,7 +451,7 @@ impl VanillaNet {
                         0.0
                     };
                 }
-                let (gw, gb) = grad_pair(grads, output);
+                let (gw, gb) = output.grads(grads);
                 col_sum_into(d_raw, 4, gb);
                 matmul(
                     gw,
@@ -474,62 +467,55 @@ impl VanillaNet {
                 );
             }
         }
-        // Trunk, top to bottom; `d_a` holds d(output of layer l).
-        for l in (0..cfg.depth).rev() {
-            let layer = &self.trunk[l];
-            let dz = &mut ws.d_a[..n * w];
-            let (gw, gb) = grad_pair(grads, layer);
-            relu_bwd_bias(dz, &ws.hidden[l][..n * w], w, gb);
-            if l == 0 {
-                matmul(
-                    gw,
-                    MatRef::new(&ws.enc, n, in_x).t(),
-                    MatRef::new(dz, n, w),
-                    true,
-                );
-                break;
+        let deformation = self.deformation.as_ref().filter(|_| !ws.times.is_empty());
+        self.trunk.backward(
+            params,
+            &ws.enc,
+            &ws.hidden,
+            n,
+            &mut ws.d_a,
+            &mut ws.d_b,
+            grads,
+            deformation.map(|_| &mut ws.d_enc[..n * in_x]),
+        );
+        if let Some(d) = deformation {
+            let moved = &ws.deform.moved[..n * 3];
+            for ((p, d_enc), d_p) in moved
+                .chunks_exact(3)
+                .zip(ws.d_enc.chunks_exact(in_x))
+                .zip(ws.d_moved.chunks_exact_mut(3))
+            {
+                cfg.position_encoding.encode_bwd(p, d_enc, d_p);
             }
-            let below = MatRef::new(&ws.hidden[l - 1], n, w);
-            matmul(&mut gw[..w * w], below.t(), MatRef::new(dz, n, w), true);
-            if cfg.skip == Some(l - 1) {
-                matmul(
-                    &mut gw[w * w..],
-                    MatRef::new(&ws.enc, n, in_x).t(),
-                    MatRef::new(dz, n, w),
-                    true,
-                );
-            }
-            matmul(
-                &mut ws.d_b[..n * w],
-                MatRef::new(dz, n, w),
-                weight(params, layer, 0, w).t(),
-                false,
+            d.backward(
+                params,
+                &ws.times,
+                &ws.d_moved[..n * 3],
+                &mut ws.deform,
+                grads,
             );
-            std::mem::swap(&mut ws.d_a, &mut ws.d_b);
         }
     }
-}
 
-/// Rows `[row0, row0 + rows)` of a layer's `fan_in x fan_out` weight.
-fn weight<'a>(params: &'a [f32], d: &Dense, row0: usize, rows: usize) -> MatRef<'a> {
-    MatRef::new(
-        &params[d.w + row0 * d.fan_out..][..rows * d.fan_out],
-        rows,
-        d.fan_out,
-    )
-}
-
-fn grad_pair<'a>(grads: &'a mut [f32], d: &Dense) -> (&'a mut [f32], &'a mut [f32]) {
-    let (head, tail) = grads.split_at_mut(d.b);
-    (
-        &mut head[d.w..][..d.fan_in * d.fan_out],
-        &mut tail[..d.fan_out],
-    )
-}
-
-fn fill_bias(out: &mut [f32], bias: &[f32]) {
-    for row in out.chunks_exact_mut(bias.len()) {
-        row.copy_from_slice(bias);
+    /// Densities at `positions` (`n x 3`) at moment `time` (`None`: the canonical one).
+    pub fn density_at(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        time: Option<f32>,
+        ws: &mut VanillaWorkspace,
+        out: &mut [f32],
+    ) {
+        let n = out.len();
+        ws.time_fill.clear();
+        if let Some(t) = time {
+            ws.time_fill.resize(n, t);
+        }
+        let times = std::mem::take(&mut ws.time_fill);
+        // Density does not depend on the direction: one "ray" of all the points.
+        self.eval_rays(params, positions, &[], &times, &[0.0, 0.0, 1.0], n, ws);
+        ws.time_fill = times;
+        out.copy_from_slice(&ws.sigma[..n]);
     }
 }
 
@@ -558,6 +544,7 @@ impl Field for VanillaNet {
             params,
             input.positions,
             input.variances,
+            input.times,
             input.dirs,
             input.samples_per_dir,
             ctx,
@@ -585,9 +572,7 @@ impl Field for VanillaNet {
         ctx: &mut VanillaWorkspace,
         out: &mut [f32],
     ) {
-        // Density does not depend on the direction: one "ray" of all the points.
-        self.eval_rays(params, positions, &[], &[0.0, 0.0, 1.0], out.len(), ctx);
-        out.copy_from_slice(&ctx.sigma[..out.len()]);
+        self.density_at(params, positions, None, ctx, out);
     }
 }
 
@@ -612,6 +597,12 @@ pub struct VanillaWorkspace {
     d_b: Vec<f32>,
     d_view: Vec<f32>,
     d_dir_proj: Vec<f32>,
+    /// The deformation's activations and the moments it saw (empty: none ran).
+    deform: DeformationWorkspace,
+    times: Vec<f32>,
+    time_fill: Vec<f32>,
+    d_enc: Vec<f32>,
+    d_moved: Vec<f32>,
 }
 
 fn grow(v: &mut Vec<f32>, len: usize) {
@@ -643,6 +634,10 @@ impl VanillaWorkspace {
         grow(&mut self.d_dir_proj, rays * vw);
         grow(&mut self.view_hidden, n * vw);
         grow(&mut self.d_view, n * vw);
+        if cfg.deformation.is_some() {
+            grow(&mut self.d_enc, n * cfg.position_encoding.dims());
+            grow(&mut self.d_moved, n * 3);
+        }
     }
 
     /// Bytes held, for memory reports.
@@ -660,9 +655,14 @@ impl VanillaWorkspace {
             &self.d_b,
             &self.d_view,
             &self.d_dir_proj,
+            &self.times,
+            &self.time_fill,
+            &self.d_enc,
+            &self.d_moved,
         ];
         4 * (vecs.iter().map(|v| v.len()).sum::<usize>()
             + self.hidden.iter().map(|v| v.len()).sum::<usize>())
+            + self.deform.bytes()
     }
 }
 
@@ -685,12 +685,19 @@ mod tests {
                 paper_form: false,
             }),
             view_width: 4,
+            deformation: None,
         }
     }
 
     /// Loss `sum(a * sigma) + sum(b * rgb)` for fixed random a, b; checks every parameter's
     /// analytic gradient against central differences (in f64 accumulation of f32 outputs).
     fn check_gradients(cfg: VanillaConfig) {
+        check_gradients_at(cfg, false);
+    }
+
+    /// As [`check_gradients`]; `moving`: every sample at its own moment (some at 0, where
+    /// the deformation is off), so the deformation's gradients are checked too.
+    fn check_gradients_at(cfg: VanillaConfig, moving: bool) {
         let net = VanillaNet::new(cfg, "");
         let mut rng = Rng::new(11);
         let mut params = net.layout.init_glorot(&mut rng);
@@ -716,9 +723,15 @@ mod tests {
             .collect();
         let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+        let times: Vec<f32> = match moving {
+            true => (0..n)
+                .map(|i| if i % 5 == 0 { 0.0 } else { rng.range(0.0, 1.0) })
+                .collect(),
+            false => Vec::new(),
+        };
         let mut ws = VanillaWorkspace::default();
         let loss = |p: &[f32], ws: &mut VanillaWorkspace| -> f64 {
-            net.eval_rays(p, &pos, &[], &dirs, spr, ws);
+            net.eval_rays(p, &pos, &[], &times, &dirs, spr, ws);
             let s: f64 = ws.sigma[..n]
                 .iter()
                 .zip(&a)
@@ -748,6 +761,19 @@ mod tests {
             norm2 += fd * fd;
         }
         let rel = (err2 / norm2).sqrt();
+        if moving {
+            // The deformation's parameters follow the field's: they must have moved.
+            let first = net
+                .layout
+                .tensors
+                .iter()
+                .find(|t| t.name.starts_with("time_"));
+            let start = first.expect("a deformation's tensors").offset;
+            assert!(
+                grads[start..].iter().any(|g| *g != 0.0),
+                "no deformation gradient"
+            );
+        }
 
         assert!(norm2 > 0.0 && rel < 1e-2, "relative gradient error {rel}");
     }
@@ -755,6 +781,50 @@ mod tests {
     #[test]
     fn gradients_view_dependent() {
         check_gradients(tiny(true));
+    }
+
+    #[test]
+    fn gradients_through_a_deformation() {
+        let cfg = VanillaConfig {
+            deformation: Some(DeformationConfig {
+                depth: 3,
+                width: 6,
+                skip: Some(0),
+                time_frequencies: 2,
+            }),
+            ..tiny(true)
+        };
+        check_gradients_at(cfg, true);
+    }
+
+    /// At moment 0 the deformation is off: the field is its canonical network alone, and
+    /// at another moment it moves.
+    #[test]
+    fn the_canonical_moment_is_not_deformed() {
+        let cfg = VanillaConfig {
+            deformation: Some(DeformationConfig {
+                depth: 2,
+                width: 8,
+                skip: None,
+                time_frequencies: 2,
+            }),
+            ..tiny(false)
+        };
+        let net = VanillaNet::new(cfg, "");
+        let params = net.layout.init_glorot(&mut Rng::new(3));
+        let pos = [0.1, 0.2, 0.3, -0.4, 0.5, 0.0];
+        let (mut ws, mut out) = (VanillaWorkspace::default(), [0.0f32; 2]);
+        let dir = [0.0, 0.0, 1.0];
+        net.eval_rays(&params, &pos, &[], &[], &dir, 2, &mut ws);
+        let still = ws.rgb[..6].to_vec();
+        net.eval_rays(&params, &pos, &[], &[0.0, 0.0], &dir, 2, &mut ws);
+        assert_eq!(ws.rgb[..6], still[..]);
+        net.eval_rays(&params, &pos, &[], &[0.7, 0.7], &dir, 2, &mut ws);
+        assert_ne!(ws.rgb[..6], still[..]);
+        net.density_at(&params, &pos, Some(0.0), &mut ws, &mut out);
+        let canonical = out;
+        net.density_at(&params, &pos, None, &mut ws, &mut out);
+        assert_eq!(out, canonical);
     }
 
     #[test]
@@ -783,9 +853,9 @@ mod tests {
             let params = net.layout.init_glorot(&mut Rng::new(2));
             let mut ws = VanillaWorkspace::default();
             let pos = [0.1, 0.2, 0.3];
-            net.eval_rays(&params, &pos, &[], &[1.0, 0.0, 0.0], 1, &mut ws);
+            net.eval_rays(&params, &pos, &[], &[], &[1.0, 0.0, 0.0], 1, &mut ws);
             let c1 = ws.rgb[..3].to_vec();
-            net.eval_rays(&params, &pos, &[], &[0.0, 1.0, 0.0], 1, &mut ws);
+            net.eval_rays(&params, &pos, &[], &[], &[0.0, 1.0, 0.0], 1, &mut ws);
             assert_eq!(c1 != ws.rgb[..3], vd);
         }
     }

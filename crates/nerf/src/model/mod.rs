@@ -77,7 +77,10 @@ impl ModelConfig {
     /// Training photos with a per-photo appearance code (`--appearance`); 0 without codes.
     /// Whether the model is a field of space and time (a moving scene, `--dynamic`).
     pub fn is_dynamic(&self) -> bool {
-        matches!(self, ModelConfig::Fast(m) if m.field.motion.is_some())
+        match self {
+            ModelConfig::Fast(m) => m.field.motion.is_some(),
+            ModelConfig::Vanilla(m) => m.net.deformation.is_some(),
+        }
     }
 
     pub fn appearance_photos(&self) -> usize {
@@ -101,7 +104,7 @@ impl ModelConfig {
     pub fn describe(&self) -> String {
         match self {
             ModelConfig::Vanilla(m) => format!(
-                "{}x{} MLP, PE L={}/{}, {} coarse + {} fine samples",
+                "{}x{} MLP, PE L={}/{}, {} coarse + {} fine samples{}",
                 m.net.depth,
                 m.net.width,
                 m.net.position_encoding.frequencies,
@@ -110,6 +113,13 @@ impl ModelConfig {
                     .map_or("off".to_string(), |d| d.frequencies.to_string()),
                 m.n_coarse,
                 m.n_fine,
+                m.net
+                    .deformation
+                    .as_ref()
+                    .map_or(String::new(), |d| format!(
+                        ", deformation {}x{} MLP (time PE L={})",
+                        d.depth, d.width, d.time_frequencies
+                    )),
             ),
             ModelConfig::Fast(m) => {
                 let g = &m.field.grid;

@@ -78,9 +78,16 @@ impl VanillaModel {
         }
     }
 
-    /// Fresh weights: Glorot-uniform, zero biases, deterministic in `seed`.
+    /// Fresh weights: Glorot-uniform, zero biases, a deformation's last layer zero;
+    /// deterministic in `seed`.
     pub fn init_params(&self, seed: u64) -> Vec<f32> {
-        self.layout.init_glorot(&mut Rng::new(seed ^ 0x5eed))
+        let mut params = self.layout.init_glorot(&mut Rng::new(seed ^ 0x5eed));
+        let coarse = self.coarse_range();
+        self.coarse.finish_init(&mut params[coarse]);
+        if let Some(fine) = &self.fine {
+            fine.finish_init(&mut params[self.coarse.num_params()..]);
+        }
+        params
     }
 
     /// Forward multiply-adds per ray.
@@ -182,6 +189,9 @@ fn pack(samples: &mut PackedSamples, rays: &RayBatch, t: &[f32], spr: usize, int
                     .positions
                     .push([o[0] + tt * d[0], o[1] + tt * d[1], o[2] + tt * d[2]]);
             }
+        }
+        if let Some(&time) = rays.times.get(k) {
+            samples.times.extend(std::iter::repeat_n(time, spr));
         }
         let v = rays.view_dirs[k];
         samples.dirs.push(scale(v, 1.0 / length(v)));
@@ -493,17 +503,14 @@ impl Model for VanillaModel {
         &self,
         params: &[f32],
         positions: &[f32],
-        _time: Option<f32>,
+        time: Option<f32>,
         ws: &mut ChunkWorkspace,
         out: &mut [f32],
     ) {
-        match self.fine_pass() {
-            Some((net, range)) => net.density(&params[range], positions, &mut ws.net, out),
-            None => {
-                let coarse = &params[self.coarse_range()];
-                self.coarse.density(coarse, positions, &mut ws.net, out)
-            }
-        }
+        let (net, range) = self
+            .fine_pass()
+            .unwrap_or((&self.coarse, self.coarse_range()));
+        net.density_at(&params[range], positions, time, &mut ws.net, out);
     }
 }
 

@@ -3,9 +3,11 @@
 
 pub mod activation;
 pub mod adam;
+pub mod dense;
 pub mod grads;
 pub mod linalg;
 pub mod params;
+pub mod trunk;
 
 pub use adam::Adam;
 pub use grads::{GradBuffer, Grads};

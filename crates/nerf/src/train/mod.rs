@@ -231,6 +231,12 @@ impl TrainConfig {
                 if m.n_coarse < 3 {
                     return bad("at least 3 coarse samples per ray are needed");
                 }
+                if m.net.deformation.is_some() && m.integrated {
+                    return bad(
+                        "a deformation (D-NeRF) cannot be combined with the integrated encoding \
+                         (mip-NeRF) yet",
+                    );
+                }
             }
             ModelConfig::Fast(m) => {
                 if m.samples_per_step == 0 || m.batch_samples == 0 {

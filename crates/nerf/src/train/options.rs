@@ -339,16 +339,22 @@ impl TrainOptions {
         {
             on_notice(&format!("warning: {w}"));
         }
-        let still_field = match c.model {
+        let still_field = match &c.model {
             ModelConfig::Fast(_) => self.no_dynamic,
-            ModelConfig::Vanilla(_) => true,
+            ModelConfig::Vanilla(m) => m.net.deformation.is_none(),
         };
         if scene.is_dynamic() && still_field {
             on_notice(
                 "warning: the scene's photos show a moving subject (each frame has a time): \
                  a still field averages the motion into a blur (the fast model's default \
-                 field of space and time does not)",
+                 field of space and time and --preset dnerf do not)",
             );
+        }
+        if !scene.is_dynamic() && c.model.is_dynamic() && !matches!(c.model, ModelConfig::Fast(_)) {
+            return refuse(format!(
+                "--preset dnerf models a moving scene, and no frame of {} has a time",
+                scene.dir.display()
+            ));
         }
         match &mut c.model {
             ModelConfig::Fast(m) => {
@@ -1006,5 +1012,10 @@ mod tests {
         assert!(err.to_string().contains("space and time"), "{err}");
         let err = config(&["--refine-cameras"], moving.path()).expect_err("refine");
         assert!(err.to_string().contains("--no-dynamic"), "{err}");
+        // D-NeRF's vanilla model: for moving scenes only.
+        let c = config(&["--preset", "dnerf"], moving.path()).expect("dnerf");
+        assert!(c.model.is_dynamic() && c.model.kind() == "vanilla");
+        let err = config(&["--preset", "dnerf"], still.path()).expect_err("still");
+        assert!(err.to_string().contains("no frame"), "{err}");
     }
 }

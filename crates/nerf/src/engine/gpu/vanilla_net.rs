@@ -588,6 +588,7 @@ mod tests {
                     paper_form,
                 }),
                 view_width: 8,
+                deformation: None,
             };
             let net = VanillaNet::new(config, "fine.");
             let mut rng = Rng::new(4);
