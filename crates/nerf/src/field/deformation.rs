@@ -12,6 +12,7 @@ use serde::{Deserialize, Serialize};
 use crate::encoding::FrequencyEncoding;
 use crate::nn::activation::col_sum_into;
 use crate::nn::dense::Dense;
+use crate::nn::grow;
 use crate::nn::linalg::{matmul, MatRef};
 use crate::nn::trunk::Trunk;
 use crate::nn::ParamLayout;
@@ -202,12 +203,6 @@ pub struct DeformationWorkspace {
     d_offsets: Vec<f32>,
     d_a: Vec<f32>,
     d_b: Vec<f32>,
-}
-
-fn grow(v: &mut Vec<f32>, len: usize) {
-    if v.len() < len {
-        v.resize(len, 0.0);
-    }
 }
 
 impl DeformationWorkspace {

@@ -21,6 +21,7 @@ use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
 use crate::encoding::space_time_grid::{SpaceTimeConfig, SpaceTimeGrid};
 use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
+use crate::nn::grow;
 use crate::nn::linalg::{matmul, MatRef};
 use crate::nn::Grads;
 use crate::nn::ParamLayout;
@@ -190,12 +191,6 @@ pub struct FastWorkspace {
     d_geo: Vec<f32>,
     d_h: Vec<f32>,
     d_enc: Vec<f32>,
-}
-
-fn grow(v: &mut Vec<f32>, n: usize) {
-    if v.len() < n {
-        v.resize(n, 0.0);
-    }
 }
 
 /// `dz = dh * (h > 0)` in place.

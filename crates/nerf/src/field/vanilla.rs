@@ -21,6 +21,7 @@ use super::deformation::{Deformation, DeformationConfig, DeformationWorkspace};
 use crate::encoding::FrequencyEncoding;
 use crate::nn::activation::{col_sum_into, relu, sigmoid};
 use crate::nn::dense::Dense;
+use crate::nn::grow;
 use crate::nn::linalg::{matmul, MatRef};
 use crate::nn::trunk::Trunk;
 use crate::nn::{Grads, ParamLayout};
@@ -603,12 +604,6 @@ pub struct VanillaWorkspace {
     time_fill: Vec<f32>,
     d_enc: Vec<f32>,
     d_moved: Vec<f32>,
-}
-
-fn grow(v: &mut Vec<f32>, len: usize) {
-    if v.len() < len {
-        v.resize(len, 0.0);
-    }
 }
 
 impl VanillaWorkspace {

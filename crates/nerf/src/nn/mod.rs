@@ -12,3 +12,11 @@ pub mod trunk;
 pub use adam::Adam;
 pub use grads::{GradBuffer, Grads};
 pub use params::{ParamLayout, Tensor};
+
+/// Lengthens a reused buffer to at least `len` values (zeros), never shortening it: the
+/// workspaces grow to the largest call they see and then allocate no more.
+pub fn grow(v: &mut Vec<f32>, len: usize) {
+    if v.len() < len {
+        v.resize(len, 0.0);
+    }
+}

@@ -8,7 +8,7 @@ use nerf::model::ModelConfig;
 use nerf::train::folder::LoadedRun;
 use nerf::train::{run, TrainConfig};
 
-use crate::common::{cpu_run, eval_test, fast_config};
+use crate::common::{cpu_run, demo_config, eval_test, fast_config};
 
 const SIZE: usize = 48;
 const STEPS: u64 = 500;
@@ -81,7 +81,7 @@ fn a_field_of_space_and_time_follows_the_motion_and_costs_little_when_still() {
 /// `--preset dnerf` shrunk to the demo preset's networks (the full one is days of CPU),
 /// with a deformation of the same small size; `still`: the demo preset itself.
 fn dnerf_config(data: &std::path::Path, steps: u64, still: bool) -> TrainConfig {
-    let mut c = TrainConfig::from_preset(data.to_path_buf(), "demo").expect("preset");
+    let mut c = demo_config(data, steps);
     if let ModelConfig::Vanilla(m) = &mut c.model {
         m.net.deformation = (!still).then_some(DeformationConfig {
             depth: 4,
@@ -92,13 +92,6 @@ fn dnerf_config(data: &std::path::Path, steps: u64, still: bool) -> TrainConfig 
             time_frequencies: 4,
         });
     }
-    c.steps = steps;
-    c.batch_rays = 256;
-    c.lr_init = 2e-3;
-    c.lr_final = 5e-4;
-    c.precrop_steps = 50;
-    c.val_every = 0;
-    c.checkpoint_every = 0;
     c
 }
 

@@ -3,24 +3,12 @@
 
 use std::path::Path;
 
-use crate::common::{cpu_run, small_scene};
+use crate::common::{cpu_run, demo_config, small_scene};
 
 use nerf::data::synth::{self, SynthOptions};
 use nerf::data::Split;
 use nerf::train::run::{self, LoadedRun, RunOptions, StopReason};
 use nerf::train::{TrainConfig, Trainer};
-
-fn demo_config(data: &Path, steps: u64) -> TrainConfig {
-    let mut c = TrainConfig::from_preset(data.to_path_buf(), "demo").expect("preset");
-    c.steps = steps;
-    c.batch_rays = 256;
-    c.lr_init = 2e-3;
-    c.lr_final = 5e-4;
-    c.precrop_steps = 50;
-    c.val_every = 0;
-    c.checkpoint_every = 0;
-    c
-}
 
 #[test]
 fn trains_a_small_scene_past_a_psnr_floor() {

@@ -47,6 +47,20 @@ pub fn fast_config(data: &Path, steps: u64) -> TrainConfig {
     c
 }
 
+/// The vanilla demo preset, shrunk for a test: 256 rays a step, a faster schedule, no
+/// validation or intermediate checkpoints.
+pub fn demo_config(data: &Path, steps: u64) -> TrainConfig {
+    let mut c = TrainConfig::from_preset(data.to_path_buf(), "demo").expect("preset");
+    c.steps = steps;
+    c.batch_rays = 256;
+    c.lr_init = 2e-3;
+    c.lr_final = 5e-4;
+    c.precrop_steps = 50;
+    c.val_every = 0;
+    c.checkpoint_every = 0;
+    c
+}
+
 /// A new run of `config` into `out` on the CPU: no budget, no pause, not resumed.
 pub fn cpu_run(out: &Path, config: TrainConfig) -> nerf::train::run::RunOptions {
     nerf::train::run::RunOptions {
