@@ -95,8 +95,9 @@ impl Deformation {
     /// starts as a still scene and learns the motion where the photos disagree with it,
     /// instead of starting from random offsets the canonical field must first undo.
     pub fn start_still(&self, params: &mut [f32]) {
-        params[self.output.w..][..self.output.macs()].fill(0.0);
-        params[self.output.b..][..3].fill(0.0);
+        let (weight, bias) = self.output.slices_mut(params);
+        weight.fill(0.0);
+        bias.fill(0.0);
     }
 
     pub fn macs_per_sample(&self) -> usize {
@@ -168,7 +169,7 @@ impl Deformation {
             }
         }
         let last = MatRef::new(&ws.hidden[self.config.depth - 1][..n * w], n, w);
-        let (gw, gb) = self.output.grads(grads);
+        let (gw, gb) = self.output.slices_mut(grads);
         col_sum_into(&ws.d_offsets[..n * 3], 3, gb);
         let d_offsets = MatRef::new(&ws.d_offsets[..n * 3], n, 3);
         matmul(gw, last.t(), d_offsets, true);

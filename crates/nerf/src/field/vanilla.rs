@@ -337,7 +337,7 @@ impl VanillaNet {
                 let (in_d, vw) = (dir_enc.dims(), cfg.view_width);
                 // RGB layer (sigmoid): d_raw = d_rgb * rgb (1 - rgb).
                 let wr = &params[rgb.w..][..vw * 3];
-                let (gw, gb) = rgb.grads(grads);
+                let (gw, gb) = rgb.slices_mut(grads);
                 for (s, (h, dh)) in ws.view_hidden[..n * vw]
                     .chunks_exact(vw)
                     .zip(ws.d_view.chunks_exact_mut(vw))
@@ -367,7 +367,7 @@ impl VanillaNet {
                 // View layer: feature rows per sample, direction rows from per-ray sums.
                 let d_view = &ws.d_view[..n * vw];
                 {
-                    let (gw, gb) = view.grads(grads);
+                    let (gw, gb) = view.slices_mut(grads);
                     col_sum_into(d_view, vw, gb);
                     matmul(
                         &mut gw[..w * vw],
@@ -400,7 +400,7 @@ impl VanillaNet {
                 );
                 // Feature layer (linear).
                 {
-                    let (gw, gb) = feature.grads(grads);
+                    let (gw, gb) = feature.slices_mut(grads);
                     col_sum_into(d_feat, w, gb);
                     matmul(
                         gw,
@@ -418,7 +418,7 @@ impl VanillaNet {
                 );
                 // Density head (ReLU on the raw output).
                 let w_sigma = &params[sigma.w..][..w];
-                let (gw, gb) = sigma.grads(grads);
+                let (gw, gb) = sigma.slices_mut(grads);
                 for s in 0..n {
                     let ds = if ws.raw_sigma[s] > 0.0 {
                         d_sigma[s]
@@ -452,7 +452,7 @@ impl VanillaNet {
                         0.0
                     };
                 }
-                let (gw, gb) = output.grads(grads);
+                let (gw, gb) = output.slices_mut(grads);
                 col_sum_into(d_raw, 4, gb);
                 matmul(
                     gw,

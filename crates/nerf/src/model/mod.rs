@@ -74,8 +74,8 @@ impl ModelConfig {
         }
     }
 
-    /// Training photos with a per-photo appearance code (`--appearance`); 0 without codes.
-    /// Whether the model is a field of space and time (a moving scene, `--dynamic`).
+    /// Whether the model is a field of space and time (a moving scene: `--dynamic`, or
+    /// `--preset dnerf`).
     pub fn is_dynamic(&self) -> bool {
         match self {
             ModelConfig::Fast(m) => m.field.motion.is_some(),
@@ -83,6 +83,7 @@ impl ModelConfig {
         }
     }
 
+    /// Training photos with a per-photo appearance code (`--appearance`); 0 without codes.
     pub fn appearance_photos(&self) -> usize {
         match self {
             ModelConfig::Fast(m) if m.field.appearance_dims > 0 => m.field.appearance_images,

@@ -43,9 +43,10 @@ impl Dense {
         &params[self.b..][..self.fan_out]
     }
 
-    /// The weight's and the bias's gradients (the bias follows the weight).
-    pub fn grads<'a>(&self, grads: &'a mut [f32]) -> (&'a mut [f32], &'a mut [f32]) {
-        let (head, tail) = grads.split_at_mut(self.b);
+    /// The weight's and the bias's slices of a vector laid out as the parameters are (their
+    /// gradients, or the parameters themselves); the bias follows the weight.
+    pub fn slices_mut<'a>(&self, values: &'a mut [f32]) -> (&'a mut [f32], &'a mut [f32]) {
+        let (head, tail) = values.split_at_mut(self.b);
         (
             &mut head[self.w..][..self.fan_in * self.fan_out],
             &mut tail[..self.fan_out],

@@ -95,7 +95,7 @@ impl Trunk {
         for l in (0..self.layers.len()).rev() {
             let layer = &self.layers[l];
             let dz = &mut d_a[..n * w];
-            let (gw, gb) = layer.grads(grads);
+            let (gw, gb) = layer.slices_mut(grads);
             relu_bwd_bias(dz, &hidden[l][..n * w], w, gb);
             let dz = MatRef::new(dz, n, w);
             // The input's rows of this layer, if it reads the input.

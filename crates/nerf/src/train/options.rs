@@ -341,7 +341,7 @@ impl TrainOptions {
         }
         let still_field = match &c.model {
             ModelConfig::Fast(_) => self.no_dynamic,
-            ModelConfig::Vanilla(m) => m.net.deformation.is_none(),
+            ModelConfig::Vanilla(_) => !c.model.is_dynamic(),
         };
         if scene.is_dynamic() && still_field {
             on_notice(
@@ -349,12 +349,6 @@ impl TrainOptions {
                  a still field averages the motion into a blur (the fast model's default \
                  field of space and time and --preset dnerf do not)",
             );
-        }
-        if !scene.is_dynamic() && c.model.is_dynamic() && !matches!(c.model, ModelConfig::Fast(_)) {
-            return refuse(format!(
-                "--preset dnerf models a moving scene, and no frame of {} has a time",
-                scene.dir.display()
-            ));
         }
         match &mut c.model {
             ModelConfig::Fast(m) => {
@@ -472,6 +466,12 @@ impl TrainOptions {
                          for real captures; --no-refine-cameras trusts them as given)"
                     });
                 }
+            }
+            ModelConfig::Vanilla(m) if m.net.deformation.is_some() && !scene.is_dynamic() => {
+                return refuse(format!(
+                    "--preset dnerf models a moving scene, and no frame of {} has a time",
+                    scene.dir.display()
+                ));
             }
             ModelConfig::Vanilla(_) if self.bound.is_some() || self.no_contract => {
                 return refuse("--bound and --no-contract apply to --model fast only".into());
