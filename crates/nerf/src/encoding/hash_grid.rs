@@ -18,11 +18,13 @@ use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;
 
+use super::grid_simd;
+
 /// Features per level (the paper's choice, and what the kernels are written for).
 pub const FEATURES: usize = 2;
 
-const PRIME_Y: u32 = 2_654_435_761;
-const PRIME_Z: u32 = 805_459_861;
+pub(crate) const PRIME_Y: u32 = 2_654_435_761;
+pub(crate) const PRIME_Z: u32 = 805_459_861;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct HashGridConfig {
@@ -72,7 +74,7 @@ impl Level {
     /// The eight corners of the cell holding unit-cube point `u`: table indices and
     /// trilinear weights.
     #[inline(always)]
-    fn corners(&self, u: [f32; 3]) -> ([u32; 8], [f32; 8]) {
+    pub(crate) fn corners(&self, u: [f32; 3]) -> ([u32; 8], [f32; 8]) {
         let n = self.resolution;
         let mut cell = [0u32; 3];
         let mut frac = [0f32; 3];
@@ -156,6 +158,13 @@ impl HashGrid {
     /// Encodes `n` unit-cube points (packed `n x 3`) into `out` (`n x dims()`).
     pub fn encode(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
         encode_levels(&self.levels, params, points, out);
+    }
+
+    /// [`encode`](Self::encode) one sample at a time (its grouping and prefetch, without
+    /// the AVX2 loops): their reference and their benchmark's baseline.
+    pub fn encode_scalar(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
+        let levels: Vec<Scalar> = self.levels.iter().map(Scalar).collect();
+        encode_levels(&levels, params, points, out);
     }
 
     /// The plain per-sample loop that [`encode`](Self::encode) replaced (no grouping, no
@@ -253,23 +262,25 @@ pub(crate) fn geometric(base: usize, max: usize, levels: usize, l: usize) -> u32
 /// memory-bound, and issuing a group's loads early lets them overlap.
 const GROUP: usize = 32;
 
-struct Corners<const C: usize> {
-    idx: [[u32; C]; GROUP],
-    w: [[f32; C]; GROUP],
+/// A group's corners, corner-major (`idx[k][j]`: corner `k` of sample `j`), so that a
+/// vectorised lattice writes one corner of several samples at once.
+pub(crate) struct Corners<const C: usize> {
+    pub(crate) idx: [[u32; GROUP]; C],
+    pub(crate) w: [[f32; GROUP]; C],
 }
 
 impl<const C: usize> Default for Corners<C> {
     fn default() -> Self {
         Corners {
-            idx: [[0; C]; GROUP],
-            w: [[0.0; C]; GROUP],
+            idx: [[0; GROUP]; C],
+            w: [[0.0; GROUP]; C],
         }
     }
 }
 
 impl<const C: usize> Corners<C> {
-    /// The corners of `points` (packed `D` coordinates each) in `level`, their table lines
-    /// prefetched.
+    /// The corners of `points` (packed `D` coordinates each, at most [`GROUP`] points) in
+    /// `level`, their table lines prefetched.
     #[inline(always)]
     fn compute<const D: usize, L: Lattice<D, C>>(
         &mut self,
@@ -277,13 +288,20 @@ impl<const C: usize> Corners<C> {
         table: &[f32],
         points: &[f32],
     ) {
-        for (j, u) in points.chunks_exact(D).enumerate() {
-            let (idx, w) = level.corners(std::array::from_fn(|a| u[a]));
-            for &i in &idx {
+        level.group_corners(points, self);
+        for k in 0..C {
+            for &i in &self.idx[k][..points.len() / D] {
                 prefetch(table, i as usize * FEATURES);
             }
-            self.idx[j] = idx;
-            self.w[j] = w;
+        }
+    }
+
+    /// Sample `j`'s corners, as one sample's [`Lattice::corners`] gives them.
+    #[inline(always)]
+    pub(crate) fn set(&mut self, j: usize, idx: [u32; C], w: [f32; C]) {
+        for k in 0..C {
+            self.idx[k][j] = idx[k];
+            self.w[k][j] = w[k];
         }
     }
 }
@@ -291,11 +309,23 @@ impl<const C: usize> Corners<C> {
 /// A level of a hash grid over `D` coordinates (cells of `C = 2^D` corners): the
 /// interpolation shared by the still grid and the space-time one.
 pub(crate) trait Lattice<const D: usize, const C: usize> {
+    /// Whether encoding through this lattice may use the vectorised loops where the CPU
+    /// has them (off only for the scalar reference).
+    const VECTORISED: bool = true;
     /// Where the level's table starts in the parameter vector (floats), and its entries.
     fn table(&self) -> (usize, usize);
     /// The corners of the cell holding `u` (coordinates in [0, 1]): table indices and
     /// interpolation weights.
     fn corners(&self, u: [f32; D]) -> ([u32; C], [f32; C]);
+    /// The corners of a group of points (packed `D` coordinates each) into `out`: one at a
+    /// time unless a lattice has a vectorised path.
+    #[inline(always)]
+    fn group_corners(&self, points: &[f32], out: &mut Corners<C>) {
+        for (j, u) in points.chunks_exact(D).enumerate() {
+            let (idx, w) = self.corners(std::array::from_fn(|a| u[a]));
+            out.set(j, idx, w);
+        }
+    }
 }
 
 impl Lattice<3, 8> for Level {
@@ -305,6 +335,45 @@ impl Lattice<3, 8> for Level {
     #[inline(always)]
     fn corners(&self, u: [f32; 3]) -> ([u32; 8], [f32; 8]) {
         Level::corners(self, u)
+    }
+    /// Eight samples at a time where the CPU has AVX2 (the same numbers, [`grid_simd`]).
+    #[inline(always)]
+    fn group_corners(&self, points: &[f32], out: &mut Corners<8>) {
+        let mut done = 0;
+        #[cfg(target_arch = "x86_64")]
+        if grid_simd::available() {
+            use grid_simd::LANES;
+            let mut idx = [[0u32; LANES]; 8];
+            let mut w = [[0f32; LANES]; 8];
+            for (g, group) in points.chunks_exact(3 * LANES).enumerate() {
+                let group: &[f32; 3 * LANES] = group.try_into().expect("chunks_exact");
+                // SAFETY: AVX2 is present (checked above).
+                unsafe { grid_simd::corners8(self, group, &mut idx, &mut w) };
+                for k in 0..8 {
+                    out.idx[k][g * LANES..][..LANES].copy_from_slice(&idx[k]);
+                    out.w[k][g * LANES..][..LANES].copy_from_slice(&w[k]);
+                }
+            }
+            done = points.len() / (3 * LANES) * LANES;
+        }
+        for (j, u) in points.chunks_exact(3).enumerate().skip(done) {
+            let (idx, w) = self.corners([u[0], u[1], u[2]]);
+            out.set(j, idx, w);
+        }
+    }
+}
+
+/// A level encoded one sample at a time: see [`HashGrid::encode_scalar`].
+struct Scalar<'a>(&'a Level);
+
+impl Lattice<3, 8> for Scalar<'_> {
+    const VECTORISED: bool = false;
+    fn table(&self) -> (usize, usize) {
+        self.0.table()
+    }
+    #[inline(always)]
+    fn corners(&self, u: [f32; 3]) -> ([u32; 8], [f32; 8]) {
+        self.0.corners(u)
     }
 }
 
@@ -320,6 +389,7 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
     let d = levels.len() * FEATURES;
     let n = points.len() / D;
     assert!(out.len() >= n * d);
+    let vectorised = L::VECTORISED && grid_simd::available();
     let mut corners = Corners::<C>::default();
     for (l, level) in levels.iter().enumerate() {
         let (offset, entries) = level.table();
@@ -327,13 +397,27 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
         for first in (0..n).step_by(GROUP) {
             let len = GROUP.min(n - first);
             corners.compute(level, table, &points[first * D..(first + len) * D]);
-            for j in 0..len {
-                let (idx, w) = (&corners.idx[j], &corners.w[j]);
+            let mut j = 0;
+            #[cfg(target_arch = "x86_64")]
+            if vectorised {
+                use grid_simd::LANES;
+                while j + LANES <= len {
+                    // SAFETY: AVX2 is present; the corners index this level's table.
+                    let f = unsafe { grid_simd::interpolate8(table, &corners.idx, &corners.w, j) };
+                    for i in 0..LANES {
+                        let row = &mut out[(first + j + i) * d + l * FEATURES..][..FEATURES];
+                        row.copy_from_slice(&[f[0][i], f[1][i]]);
+                    }
+                    j += LANES;
+                }
+            }
+            for j in j..len {
                 let mut f = [0f32; FEATURES];
                 for k in 0..C {
-                    let e = &table[idx[k] as usize * FEATURES..][..FEATURES];
-                    f[0] += w[k] * e[0];
-                    f[1] += w[k] * e[1];
+                    let (i, w) = (corners.idx[k][j], corners.w[k][j]);
+                    let e = &table[i as usize * FEATURES..][..FEATURES];
+                    f[0] += w * e[0];
+                    f[1] += w * e[1];
                 }
                 out[(first + j) * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
             }
@@ -364,8 +448,8 @@ pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>
                     continue;
                 }
                 for k in 0..C {
-                    let at = offset + corners.idx[j][k] as usize * FEATURES;
-                    let w = corners.w[j][k];
+                    let at = offset + corners.idx[k][j] as usize * FEATURES;
+                    let w = corners.w[k][j];
                     grads.add_pair(at, [w * g[0], w * g[1]]);
                 }
             }
@@ -507,6 +591,35 @@ mod tests {
         grid.encode(&params, &pts, &mut a);
         grid.encode_reference(&params, &pts, &mut b);
         assert_eq!(a, b);
+        grid.encode_scalar(&params, &pts, &mut b);
+        assert_eq!(a, b);
+    }
+
+    /// The backward with vectorised corners scatters exactly what the per-sample loop does.
+    #[test]
+    fn backward_with_grouped_corners_equals_the_per_sample_loop() {
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(HashGridConfig::default(), "hash.", &mut layout);
+        let mut rng = Rng::new(6);
+        let n = 45;
+        let pts: Vec<f32> = (0..n * 3).map(|_| rng.range(-0.1, 1.1)).collect();
+        let d_out: Vec<f32> = (0..n * grid.dims()).map(|_| rng.range(-1.0, 1.0)).collect();
+        let mut grouped = crate::nn::GradBuffer::new(layout.total);
+        grid.encode_bwd(&pts, &d_out, &mut grouped.all());
+        let mut plain = vec![0f32; layout.total];
+        let d = grid.dims();
+        for (l, level) in grid.levels.iter().enumerate() {
+            for (s, u) in pts.chunks_exact(3).enumerate() {
+                let (idx, w) = level.corners([u[0], u[1], u[2]]);
+                for k in 0..8 {
+                    for f in 0..FEATURES {
+                        plain[level.offset + idx[k] as usize * FEATURES + f] +=
+                            w[k] * d_out[s * d + l * FEATURES + f];
+                    }
+                }
+            }
+        }
+        assert_eq!(grouped.values, plain);
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! Input encodings of positions and directions.
 
 pub mod frequency;
+mod grid_simd;
 pub mod hash_grid;
 pub mod integrated;
 pub mod space_time_grid;

@@ -526,7 +526,9 @@ fn render_test_view(run: &LoadedRun) -> Vec<nerf::stage::RayOutput> {
 /// The GPU engine learns the small scene past the CPU test's floor (22 dB).
 #[test]
 fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
-    const STEPS: u64 = 400;
+    // 22.61 dB at 300 steps, the same on every run on lavapipe (23.54 at 400; 24-pixel
+    // photos reach 22.24 at 300 and 21.56 at 250).
+    const STEPS: u64 = 300;
     if !gpu_available() {
         return;
     }

@@ -1,0 +1,190 @@
+//! The hash grids' inner loops for eight samples at once (AVX2), one vector lane per
+//! sample: a cell's corners (table indices and trilinear weights, [`corners8`]) and the
+//! weighted sum of the corners' features ([`interpolate8`]).
+//!
+//! The numbers are those of the scalar loops to the bit: the same operations in the same
+//! order (no fused multiply-adds, the weights multiplied x, then y, then z, the corners
+//! summed in order), so a machine without AVX2 trains the same run. Only finite coordinates are promised that;
+//! a NaN coordinate clamps to the cube's face here and stays NaN in the scalar path, and
+//! both are garbage the engine's finiteness checks catch upstream.
+
+use super::hash_grid::Level;
+
+/// Samples per call: the lanes of one AVX2 vector of `f32`.
+pub(crate) const LANES: usize = 8;
+
+/// Whether this CPU runs [`corners8`] (checked once; the standard library caches it).
+#[inline]
+pub(crate) fn available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::is_x86_feature_detected!("avx2")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// The corners of [`LANES`] points (`points`: packed `x, y, z`) in `level`: `idx[k]` and
+/// `w[k]` receive corner `k`'s table indices and weights, lane `j` for point `j`.
+///
+/// # Safety
+/// The CPU must have AVX2 ([`available`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+pub(crate) unsafe fn corners8(
+    level: &Level,
+    points: &[f32; 3 * LANES],
+    idx: &mut [[u32; LANES]; 8],
+    w: &mut [[f32; LANES]; 8],
+) {
+    use std::arch::x86_64::*;
+    let n = level.resolution;
+    let cells = _mm256_set1_ps(n as f32);
+    let last = _mm256_set1_epi32((n - 1) as i32);
+    let (zero, one) = (_mm256_setzero_ps(), _mm256_set1_ps(1.0));
+    let mut cell = [_mm256_setzero_si256(); 3];
+    let mut frac = [zero; 3];
+    let mut rest = [zero; 3];
+    for a in 0..3 {
+        let coords: [f32; LANES] = std::array::from_fn(|j| points[3 * j + a]);
+        // SAFETY: `coords` holds LANES floats.
+        let u = unsafe { _mm256_loadu_ps(coords.as_ptr()) };
+        let p = _mm256_mul_ps(_mm256_min_ps(_mm256_max_ps(u, zero), one), cells);
+        // `p` lies in [0, n], so truncation is the scalar `as u32`.
+        let c = _mm256_min_epu32(_mm256_cvttps_epi32(p), last);
+        cell[a] = c;
+        frac[a] = _mm256_sub_ps(p, _mm256_cvtepi32_ps(c));
+        rest[a] = _mm256_sub_ps(one, frac[a]);
+    }
+    let step = _mm256_set1_epi32(1);
+    let mask = _mm256_set1_epi32((level.entries - 1) as i32);
+    let side = _mm256_set1_epi32((n + 1) as i32);
+    let (prime_y, prime_z) = (
+        _mm256_set1_epi32(super::hash_grid::PRIME_Y as i32),
+        _mm256_set1_epi32(super::hash_grid::PRIME_Z as i32),
+    );
+    for k in 0..8 {
+        let b = [k & 1, (k >> 1) & 1, (k >> 2) & 1];
+        let at: [__m256i; 3] = std::array::from_fn(|a| {
+            if b[a] == 1 {
+                _mm256_add_epi32(cell[a], step)
+            } else {
+                cell[a]
+            }
+        });
+        let index = if level.dense {
+            let yz = _mm256_add_epi32(at[1], _mm256_mullo_epi32(side, at[2]));
+            _mm256_add_epi32(at[0], _mm256_mullo_epi32(side, yz))
+        } else {
+            let hashed = _mm256_xor_si256(
+                _mm256_xor_si256(at[0], _mm256_mullo_epi32(at[1], prime_y)),
+                _mm256_mullo_epi32(at[2], prime_z),
+            );
+            _mm256_and_si256(hashed, mask)
+        };
+        let pick = |a: usize| if b[a] == 1 { frac[a] } else { rest[a] };
+        let weight = _mm256_mul_ps(_mm256_mul_ps(pick(0), pick(1)), pick(2));
+        // SAFETY: `idx[k]` and `w[k]` hold LANES values each; unaligned stores.
+        unsafe {
+            _mm256_storeu_si256(idx[k].as_mut_ptr().cast::<__m256i>(), index);
+            _mm256_storeu_ps(w[k].as_mut_ptr(), weight);
+        }
+    }
+}
+
+/// The features of [`LANES`] samples, `Σ_k w[k][j] * table[idx[k][j]]` for each of the two
+/// features (`C` corners; `idx` and `w` corner-major, the group's samples `first..first +
+/// LANES`), returned as the two features' lanes.
+///
+/// # Safety
+/// The CPU must have AVX2 ([`available`]), and every `idx[k][first + j]` must index an
+/// entry of `table` (`2 * idx + 1 < table.len()`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+pub(crate) unsafe fn interpolate8<const C: usize, const G: usize>(
+    table: &[f32],
+    idx: &[[u32; G]; C],
+    w: &[[f32; G]; C],
+    first: usize,
+) -> [[f32; LANES]; 2] {
+    use std::arch::x86_64::*;
+    // Each entry's two features as one 64-bit element: the gather of samples
+    // 0, 1, 4, 5 and that of 2, 3, 6, 7 interleave back into the lanes in order.
+    let order = _mm256_setr_epi32(0, 1, 4, 5, 2, 3, 6, 7);
+    let base = table.as_ptr().cast::<f64>();
+    let mut f = [_mm256_setzero_ps(); 2];
+    for k in 0..C {
+        // SAFETY: `first + LANES <= G` (the caller's group), unaligned loads.
+        let (at, weight) = unsafe {
+            (
+                _mm256_loadu_si256(idx[k][first..first + LANES].as_ptr().cast::<__m256i>()),
+                _mm256_loadu_ps(w[k][first..first + LANES].as_ptr()),
+            )
+        };
+        let at = _mm256_permutevar8x32_epi32(at, order);
+        // SAFETY: the caller promises every index inside `table`; an entry is 8 bytes.
+        let (low, high) = unsafe {
+            (
+                _mm256_i32gather_pd::<8>(base, _mm256_castsi256_si128(at)),
+                _mm256_i32gather_pd::<8>(base, _mm256_extracti128_si256::<1>(at)),
+            )
+        };
+        let (low, high) = (_mm256_castpd_ps(low), _mm256_castpd_ps(high));
+        let first_feature = _mm256_shuffle_ps::<0b10_00_10_00>(low, high);
+        let second_feature = _mm256_shuffle_ps::<0b11_01_11_01>(low, high);
+        f[0] = _mm256_add_ps(f[0], _mm256_mul_ps(weight, first_feature));
+        f[1] = _mm256_add_ps(f[1], _mm256_mul_ps(weight, second_feature));
+    }
+    let mut out = [[0f32; LANES]; 2];
+    // SAFETY: `out[i]` holds LANES floats.
+    unsafe {
+        _mm256_storeu_ps(out[0].as_mut_ptr(), f[0]);
+        _mm256_storeu_ps(out[1].as_mut_ptr(), f[1]);
+    }
+    out
+}
+
+#[cfg(all(test, target_arch = "x86_64"))]
+mod tests {
+    use super::*;
+    use crate::encoding::{HashGrid, HashGridConfig};
+    use crate::nn::ParamLayout;
+    use crate::rng::Rng;
+
+    /// Every lane against the scalar corners, bit for bit, on dense and hashed levels, with
+    /// points on the faces, outside the cube and at its corners.
+    #[test]
+    fn eight_lanes_equal_the_scalar_corners() {
+        if !available() {
+            eprintln!("skipped: this CPU has no AVX2");
+            return;
+        }
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(HashGridConfig::default(), "hash.", &mut layout);
+        assert!(grid.levels.iter().any(|l| l.dense) && grid.levels.iter().any(|l| !l.dense));
+        let mut rng = Rng::new(5);
+        let mut points: Vec<f32> = (0..64 * 3).map(|_| rng.range(-0.2, 1.2)).collect();
+        points[..12]
+            .copy_from_slice(&[0.0, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -0.0, 2.0, 0.25]);
+        for level in &grid.levels {
+            for group in points.chunks_exact(3 * LANES) {
+                let mut idx = [[0u32; LANES]; 8];
+                let mut w = [[0f32; LANES]; 8];
+                let group: &[f32; 3 * LANES] = group.try_into().expect("a group");
+                // SAFETY: AVX2 was checked above.
+                unsafe { corners8(level, group, &mut idx, &mut w) };
+                for j in 0..LANES {
+                    let (want_idx, want_w) =
+                        level.corners([group[3 * j], group[3 * j + 1], group[3 * j + 2]]);
+                    for k in 0..8 {
+                        assert_eq!(idx[k][j], want_idx[k], "level {level:?}, point {j}");
+                        // Equal as numbers (a face's -0 weight may come out +0).
+                        assert_eq!(w[k][j], want_w[k], "level {level:?}, point {j}");
+                    }
+                }
+            }
+        }
+    }
+}
