@@ -1,6 +1,7 @@
 //! The hash grids' inner loops for eight samples at once (AVX2), one vector lane per
 //! sample: a cell's corners (table indices and trilinear weights, [`corners8`]) and the
-//! weighted sum of the corners' features ([`interpolate8`]).
+//! weighted sum of the corners' features ([`interpolate8`]). Their tests, against the
+//! scalar loops, sit with the grids.
 //!
 //! The numbers are those of the scalar loops to the bit: the same operations in the same
 //! order (no fused multiply-adds, the weights multiplied x, then y, then z, the corners
@@ -8,7 +9,18 @@
 //! a NaN coordinate clamps to the cube's face here and stays NaN in the scalar path, and
 //! both are garbage the engine's finiteness checks catch upstream.
 
-use super::hash_grid::Level;
+/// What [`corners8`] needs of a hash-grid level.
+#[derive(Clone, Copy)]
+pub(crate) struct LevelShape {
+    /// Cells per axis.
+    pub resolution: u32,
+    /// Table entries (a power of two when hashed).
+    pub entries: usize,
+    /// Vertices indexed densely rather than hashed.
+    pub dense: bool,
+    /// The spatial hash's multipliers of y and z.
+    pub primes: [u32; 2],
+}
 
 /// Samples per call: the lanes of one AVX2 vector of `f32`.
 pub(crate) const LANES: usize = 8;
@@ -26,7 +38,8 @@ pub(crate) fn available() -> bool {
     }
 }
 
-/// The corners of [`LANES`] points (`points`: packed `x, y, z`) in `level`: `idx[k]` and
+/// The corners of [`LANES`] points (`points`: packed `x, y, z`) in a level of `shape`
+/// (the scalar `Level::corners` of the hash grid, eight at a time): `idx[k]` and
 /// `w[k]` receive corner `k`'s table indices and weights, lane `j` for point `j`.
 ///
 /// # Safety
@@ -34,7 +47,7 @@ pub(crate) fn available() -> bool {
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 pub(crate) unsafe fn corners8(
-    level: &Level,
+    level: LevelShape,
     points: &[f32; 3 * LANES],
     idx: &mut [[u32; LANES]; 8],
     w: &mut [[f32; LANES]; 8],
@@ -62,8 +75,8 @@ pub(crate) unsafe fn corners8(
     let mask = _mm256_set1_epi32((level.entries - 1) as i32);
     let side = _mm256_set1_epi32((n + 1) as i32);
     let (prime_y, prime_z) = (
-        _mm256_set1_epi32(super::hash_grid::PRIME_Y as i32),
-        _mm256_set1_epi32(super::hash_grid::PRIME_Z as i32),
+        _mm256_set1_epi32(level.primes[0] as i32),
+        _mm256_set1_epi32(level.primes[1] as i32),
     );
     for k in 0..8 {
         let b = [k & 1, (k >> 1) & 1, (k >> 2) & 1];
@@ -144,47 +157,4 @@ pub(crate) unsafe fn interpolate8<const C: usize, const G: usize>(
         _mm256_storeu_ps(out[1].as_mut_ptr(), f[1]);
     }
     out
-}
-
-#[cfg(all(test, target_arch = "x86_64"))]
-mod tests {
-    use super::*;
-    use crate::encoding::{HashGrid, HashGridConfig};
-    use crate::nn::ParamLayout;
-    use crate::rng::Rng;
-
-    /// Every lane against the scalar corners, bit for bit, on dense and hashed levels, with
-    /// points on the faces, outside the cube and at its corners.
-    #[test]
-    fn eight_lanes_equal_the_scalar_corners() {
-        if !available() {
-            eprintln!("skipped: this CPU has no AVX2");
-            return;
-        }
-        let mut layout = ParamLayout::default();
-        let grid = HashGrid::new(HashGridConfig::default(), "hash.", &mut layout);
-        assert!(grid.levels.iter().any(|l| l.dense) && grid.levels.iter().any(|l| !l.dense));
-        let mut rng = Rng::new(5);
-        let mut points: Vec<f32> = (0..64 * 3).map(|_| rng.range(-0.2, 1.2)).collect();
-        points[..12]
-            .copy_from_slice(&[0.0, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -0.0, 2.0, 0.25]);
-        for level in &grid.levels {
-            for group in points.chunks_exact(3 * LANES) {
-                let mut idx = [[0u32; LANES]; 8];
-                let mut w = [[0f32; LANES]; 8];
-                let group: &[f32; 3 * LANES] = group.try_into().expect("a group");
-                // SAFETY: AVX2 was checked above.
-                unsafe { corners8(level, group, &mut idx, &mut w) };
-                for j in 0..LANES {
-                    let (want_idx, want_w) =
-                        level.corners([group[3 * j], group[3 * j + 1], group[3 * j + 2]]);
-                    for k in 0..8 {
-                        assert_eq!(idx[k][j], want_idx[k], "level {level:?}, point {j}");
-                        // Equal as numbers (a face's -0 weight may come out +0).
-                        assert_eq!(w[k][j], want_w[k], "level {level:?}, point {j}");
-                    }
-                }
-            }
-        }
-    }
 }

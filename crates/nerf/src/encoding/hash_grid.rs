@@ -23,8 +23,8 @@ use super::grid_simd;
 /// Features per level (the paper's choice, and what the kernels are written for).
 pub const FEATURES: usize = 2;
 
-pub(crate) const PRIME_Y: u32 = 2_654_435_761;
-pub(crate) const PRIME_Z: u32 = 805_459_861;
+const PRIME_Y: u32 = 2_654_435_761;
+const PRIME_Z: u32 = 805_459_861;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct HashGridConfig {
@@ -68,6 +68,16 @@ impl Level {
             (x + s * (y + s * z)) as usize
         } else {
             ((x ^ y.wrapping_mul(PRIME_Y) ^ z.wrapping_mul(PRIME_Z)) as usize) & (self.entries - 1)
+        }
+    }
+
+    /// What the vectorised corners need of the level.
+    fn shape(&self) -> grid_simd::LevelShape {
+        grid_simd::LevelShape {
+            resolution: self.resolution,
+            entries: self.entries,
+            dense: self.dense,
+            primes: [PRIME_Y, PRIME_Z],
         }
     }
 
@@ -348,7 +358,7 @@ impl Lattice<3, 8> for Level {
             for (g, group) in points.chunks_exact(3 * LANES).enumerate() {
                 let group: &[f32; 3 * LANES] = group.try_into().expect("chunks_exact");
                 // SAFETY: AVX2 is present (checked above).
-                unsafe { grid_simd::corners8(self, group, &mut idx, &mut w) };
+                unsafe { grid_simd::corners8(self.shape(), group, &mut idx, &mut w) };
                 for k in 0..8 {
                     out.idx[k][g * LANES..][..LANES].copy_from_slice(&idx[k]);
                     out.w[k][g * LANES..][..LANES].copy_from_slice(&w[k]);
@@ -575,6 +585,43 @@ mod tests {
                 (f[0] - pts[3 * s]).abs() < 1e-6 && (f[1] - 1.0).abs() < 1e-6,
                 "{f:?}"
             );
+        }
+    }
+
+    /// Eight lanes of the AVX2 corners against the scalar corners, bit for bit, on dense
+    /// and hashed levels, with points on the faces, outside the cube and at its corners.
+    #[cfg(target_arch = "x86_64")]
+    #[test]
+    fn eight_lanes_equal_the_scalar_corners() {
+        use grid_simd::LANES;
+        if !grid_simd::available() {
+            eprintln!("skipped: this CPU has no AVX2");
+            return;
+        }
+        let mut layout = ParamLayout::default();
+        let grid = HashGrid::new(HashGridConfig::default(), "hash.", &mut layout);
+        assert!(grid.levels.iter().any(|l| l.dense) && grid.levels.iter().any(|l| !l.dense));
+        let mut rng = Rng::new(5);
+        let mut points: Vec<f32> = (0..64 * 3).map(|_| rng.range(-0.2, 1.2)).collect();
+        points[..12]
+            .copy_from_slice(&[0.0, 1.0, 0.5, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, -0.0, 2.0, 0.25]);
+        for level in &grid.levels {
+            for group in points.chunks_exact(3 * LANES) {
+                let mut idx = [[0u32; LANES]; 8];
+                let mut w = [[0f32; LANES]; 8];
+                let group: &[f32; 3 * LANES] = group.try_into().expect("a group");
+                // SAFETY: AVX2 was checked above.
+                unsafe { grid_simd::corners8(level.shape(), group, &mut idx, &mut w) };
+                for j in 0..LANES {
+                    let (want_idx, want_w) =
+                        level.corners([group[3 * j], group[3 * j + 1], group[3 * j + 2]]);
+                    for k in 0..8 {
+                        assert_eq!(idx[k][j], want_idx[k], "level {level:?}, point {j}");
+                        // Equal as numbers (a face's -0 weight may come out +0).
+                        assert_eq!(w[k][j], want_w[k], "level {level:?}, point {j}");
+                    }
+                }
+            }
         }
     }
 
