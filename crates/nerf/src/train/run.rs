@@ -321,7 +321,7 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
         if let Some(checker) = &mut checker {
             let after =
                 config.progress(trainer.step, elapsed_before + start.elapsed().as_secs_f64());
-            if let Some(last) = Checker::due(before, after) {
+            if let Some(last) = Checker::due(before, after, stats.step) {
                 let report = checker.run(&mut trainer, last)?;
                 for s in &report.stuck {
                     let line = super::stuck_cameras::describe(s, stats.step);

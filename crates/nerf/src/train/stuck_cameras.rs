@@ -41,6 +41,11 @@ pub const BETTER: f32 = 0.7;
 /// leaves out the cameras still stuck.
 pub const CHECKS: [f32; 5] = [0.2, 0.3, 0.4, 0.5, 0.6];
 
+/// Checks falling before this step are skipped: the field is still fog that explains every
+/// photo about equally badly, so a ratio to the median says nothing yet, and a search
+/// would cost far more than the few steps a run this short trains.
+pub const FIRST_CHECK_STEP: u64 = 100;
+
 /// The probes' longest sides in pixels: the coarse one scores the search's wide sweep
 /// (smooth enough that a pose tens of degrees off still sees the way back), the fine one
 /// finds stuck cameras and places them to a degree.
@@ -424,8 +429,12 @@ impl Checker {
     }
 
     /// Whether a check falls between schedule fractions `before` and `after` (a step's
-    /// progress before and after it), and whether it is the last.
-    pub fn due(before: f64, after: f64) -> Option<bool> {
+    /// progress before and after it) of the step that ends at `step`, and whether it is
+    /// the last; none before [`FIRST_CHECK_STEP`].
+    pub fn due(before: f64, after: f64, step: u64) -> Option<bool> {
+        if step < FIRST_CHECK_STEP {
+            return None;
+        }
         CHECKS
             .iter()
             .rposition(|&f| (before as f32) < f && f <= after as f32)
@@ -550,16 +559,20 @@ mod tests {
 
     #[test]
     fn checks_fall_where_a_step_crosses_their_fraction() {
-        assert_eq!(Checker::due(0.0, 0.1), None);
-        assert_eq!(Checker::due(0.19, 0.2), Some(false));
+        let step = FIRST_CHECK_STEP;
+        assert_eq!(Checker::due(0.0, 0.1, step), None);
+        assert_eq!(Checker::due(0.19, 0.2, step), Some(false));
         // A step that starts on a check's fraction comes after it (a resumed run).
-        assert_eq!(Checker::due(0.2, 0.21), None);
-        assert_eq!(Checker::due(0.59, 0.61), Some(true));
-        assert_eq!(Checker::due(0.6, 1.0), None);
+        assert_eq!(Checker::due(0.2, 0.21, step), None);
+        assert_eq!(Checker::due(0.59, 0.61, step), Some(true));
+        assert_eq!(Checker::due(0.6, 1.0, step), None);
         // One step of a short run crosses several fractions: one check, the last if it
         // crosses the last.
-        assert_eq!(Checker::due(0.0, 0.5), Some(false));
-        assert_eq!(Checker::due(0.0, 0.7), Some(true));
+        assert_eq!(Checker::due(0.0, 0.5, step), Some(false));
+        assert_eq!(Checker::due(0.0, 0.7, step), Some(true));
+        // A run too short for the field to explain any photo yet is not checked.
+        assert_eq!(Checker::due(0.19, 0.2, FIRST_CHECK_STEP - 1), None);
+        assert_eq!(Checker::due(0.59, 0.61, 50), None);
     }
 
     #[test]
