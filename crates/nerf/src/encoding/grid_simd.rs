@@ -1,7 +1,7 @@
 //! The hash grids' inner loops for eight samples at once (AVX2), one vector lane per
 //! sample: a cell's corners (table indices and trilinear weights, [`corners8`]) and the
 //! weighted sum of the corners' features ([`interpolate8`]). Their tests, against the
-//! scalar loops, sit with the grids.
+//! scalar loops, sit with the grids; other CPUs run those scalar loops.
 //!
 //! The numbers are those of the scalar loops to the bit: the same operations in the same
 //! order (no fused multiply-adds, the weights multiplied x, then y, then z, the corners
@@ -25,17 +25,10 @@ pub(crate) struct LevelShape {
 /// Samples per call: the lanes of one AVX2 vector of `f32`.
 pub(crate) const LANES: usize = 8;
 
-/// Whether this CPU runs [`corners8`] (checked once; the standard library caches it).
+/// Whether this CPU runs the loops (checked once; the standard library caches it).
 #[inline]
 pub(crate) fn available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    std::is_x86_feature_detected!("avx2")
 }
 
 /// The corners of [`LANES`] points (`points`: packed `x, y, z`) in a level of `shape`
@@ -44,7 +37,6 @@ pub(crate) fn available() -> bool {
 ///
 /// # Safety
 /// The CPU must have AVX2 ([`available`]).
-#[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 pub(crate) unsafe fn corners8(
     level: LevelShape,
@@ -114,7 +106,6 @@ pub(crate) unsafe fn corners8(
 /// # Safety
 /// The CPU must have AVX2 ([`available`]), and every `idx[k][first + j]` must index an
 /// entry of `table` (`2 * idx + 1 < table.len()`).
-#[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 pub(crate) unsafe fn interpolate8<const C: usize, const G: usize>(
     table: &[f32],

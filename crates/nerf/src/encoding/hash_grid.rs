@@ -18,6 +18,7 @@ use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;
 
+#[cfg(target_arch = "x86_64")]
 use super::grid_simd;
 
 /// Features per level (the paper's choice, and what the kernels are written for).
@@ -72,6 +73,7 @@ impl Level {
     }
 
     /// What the vectorised corners need of the level.
+    #[cfg(target_arch = "x86_64")]
     fn shape(&self) -> grid_simd::LevelShape {
         grid_simd::LevelShape {
             resolution: self.resolution,
@@ -321,6 +323,7 @@ impl<const C: usize> Corners<C> {
 pub(crate) trait Lattice<const D: usize, const C: usize> {
     /// Whether encoding through this lattice may use the vectorised loops where the CPU
     /// has them (off only for the scalar reference).
+    #[cfg_attr(not(target_arch = "x86_64"), allow(dead_code))]
     const VECTORISED: bool = true;
     /// Where the level's table starts in the parameter vector (floats), and its entries.
     fn table(&self) -> (usize, usize);
@@ -349,6 +352,7 @@ impl Lattice<3, 8> for Level {
     /// Eight samples at a time where the CPU has AVX2 (the same numbers, [`grid_simd`]).
     #[inline(always)]
     fn group_corners(&self, points: &[f32], out: &mut Corners<8>) {
+        #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
         let mut done = 0;
         #[cfg(target_arch = "x86_64")]
         if grid_simd::available() {
@@ -399,6 +403,7 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
     let d = levels.len() * FEATURES;
     let n = points.len() / D;
     assert!(out.len() >= n * d);
+    #[cfg(target_arch = "x86_64")]
     let vectorised = L::VECTORISED && grid_simd::available();
     let mut corners = Corners::<C>::default();
     for (l, level) in levels.iter().enumerate() {
@@ -407,6 +412,7 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
         for first in (0..n).step_by(GROUP) {
             let len = GROUP.min(n - first);
             corners.compute(level, table, &points[first * D..(first + len) * D]);
+            #[cfg_attr(not(target_arch = "x86_64"), allow(unused_mut))]
             let mut j = 0;
             #[cfg(target_arch = "x86_64")]
             if vectorised {

@@ -1,6 +1,7 @@
 //! Input encodings of positions and directions.
 
 pub mod frequency;
+#[cfg(target_arch = "x86_64")]
 mod grid_simd;
 pub mod hash_grid;
 pub mod integrated;
