@@ -32,17 +32,18 @@ pub(crate) fn available() -> bool {
 }
 
 /// The corners of [`LANES`] points (`points`: packed `x, y, z`) in a level of `shape`
-/// (the scalar `Level::corners` of the hash grid, eight at a time): `idx[k]` and
-/// `w[k]` receive corner `k`'s table indices and weights, lane `j` for point `j`.
+/// (the scalar `Level::corners` of the hash grid, eight at a time): `idx[k][first + j]`
+/// and `w[k][first + j]` receive corner `k`'s table index and weight of point `j`.
 ///
 /// # Safety
 /// The CPU must have AVX2 ([`available`]).
 #[target_feature(enable = "avx2")]
-pub(crate) unsafe fn corners8(
+pub(crate) unsafe fn corners8<const G: usize>(
     level: LevelShape,
     points: &[f32; 3 * LANES],
-    idx: &mut [[u32; LANES]; 8],
-    w: &mut [[f32; LANES]; 8],
+    idx: &mut [[u32; G]; 8],
+    w: &mut [[f32; G]; 8],
+    first: usize,
 ) {
     use std::arch::x86_64::*;
     let n = level.resolution;
@@ -91,10 +92,14 @@ pub(crate) unsafe fn corners8(
         };
         let pick = |a: usize| if b[a] == 1 { frac[a] } else { rest[a] };
         let weight = _mm256_mul_ps(_mm256_mul_ps(pick(0), pick(1)), pick(2));
-        // SAFETY: `idx[k]` and `w[k]` hold LANES values each; unaligned stores.
+        let (idx, w) = (
+            &mut idx[k][first..first + LANES],
+            &mut w[k][first..first + LANES],
+        );
+        // SAFETY: `idx` and `w` hold LANES values each; unaligned stores.
         unsafe {
-            _mm256_storeu_si256(idx[k].as_mut_ptr().cast::<__m256i>(), index);
-            _mm256_storeu_ps(w[k].as_mut_ptr(), weight);
+            _mm256_storeu_si256(idx.as_mut_ptr().cast::<__m256i>(), index);
+            _mm256_storeu_ps(w.as_mut_ptr(), weight);
         }
     }
 }

@@ -357,16 +357,11 @@ impl Lattice<3, 8> for Level {
         #[cfg(target_arch = "x86_64")]
         if grid_simd::available() {
             use grid_simd::LANES;
-            let mut idx = [[0u32; LANES]; 8];
-            let mut w = [[0f32; LANES]; 8];
+            let shape = self.shape();
             for (g, group) in points.chunks_exact(3 * LANES).enumerate() {
                 let group: &[f32; 3 * LANES] = group.try_into().expect("chunks_exact");
                 // SAFETY: AVX2 is present (checked above).
-                unsafe { grid_simd::corners8(self.shape(), group, &mut idx, &mut w) };
-                for k in 0..8 {
-                    out.idx[k][g * LANES..][..LANES].copy_from_slice(&idx[k]);
-                    out.w[k][g * LANES..][..LANES].copy_from_slice(&w[k]);
-                }
+                unsafe { grid_simd::corners8(shape, group, &mut out.idx, &mut out.w, g * LANES) };
             }
             done = points.len() / (3 * LANES) * LANES;
         }
@@ -617,7 +612,7 @@ mod tests {
                 let mut w = [[0f32; LANES]; 8];
                 let group: &[f32; 3 * LANES] = group.try_into().expect("a group");
                 // SAFETY: AVX2 was checked above.
-                unsafe { grid_simd::corners8(level.shape(), group, &mut idx, &mut w) };
+                unsafe { grid_simd::corners8(level.shape(), group, &mut idx, &mut w, 0) };
                 for j in 0..LANES {
                     let (want_idx, want_w) =
                         level.corners([group[3 * j], group[3 * j + 1], group[3 * j + 2]]);
