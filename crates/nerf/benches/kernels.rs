@@ -1,7 +1,9 @@
 //! `cargo bench --bench kernels`: our hand-written kernels against the plain versions they
 //! replace, measured in the same run (median of repeated runs): the fused ReLU backward on
 //! one chunk of the paper's model (64 rays x 192 samples = 12288 rows of 256), the grouped
-//! hash-grid encoding (eight samples at a time with AVX2), and the dirty-block gradient update of the fast model.
+//! hash-grid encoding (eight samples at a time with AVX2), the dirty-block gradient update of
+//! the fast model, Adam's loop in the CPU's widest vectors, and the anti-aliased level
+//! weights.
 
 use std::time::Instant;
 
@@ -57,6 +59,83 @@ fn main() {
     for touched in [0.05, 0.25, 0.5, 1.0] {
         sparse_update(touched);
     }
+    adam_widths();
+    level_weights();
+}
+
+/// Adam's loop in the baseline's vectors against the widest the CPU has, on one segment of
+/// the gradient buffer (the unit a thread updates), in cache and out of it.
+fn adam_widths() {
+    use nerf::nn::adam::{update_slices, update_slices_baseline, Adam, AdamConfig, Rule, Slices};
+    for n in [1 << 16, 1 << 23] {
+        let mut p = vec![0.01f32; n];
+        let g: Vec<f32> = (0..n).map(|i| ((i * 7919) % 13) as f32 * 1e-3).collect();
+        let (mut m, mut v) = (vec![0.0f32; n], vec![0.0f32; n]);
+        let mut adam = Adam::new(AdamConfig::default(), 1);
+        let step = adam.begin_step(1e-3);
+        let rule = Rule {
+            lazy: true,
+            ..Rule::default()
+        };
+        let mut time = |update: fn(&AdamConfig, _, Slices, Rule)| {
+            median_seconds(15, || {
+                let s = Slices {
+                    params: &mut p,
+                    grads: &g,
+                    m: &mut m,
+                    v: &mut v,
+                };
+                update(&AdamConfig::default(), step, s, rule);
+            })
+        };
+        let baseline = time(update_slices_baseline);
+        let widest = time(update_slices);
+        println!("\nAdam update of {n} parameters, one thread:");
+        println!(
+            "  baseline vectors (SSE2 on x86-64): {:8.3} ms",
+            baseline * 1e3
+        );
+        println!(
+            "  widest the CPU has:                {:8.3} ms",
+            widest * 1e3
+        );
+        println!("  speed-up: {:.2}x", baseline / widest);
+    }
+}
+
+/// The anti-aliased field's level weights of 8192 samples x 16 levels: the library's erf
+/// (a call to `exp` per value) against the branch-free one the field uses, which vectorises.
+fn level_weights() {
+    use nerf::math::{erf, erf_of_inv_sqrt};
+    let (n, levels) = (8192usize, 16usize);
+    let sigmas: Vec<f32> = (0..n).map(|i| 1e-4 + (i % 97) as f32 * 5e-5).collect();
+    let factors: Vec<f32> = (0..levels)
+        .map(|l| 8.0 * (16.0 * 1.38f32.powi(l as i32)).powi(2))
+        .collect();
+    let mut out = vec![0.0f32; n * levels];
+    // Generic, so each weight inlines into its loop as it does in the field.
+    fn fill(out: &mut [f32], sigmas: &[f32], factors: &[f32], weight: impl Fn(f32) -> f32) {
+        for (row, s) in out.chunks_exact_mut(factors.len()).zip(sigmas) {
+            for (w, f) in row.iter_mut().zip(factors) {
+                *w = weight(s * s * f);
+            }
+        }
+        std::hint::black_box(out);
+    }
+    let library = median_seconds(21, || {
+        fill(&mut out, &sigmas, &factors, |x| {
+            if x <= 0.0 {
+                1.0
+            } else {
+                erf(x.sqrt().recip())
+            }
+        })
+    });
+    let branch_free = median_seconds(21, || fill(&mut out, &sigmas, &factors, erf_of_inv_sqrt));
+    println!("\nanti-aliasing level weights, {n} samples x {levels} levels:");
+    println!("  library erf:     {:8.3} ms", library * 1e3);
+    println!("  branch-free erf: {:8.3} ms", branch_free * 1e3);
+    println!("  speed-up: {:.2}x", library / branch_free);
 }
 
 /// The hash-grid encoding with its gathers grouped and prefetched, against the plain loop,
@@ -175,7 +254,7 @@ fn sparse_update(touched: f64) {
                     s,
                     Rule {
                         lazy: true,
-                        weight_decay: 0.0,
+                        ..Rule::default()
                     },
                 );
                 g.fill(0.0);

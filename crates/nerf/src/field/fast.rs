@@ -23,6 +23,9 @@ use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
 use crate::nn::grow;
 use crate::nn::linalg::{matmul, MatRef};
+
+pub use super::level_weights::level_weight;
+use super::level_weights::{cell_factor, fill_level_weights};
 use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;
@@ -70,18 +73,6 @@ pub struct Antialias {
     /// occupancy grid and of meshes. The training rays' typical footprint, so those see
     /// what the training saw.
     pub reference_footprint: f32,
-}
-
-/// The weight of a level of `resolution` cells per axis for a footprint of standard
-/// deviation `sigma` in unit-cube units (see [`Antialias`]).
-#[inline]
-pub fn level_weight(sigma: f32, resolution: u32) -> f32 {
-    let x = 8.0 * (sigma * resolution as f32).powi(2);
-    if x <= 0.0 {
-        1.0
-    } else {
-        crate::math::erf(x.sqrt().recip())
-    }
 }
 
 impl Default for FastFieldConfig {
@@ -267,13 +258,17 @@ impl FastField {
         let levels = &self.grid.levels;
         grow(out, n * levels.len());
         let to_unit = 0.5 / self.config.bound;
-        for (s, row) in out.chunks_exact_mut(levels.len()).take(n).enumerate() {
-            let sigma = footprints.get(s).copied().unwrap_or(aa.reference_footprint) * to_unit;
-            for (l, (w, level)) in row.iter_mut().zip(levels).enumerate() {
-                let schedule = self.level_weights.get(l).copied().unwrap_or(1.0);
-                *w = schedule * level_weight(sigma, level.resolution);
-            }
-        }
+        let factors: Vec<f32> = levels.iter().map(|l| cell_factor(l.resolution)).collect();
+        let schedule: Vec<f32> = (0..levels.len())
+            .map(|l| self.level_weights.get(l).copied().unwrap_or(1.0))
+            .collect();
+        let sigma2: Vec<f32> = (0..n)
+            .map(|s| {
+                let sigma = footprints.get(s).copied().unwrap_or(aa.reference_footprint) * to_unit;
+                sigma * sigma
+            })
+            .collect();
+        fill_level_weights(&mut out[..n * levels.len()], &sigma2, &factors, &schedule);
     }
 
     /// Scales each level's features (`n x dims()`, in place) by its weight: the sample's
@@ -1067,23 +1062,6 @@ mod tests {
         backward_matches_finite_differences_of(&field, &[], &footprints);
         // No footprints: the reference footprint everywhere.
         backward_matches_finite_differences_of(&field, &[], &[]);
-    }
-
-    /// A level is weighed by how many of its cells a footprint covers: all of it for a
-    /// point, less for finer levels and wider footprints, nothing in the limit.
-    #[test]
-    fn level_weights_fall_with_footprint_and_resolution() {
-        assert_eq!(level_weight(0.0, 2048), 1.0);
-        assert!(level_weight(1e-5, 16) > 0.999_999);
-        let by_level: Vec<f32> = [16, 64, 256, 1024, 4096]
-            .iter()
-            .map(|&n| level_weight(1e-3, n))
-            .collect();
-        assert!(by_level.windows(2).all(|w| w[1] <= w[0]), "{by_level:?}");
-        assert!(by_level[0] > 0.999 && by_level[4] < 0.2, "{by_level:?}");
-        // One cell as wide as the footprint's standard deviation: erf(1 / sqrt(8)).
-        assert!((level_weight(0.01, 100) - 0.383_8).abs() < 1e-3);
-        assert!(level_weight(1.0, 4096) < 1e-3);
     }
 
     /// With footprints far below every cell, anti-aliasing changes nothing; density

@@ -2,6 +2,7 @@
 
 pub mod deformation;
 pub mod fast;
+mod level_weights;
 pub mod vanilla;
 
 pub use deformation::DeformationConfig;
