@@ -1,10 +1,11 @@
 //! Named configurations: the paper's model and the rows of its ablation table (NeRF,
-//! Table 2, Realistic Synthetic 360), mip-NeRF's and D-NeRF's models, and a reduced model for
+//! Table 2, Realistic Synthetic 360), mip-NeRF's, D-NeRF's and FreeNeRF's models, and a reduced model for
 //! quick CPU demos.
 
 use crate::encoding::FrequencyEncoding;
 use crate::error::{NerfError, Result};
 use crate::field::{DeformationConfig, VanillaConfig};
+use crate::model::free_nerf::FreeNerf;
 use crate::model::VanillaModelConfig;
 
 /// A named configuration of the model and the training views it sees.
@@ -75,6 +76,11 @@ pub const PRESETS: &[Preset] = &[
         paper_psnr: None,
     },
     Preset {
+        name: "freenerf",
+        help: "FreeNeRF for few photos: the paper's model with its encoding's frequencies revealed over 90% of training and the density of each ray's first 10 samples penalised; not in the NeRF paper",
+        paper_psnr: None,
+    },
+    Preset {
         name: "demo",
         help: "reduced model for minutes on a CPU (4x64 trunk, 32+32 samples); not in the paper",
         paper_psnr: None,
@@ -96,6 +102,7 @@ pub fn paper() -> VanillaModelConfig {
         n_fine: 128,
         integrated: false,
         shared_network: false,
+        free_nerf: None,
     }
 }
 
@@ -151,6 +158,7 @@ pub fn build(name: &str) -> Result<(VanillaModelConfig, Option<usize>)> {
             m.shared_network = true;
         }
         "dnerf" => m.net.deformation = Some(DeformationConfig::dnerf()),
+        "freenerf" => m.free_nerf = Some(FreeNerf::default()),
         "demo" => {
             m.net = VanillaConfig {
                 depth: 4,
@@ -196,6 +204,11 @@ mod tests {
                 "dnerf" => assert!(
                     m.net.deformation == Some(DeformationConfig::dnerf())
                         && m.net.width == 256
+                        && m.hierarchical()
+                ),
+                "freenerf" => assert!(
+                    m.free_nerf == Some(FreeNerf::default())
+                        && m.net == paper().net
                         && m.hierarchical()
                 ),
                 "mip" => assert!(

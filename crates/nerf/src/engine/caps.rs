@@ -33,10 +33,12 @@ pub enum Feature {
     FewView,
     /// A field of space and time for a moving scene (`--dynamic`).
     Dynamic,
+    /// FreeNeRF's frequency mask and occlusion penalty (`--preset freenerf`).
+    FreeNerf,
 }
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
-const TABLE: [(Feature, bool, bool); 7] = [
+const TABLE: [(Feature, bool, bool); 8] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, false),
@@ -44,11 +46,12 @@ const TABLE: [(Feature, bool, bool); 7] = [
     (Feature::Mip, true, true),
     (Feature::FewView, true, true),
     (Feature::Dynamic, true, false),
+    (Feature::FreeNerf, true, false),
 ];
 
 impl Feature {
     /// Every feature, in the table's order.
-    pub const ALL: [Feature; 7] = [
+    pub const ALL: [Feature; 8] = [
         Feature::Antialias,
         Feature::Appearance,
         Feature::CameraRefinement,
@@ -56,6 +59,7 @@ impl Feature {
         Feature::Mip,
         Feature::FewView,
         Feature::Dynamic,
+        Feature::FreeNerf,
     ];
 
     /// Its name and the flags that ask for it and turn it off, for messages.
@@ -77,6 +81,9 @@ impl Feature {
                 "the moving scene's field of space and time (--dynamic or --preset dnerf; \
                  --no-dynamic trains a still fast field)"
             }
+            Feature::FreeNerf => {
+                "FreeNeRF's frequency mask and occlusion penalty (--preset freenerf)"
+            }
         }
     }
 
@@ -92,6 +99,7 @@ impl Feature {
                 (Feature::FewView, ModelConfig::Fast(c)) => c.few_view.is_some(),
                 (Feature::Dynamic, _) => model.is_dynamic(),
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
+                (Feature::FreeNerf, ModelConfig::Vanilla(c)) => c.free_nerf.is_some(),
                 _ => false,
             })
             .collect()
@@ -197,6 +205,9 @@ mod tests {
     fn the_mip_preset_is_a_feature_of_the_paper_model() {
         let preset = |name| ModelConfig::Vanilla(crate::presets::build(name).expect(name).0);
         assert_eq!(Feature::used_by(&preset("mip")), [Feature::Mip]);
+        assert_eq!(Feature::used_by(&preset("freenerf")), [Feature::FreeNerf]);
+        assert!(refusal(EngineKind::Gpu, &preset("freenerf"))
+            .is_some_and(|why| why.contains("--preset freenerf")));
         assert_eq!(Feature::used_by(&preset("paper")), []);
     }
 

@@ -76,6 +76,9 @@ pub struct VanillaNet {
     trunk: Trunk,
     heads: Heads,
     deformation: Option<Deformation>,
+    /// FreeNeRF's frequency regularisation: each band of the position's encoding scaled by
+    /// its visibility (`model::free_nerf`); empty: every band whole.
+    pub band_mask: Vec<f32>,
 }
 
 #[derive(Clone, Debug)]
@@ -131,6 +134,23 @@ impl VanillaNet {
             trunk,
             heads,
             deformation,
+            band_mask: Vec::new(),
+        }
+    }
+
+    /// Scales each band of `n` encoded positions (`n x dims()`, in place) by
+    /// [`Self::band_mask`]; the raw position (the reference form's first three values)
+    /// passes whole.
+    fn mask_bands(&self, encoded: &mut [f32]) {
+        if self.band_mask.is_empty() {
+            return;
+        }
+        let e = self.config.position_encoding;
+        let first = e.dims() - 6 * e.frequencies;
+        for row in encoded.chunks_exact_mut(e.dims()) {
+            for (band, &m) in row[first..].chunks_exact_mut(6).zip(&self.band_mask) {
+                band.iter_mut().for_each(|v| *v *= m);
+            }
         }
     }
 
@@ -221,6 +241,7 @@ impl VanillaNet {
             }
         }
 
+        self.mask_bands(&mut ws.enc[..n * in_x]);
         self.trunk.forward(params, &ws.enc, n, &mut ws.hidden);
         let last = &ws.hidden[cfg.depth - 1][..n * w];
         match &self.heads {
@@ -480,6 +501,8 @@ impl VanillaNet {
             deformation.map(|_| &mut ws.d_enc[..n * in_x]),
         );
         if let Some(d) = deformation {
+            // The trunk's input gradient is the masked encoding's.
+            self.mask_bands(&mut ws.d_enc[..n * in_x]);
             let moved = &ws.deform.moved[..n * 3];
             for ((p, d_enc), d_p) in moved
                 .chunks_exact(3)
@@ -693,7 +716,13 @@ mod tests {
     /// As [`check_gradients`]; `moving`: every sample at its own moment (some at 0, where
     /// the deformation is off), so the deformation's gradients are checked too.
     fn check_gradients_at(cfg: VanillaConfig, moving: bool) {
-        let net = VanillaNet::new(cfg, "");
+        check_masked_gradients(cfg, moving, &[]);
+    }
+
+    /// As [`check_gradients_at`], with the position encoding's bands masked by `mask`.
+    fn check_masked_gradients(cfg: VanillaConfig, moving: bool, mask: &[f32]) {
+        let mut net = VanillaNet::new(cfg, "");
+        net.band_mask = mask.to_vec();
         let mut rng = Rng::new(11);
         let mut params = net.layout.init_glorot(&mut rng);
         // Non-zero biases so ReLU kinks are generic.
@@ -790,6 +819,49 @@ mod tests {
             ..tiny(true)
         };
         check_gradients_at(cfg, true);
+    }
+
+    /// FreeNeRF's mask scales the bands in the forward and, through a deformation, in the
+    /// input's gradient; a band masked to zero leaves the outputs unmoved.
+    #[test]
+    fn gradients_with_masked_bands() {
+        let cfg = VanillaConfig {
+            deformation: Some(DeformationConfig {
+                depth: 3,
+                width: 6,
+                skip: Some(0),
+                time_frequencies: 2,
+            }),
+            ..tiny(true)
+        };
+        let bands = cfg.position_encoding.frequencies;
+        assert!(bands >= 2, "the tiny net has {bands} bands");
+        let mut mask = vec![0.0; bands];
+        mask[0] = 1.0;
+        mask[1] = 0.4;
+        check_masked_gradients(cfg.clone(), true, &mask);
+        // The masked encoding: the raw position whole, each band times its visibility.
+        let mut net = VanillaNet::new(
+            VanillaConfig {
+                deformation: None,
+                ..cfg
+            },
+            "",
+        );
+        net.band_mask = mask.clone();
+        let e = net.config.position_encoding;
+        let mut enc = vec![0.0; e.dims()];
+        e.encode(&[0.3, -0.2, 0.7], &mut enc);
+        let mut masked = enc.clone();
+        net.mask_bands(&mut masked);
+        let first = e.dims() - 6 * bands;
+        assert_eq!(masked[..first], enc[..first]);
+        for (k, &m) in mask.iter().enumerate() {
+            for j in 0..6 {
+                let at = first + 6 * k + j;
+                assert_eq!(masked[at], enc[at] * m, "band {k}");
+            }
+        }
     }
 
     /// At moment 0 the deformation is off: the field is its canonical network alone, and

@@ -9,6 +9,7 @@
 pub mod camera_refine;
 pub mod fast;
 pub mod few_view;
+pub mod free_nerf;
 pub mod vanilla;
 
 use serde::{Deserialize, Serialize};
@@ -105,7 +106,7 @@ impl ModelConfig {
     pub fn describe(&self) -> String {
         match self {
             ModelConfig::Vanilla(m) => format!(
-                "{}x{} MLP, PE L={}/{}, {} coarse + {} fine samples{}",
+                "{}x{} MLP, PE L={}/{}, {} coarse + {} fine samples{}{}",
                 m.net.depth,
                 m.net.width,
                 m.net.position_encoding.frequencies,
@@ -121,6 +122,12 @@ impl ModelConfig {
                         ", deformation {}x{} MLP (time PE L={})",
                         d.depth, d.width, d.time_frequencies
                     )),
+                m.free_nerf.map_or(String::new(), |f| format!(
+                    ", FreeNeRF (bands revealed over {:.0}% of training, density of the first {} samples penalised x {})",
+                    100.0 * f.reveal_until,
+                    f.occlusion_samples,
+                    f.occlusion_weight
+                )),
             ),
             ModelConfig::Fast(m) => {
                 let g = &m.field.grid;

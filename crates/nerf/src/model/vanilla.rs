@@ -4,6 +4,7 @@
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::free_nerf::FreeNerf;
 use super::{Model, PassTotals, StepInput, Worker};
 use crate::data::pixels::TrainingRays;
 use crate::field::{VanillaConfig, VanillaNet, VanillaWorkspace};
@@ -34,6 +35,9 @@ pub struct VanillaModelConfig {
     /// integrated encoding tells the scales apart); else a fine network of its own.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub shared_network: bool,
+    /// FreeNeRF's few-view regularisers (`--preset freenerf`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub free_nerf: Option<FreeNerf>,
 }
 
 impl VanillaModelConfig {
@@ -259,13 +263,15 @@ fn pass_forward(
 }
 
 /// Loss of the last pass against `targets`, its backward through compositing and the
-/// network (gradients of the summed squared error into `grads`). Returns the pass's sum of
-/// squared errors.
+/// network (gradients of the summed squared error, and of FreeNeRF's occlusion penalty when
+/// given, into `grads`). Returns the pass's sum of squared errors.
+#[allow(clippy::too_many_arguments)]
 fn pass_backward(
     net: &VanillaNet,
     params: &[f32],
     rays: &RayBatch,
     targets: &[[f32; 3]],
+    occlusion: Option<&FreeNerf>,
     ws: &mut ChunkWorkspace,
     grads: &mut Grads,
     check: &FiniteCheck,
@@ -278,6 +284,12 @@ fn pass_backward(
     let sse = ws
         .loss
         .run(&ws.samples, field, &rays.backgrounds, &ws.outputs, targets);
+    if let Some(free) = occlusion {
+        let spr = ws.samples.samples_per_dir;
+        ws.loss.add_penalty(|d_sigma| {
+            free.add_occlusion(field.sigma, spr, d_sigma);
+        });
+    }
     check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
     check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
     net.backward(params, &mut ws.net, ws.loss.field_grad(), grads);
@@ -376,6 +388,7 @@ impl VanillaModel {
             p_coarse,
             &batch.rays,
             &batch.targets,
+            self.config.free_nerf.as_ref(),
             ws,
             &mut grads.window(self.coarse_range()),
             check,
@@ -393,6 +406,7 @@ impl VanillaModel {
                 p_fine,
                 &batch.rays,
                 &batch.targets,
+                self.config.free_nerf.as_ref(),
                 ws,
                 &mut grads.window(range),
                 check,
@@ -414,6 +428,19 @@ impl Model for VanillaModel {
 
     fn init_params(&self, seed: u64) -> Vec<f32> {
         VanillaModel::init_params(self, seed)
+    }
+
+    /// FreeNeRF: the position encoding's bands visible at this point of training.
+    fn set_progress(&mut self, progress: f32) {
+        let Some(free) = self.config.free_nerf else {
+            return;
+        };
+        let bands = self.config.net.position_encoding.frequencies;
+        let mask = free.band_mask(bands, progress);
+        if let Some(fine) = &mut self.fine {
+            fine.band_mask.clone_from(&mask);
+        }
+        self.coarse.band_mask = mask;
     }
 
     /// The paper's step: `batch_rays` rays in chunks of `chunk_rays`, chunk `k` on worker
@@ -606,6 +633,41 @@ mod tests {
         assert!(trace(2) > trace(0), "a wider pixel, a wider frustum");
         pack(&mut samples, &batch, &[t, t, t].concat(), 4, false);
         assert!(samples.variances.is_empty());
+    }
+
+    /// FreeNeRF hides the fine bands early in training (other outputs than the paper
+    /// model's with the same weights) and shows them all after its reveal (the same
+    /// photometric error), while its occlusion penalty still adds to the gradients.
+    #[test]
+    fn free_nerf_masks_bands_early_and_penalises_near_density() {
+        let mut free = tiny_model_of("freenerf");
+        let plain = tiny_model_of("paper");
+        let params = plain.init_params(4);
+        assert_eq!(free.layout.total, params.len());
+        let run = |m: &VanillaModel| {
+            let mut ws = ChunkWorkspace {
+                rays: rays(6),
+                ..ChunkWorkspace::default()
+            };
+            let mut grads = GradBuffer::new(params.len());
+            let (c, f) = m.train_chunk(&params, &mut ws, &mut grads, &FiniteCheck::default());
+            (c + f, grads.values)
+        };
+        let (plain_sse, plain_grads) = run(&plain);
+        free.set_progress(0.0);
+        assert_eq!(free.coarse.band_mask[0], 1.0);
+        assert!(free.coarse.band_mask[1..].iter().all(|&m| m == 0.0));
+        assert_eq!(
+            free.fine.as_ref().map(|f| &f.band_mask),
+            Some(&free.coarse.band_mask)
+        );
+        let (early_sse, _) = run(&free);
+        assert_ne!(early_sse, plain_sse);
+        free.set_progress(0.95);
+        assert!(free.coarse.band_mask.iter().all(|&m| m == 1.0));
+        let (late_sse, late_grads) = run(&free);
+        assert_eq!(late_sse, plain_sse);
+        assert_ne!(late_grads, plain_grads);
     }
 
     fn results_do_not_depend_on_chunking_of(model: &VanillaModel) {

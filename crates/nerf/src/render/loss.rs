@@ -123,6 +123,12 @@ impl LossBackward {
         }
     }
 
+    /// Lets a regulariser of the densities add its gradient to the last
+    /// [`run`](Self::run)'s (in the photometric loss's units, see [`mean_scale`]).
+    pub fn add_penalty(&mut self, add: impl FnOnce(&mut [f32])) {
+        add(&mut self.d_sigma);
+    }
+
     /// The field's `d_output` of the last [`run`](Self::run).
     pub fn field_grad(&self) -> FieldGrad<'_> {
         FieldGrad {
