@@ -807,9 +807,9 @@ mod tests {
         check_gradients(tiny(true));
     }
 
-    #[test]
-    fn gradients_through_a_deformation() {
-        let cfg = VanillaConfig {
+    /// The tiny view-dependent net with a tiny deformation.
+    fn tiny_moving() -> VanillaConfig {
+        VanillaConfig {
             deformation: Some(DeformationConfig {
                 depth: 3,
                 width: 6,
@@ -817,23 +817,19 @@ mod tests {
                 time_frequencies: 2,
             }),
             ..tiny(true)
-        };
-        check_gradients_at(cfg, true);
+        }
+    }
+
+    #[test]
+    fn gradients_through_a_deformation() {
+        check_gradients_at(tiny_moving(), true);
     }
 
     /// FreeNeRF's mask scales the bands in the forward and, through a deformation, in the
     /// input's gradient; a band masked to zero leaves the outputs unmoved.
     #[test]
     fn gradients_with_masked_bands() {
-        let cfg = VanillaConfig {
-            deformation: Some(DeformationConfig {
-                depth: 3,
-                width: 6,
-                skip: Some(0),
-                time_frequencies: 2,
-            }),
-            ..tiny(true)
-        };
+        let cfg = tiny_moving();
         let bands = cfg.position_encoding.frequencies;
         assert!(bands >= 2, "the tiny net has {bands} bands");
         let mut mask = vec![0.0; bands];

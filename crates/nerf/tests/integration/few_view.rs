@@ -1,5 +1,6 @@
 //! Few-view training: the built-in chair from 8 photos, with and without keeping the
-//! space that fewer than half of them see empty.
+//! space that fewer than half of them see empty; from 3 photos, the paper's model with and
+//! without FreeNeRF's regularisers.
 
 use nerf::model::few_view::FewView;
 use nerf::model::ModelConfig;
@@ -44,4 +45,51 @@ fn few_view_training_keeps_space_few_photos_see_empty_and_scores_better() {
     };
     eprintln!("occupied: {plain_occ:.4} plain, {few_occ:.4} few-view");
     assert!(few_occ < plain_occ, "{few_occ} against {plain_occ}");
+}
+
+/// Trains the paper model's demo-sized networks (the full ones are hours of CPU) on the
+/// photos in `data` for `steps`, with FreeNeRF's regularisers or without; the losses of its
+/// steps and its held-out PSNR.
+fn train_vanilla(
+    data: &std::path::Path,
+    out: &std::path::Path,
+    free: bool,
+    steps: u64,
+) -> (Vec<f32>, f64) {
+    let mut config = crate::common::demo_config(data, steps);
+    if let ModelConfig::Vanilla(m) = &mut config.model {
+        m.free_nerf = free.then(nerf::model::free_nerf::FreeNerf::default);
+    }
+    let mut losses = Vec::new();
+    let mut on_event = |e: run::Event| {
+        if let run::Event::Step(s) = e {
+            losses.push(s.loss);
+        }
+    };
+    run::train(&cpu_run(out, config), &mut on_event).expect("train");
+    let loaded = LoadedRun::open(out).expect("open run");
+    let report = eval_test(&loaded, 1, &out.join("eval"));
+    (losses, f64::from(report.mean_psnr))
+}
+
+/// FreeNeRF from 3 photos: its loss falls, and on held-out views it scores better than the
+/// same networks trained without its regularisers for as many steps.
+#[test]
+fn free_nerf_beats_the_plain_model_from_three_photos() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    // Seed 5: the plain model does not collapse to the background here (at seeds 3 and 4
+    // it does, at about 11.5 dB, and FreeNeRF's lead is 7-9 dB).
+    chair_scene(&data, 32, 3, 8, 5);
+    let steps = 300;
+    let (losses, free) = train_vanilla(&data, &dir.path().join("free"), true, steps);
+    let (_, plain) = train_vanilla(&data, &dir.path().join("plain"), false, steps);
+    eprintln!("3 photos, held-out views: {plain:.2} dB plain, {free:.2} dB FreeNeRF");
+    let mean = |l: &[f32]| l.iter().sum::<f32>() / l.len() as f32;
+    let (first, last) = (mean(&losses[..50]), mean(&losses[losses.len() - 50..]));
+    assert!(last < 0.5 * first, "loss {first} -> {last}");
+    assert!(
+        free >= plain + 0.5,
+        "FreeNeRF {free:.2} dB against {plain:.2} dB"
+    );
 }
