@@ -152,8 +152,9 @@ pub struct TrainOptions {
     /// Fast: point samples, as Instant-NGP (the default for forward-facing NDC captures).
     #[arg(long)]
     pub no_antialias: bool,
-    /// Fast: few-view training (the hash grid's fine levels faded in over the first half
-    /// of the run), the default for runs on at most 16 training views.
+    /// Fast: few-view training (the space fewer than half of the training photos see is
+    /// kept empty), the default for runs on at most 16 training views of a bounded scene.
+    /// The paper's model has `--preset freenerf` for few views.
     #[arg(long, conflicts_with = "no_few_view")]
     pub few_view: bool,
     /// Fast: train as on many views, however few there are.
@@ -480,7 +481,11 @@ impl TrainOptions {
                 return refuse("--antialias applies to --model fast only".into());
             }
             ModelConfig::Vanilla(_) if self.few_view => {
-                return refuse("--few-view applies to --model fast only".into());
+                return refuse(
+                    "--few-view applies to --model fast only; for the paper's model on few \
+                     views use --preset freenerf"
+                        .into(),
+                );
             }
             ModelConfig::Vanilla(_) if self.dynamic || self.time_smoothness.is_some() => {
                 return refuse("--dynamic and --time-smoothness apply to --model fast only".into());

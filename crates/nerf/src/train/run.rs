@@ -225,6 +225,15 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let val_view = validation_view(&config)?;
     let (width, height) = data.image_size();
     let views = data.views.len();
+    if let crate::model::ModelConfig::Vanilla(m) = &config.model {
+        if m.free_nerf.is_none() && views <= crate::model::few_view::FEW_VIEWS && !opts.resume {
+            on_event(Event::Note(&format!(
+                "{views} training views: the paper's model overfits few photos (floaters, or \
+                 nothing but the background from other views); --preset freenerf adds \
+                 FreeNeRF's regularisers"
+            )));
+        }
+    }
     let mut trainer = Trainer::on(opts.device, config.clone(), data)?;
     // The truth is known only for poses the run moved itself.
     let true_cameras = match config.perturb_poses {
