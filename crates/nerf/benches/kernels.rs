@@ -66,7 +66,8 @@ fn main() {
 /// Adam's loop in the baseline's vectors against the widest the CPU has, on one segment of
 /// the gradient buffer (the unit a thread updates), in cache and out of it.
 fn adam_widths() {
-    use nerf::nn::adam::{update_slices, update_slices_baseline, Adam, AdamConfig, Rule, Slices};
+    use nerf::nn::adam::{update_slices, update_slices_in, Adam, AdamConfig, Rule, Slices};
+    use nerf::simd::Width;
     for n in [1 << 16, 1 << 23] {
         let mut p = vec![0.01f32; n];
         let g: Vec<f32> = (0..n).map(|i| ((i * 7919) % 13) as f32 * 1e-3).collect();
@@ -88,7 +89,7 @@ fn adam_widths() {
                 update(&AdamConfig::default(), step, s, rule);
             })
         };
-        let baseline = time(update_slices_baseline);
+        let baseline = time(|c, st, s, r| update_slices_in(Width::baseline(), c, st, s, r));
         let widest = time(update_slices);
         println!("\nAdam update of {n} parameters, one thread:");
         println!(

@@ -31,6 +31,7 @@ pub mod nn;
 pub mod presets;
 pub mod render;
 pub mod rng;
+pub mod simd;
 pub mod stage;
 pub mod train;
 pub mod views;

@@ -17,15 +17,14 @@
 
 use serde::{Deserialize, Serialize};
 
+pub use super::level_weights::level_weight;
+use super::level_weights::{cell_factor, fill_level_weights};
 use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
 use crate::encoding::space_time_grid::{SpaceTimeConfig, SpaceTimeGrid};
 use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
 use crate::nn::grow;
 use crate::nn::linalg::{matmul, MatRef};
-
-pub use super::level_weights::level_weight;
-use super::level_weights::{cell_factor, fill_level_weights};
 use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;

@@ -7,6 +7,7 @@
 //! has: the same operations in the same order, so the same bits on every CPU.
 
 use crate::math::erf_of_inv_sqrt;
+use crate::simd::{in_width, Width};
 
 /// The weight of a level of `resolution` cells per axis for a footprint of standard
 /// deviation `sigma` in unit-cube units.
@@ -22,37 +23,20 @@ pub(crate) fn cell_factor(resolution: u32) -> f32 {
 }
 
 /// Rows of `factors.len()` weights into `out`, one row per sample's squared footprint in
-/// `sigma2`, each level's weight times its `schedule` factor.
+/// `sigma2`, each level's weight times its `schedule` factor, in the widest vectors the CPU
+/// has.
 pub(crate) fn fill_level_weights(
     out: &mut [f32],
     sigma2: &[f32],
     factors: &[f32],
     schedule: &[f32],
 ) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: the CPU has the feature the function is compiled for.
-            return unsafe { fill_avx512(out, sigma2, factors, schedule) };
-        }
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: as above.
-            return unsafe { fill_avx2(out, sigma2, factors, schedule) };
-        }
-    }
-    fill_baseline(out, sigma2, factors, schedule)
+    fill_level_weights_in(Width::widest(), out, sigma2, factors, schedule);
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn fill_avx512(out: &mut [f32], sigma2: &[f32], factors: &[f32], schedule: &[f32]) {
-    fill_baseline(out, sigma2, factors, schedule)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn fill_avx2(out: &mut [f32], sigma2: &[f32], factors: &[f32], schedule: &[f32]) {
-    fill_baseline(out, sigma2, factors, schedule)
+in_width! {
+    /// [`fill_level_weights`] in the vectors of `width`.
+    fn fill_level_weights_in(out: &mut [f32], sigma2: &[f32], factors: &[f32], schedule: &[f32]) => fill_baseline
 }
 
 /// [`fill_level_weights`] in the vectors of whatever function it is inlined into.
@@ -102,21 +86,16 @@ mod tests {
                     *w = schedule[l] * level_weight(s, resolutions[l]);
                 }
             }
-            type Fill = fn(&mut [f32], &[f32], &[f32], &[f32]);
-            let mut variants: Vec<(&str, Fill)> = vec![
-                ("dispatched", fill_level_weights),
-                ("baseline", |o, s, f, w| fill_baseline(o, s, f, w)),
+            type Fill = Box<dyn Fn(&mut [f32], &[f32], &[f32], &[f32])>;
+            let mut variants: Vec<(String, Fill)> = vec![
+                ("dispatched".into(), Box::new(fill_level_weights)),
+                ("plain".into(), Box::new(fill_baseline)),
             ];
-            #[cfg(target_arch = "x86_64")]
-            {
-                if std::arch::is_x86_feature_detected!("avx2") {
-                    // SAFETY: the CPU has the feature.
-                    variants.push(("avx2", |o, s, f, w| unsafe { fill_avx2(o, s, f, w) }));
-                }
-                if std::arch::is_x86_feature_detected!("avx512f") {
-                    // SAFETY: the CPU has the feature.
-                    variants.push(("avx512", |o, s, f, w| unsafe { fill_avx512(o, s, f, w) }));
-                }
+            for width in Width::available() {
+                let fill = move |o: &mut [f32], s: &[f32], f: &[f32], w: &[f32]| {
+                    fill_level_weights_in(width, o, s, f, w)
+                };
+                variants.push((format!("{width:?}"), Box::new(fill)));
             }
             for (name, fill) in variants {
                 let mut got = vec![f32::NAN; want.len()];

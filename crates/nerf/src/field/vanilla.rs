@@ -826,7 +826,8 @@ mod tests {
     }
 
     /// FreeNeRF's mask scales the bands in the forward and, through a deformation, in the
-    /// input's gradient; a band masked to zero leaves the outputs unmoved.
+    /// input's gradient (finite differences with a partial mask); the masked encoding is
+    /// the raw position whole and each band times its visibility.
     #[test]
     fn gradients_with_masked_bands() {
         let cfg = tiny_moving();

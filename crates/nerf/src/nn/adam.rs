@@ -4,6 +4,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::grads::{GradBuffer, SEGMENT};
+use crate::simd::{in_width, Width};
 
 /// Adam hyper-parameters.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -98,42 +99,22 @@ pub struct Slices<'a> {
     pub v: &'a mut [f32],
 }
 
-/// The update of [`Adam::update`] on slices, so disjoint pieces can be updated in parallel.
-/// Branch-free (a lazy skip is a select), so it vectorises; on x86-64 it runs in the
-/// widest vectors the CPU has (the same operations in the same order, so the same bits:
-/// Rust fuses no multiply-add unless asked).
+/// The update of [`Adam::update`] on slices, so disjoint pieces can be updated in parallel,
+/// in the widest vectors the CPU has (see [`update_slices_in`]).
 pub fn update_slices(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        if std::arch::is_x86_feature_detected!("avx512f") {
-            // SAFETY: the CPU has the feature the function is compiled for.
-            return unsafe { update_slices_avx512(config, step, s, rule) };
-        }
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: as above.
-            return unsafe { update_slices_avx2(config, step, s, rule) };
-        }
-    }
-    update_slices_baseline(config, step, s, rule)
+    update_slices_in(Width::widest(), config, step, s, rule);
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx512f")]
-fn update_slices_avx512(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule) {
-    update_slices_baseline(config, step, s, rule)
+in_width! {
+    /// [`update_slices`] in the vectors of `width`: branch-free (a lazy skip is a select),
+    /// so it vectorises, and the same bits in every width (`crate::simd`).
+    pub fn update_slices_in(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule) => update_slices_baseline
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-fn update_slices_avx2(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule) {
-    update_slices_baseline(config, step, s, rule)
-}
-
-/// [`update_slices`] in the vectors of whatever function it is inlined into: the CPU's
-/// baseline (SSE2 on x86-64) where called plainly. The reference the wider ones are tested
-/// and measured against.
+/// The loop of [`update_slices_in`], in the vectors of whatever function it is inlined
+/// into.
 #[inline(always)]
-pub fn update_slices_baseline(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule) {
+fn update_slices_baseline(config: &AdamConfig, step: AdamStep, s: Slices, rule: Rule) {
     let AdamConfig { beta1, beta2, eps } = *config;
     for (((p, &g), m), v) in s
         .params
@@ -343,41 +324,34 @@ mod tests {
                 ..Rule::default()
             },
         ];
-        type Update = fn(&AdamConfig, AdamStep, Slices, Rule);
-        let mut variants: Vec<(&str, Update)> = vec![("dispatched", update_slices)];
-        #[cfg(target_arch = "x86_64")]
-        {
-            if std::arch::is_x86_feature_detected!("avx2") {
-                // SAFETY: the CPU has the feature.
-                variants.push(("avx2", |c, st, s, r| unsafe {
-                    update_slices_avx2(c, st, s, r)
-                }));
-            }
-            if std::arch::is_x86_feature_detected!("avx512f") {
-                // SAFETY: the CPU has the feature.
-                variants.push(("avx512", |c, st, s, r| unsafe {
-                    update_slices_avx512(c, st, s, r)
-                }));
-            }
-        }
-        let run = |update: Update, rule: Rule| {
+        let run = |update: &dyn Fn(Slices)| {
             let (mut p, mut m, mut v) = (params.clone(), m0.clone(), v0.clone());
-            let s = Slices {
+            update(Slices {
                 params: &mut p,
                 grads: &grads,
                 m: &mut m,
                 v: &mut v,
-            };
-            update(&adam.config, step, s, rule);
+            });
             (p, m, v)
         };
+        let config = adam.config;
         for rule in rules {
-            let want = run(update_slices_baseline, rule);
+            let want = run(&|s| update_slices_baseline(&config, step, s, rule));
             assert_ne!(want.0, params);
-            for (name, update) in &variants {
-                let got = run(*update, rule);
-                let same =
-                    |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+            let mut got = vec![(
+                "dispatched".to_string(),
+                run(&|s| update_slices(&config, step, s, rule)),
+            )];
+            for width in Width::available() {
+                let name = format!("{width:?}");
+                got.push((
+                    name,
+                    run(&|s| update_slices_in(width, &config, step, s, rule)),
+                ));
+            }
+            let same =
+                |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits());
+            for (name, got) in got {
                 assert!(
                     same(&got.0, &want.0) && same(&got.1, &want.1) && same(&got.2, &want.2),
                     "{name} differs from the plain loop under {rule:?}"

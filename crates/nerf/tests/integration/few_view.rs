@@ -6,10 +6,25 @@ use nerf::model::few_view::FewView;
 use nerf::model::ModelConfig;
 use nerf::train::folder::LoadedRun;
 use nerf::train::run;
+use nerf::train::TrainConfig;
 
 use crate::common::{chair_scene, cpu_run, eval_test, fast_config};
 
 const PHOTOS: usize = 8;
+
+/// Trains `config` into `out`: the run, the losses of its steps and its held-out PSNR.
+fn train_and_score(out: &std::path::Path, config: TrainConfig) -> (LoadedRun, Vec<f32>, f64) {
+    let mut losses = Vec::new();
+    let mut on_event = |e: run::Event| {
+        if let run::Event::Step(s) = e {
+            losses.push(s.loss);
+        }
+    };
+    run::train(&cpu_run(out, config), &mut on_event).expect("train");
+    let loaded = LoadedRun::open(out).expect("open run");
+    let report = eval_test(&loaded, 1, &out.join("eval"));
+    (loaded, losses, f64::from(report.mean_psnr))
+}
 
 /// Trains the chair's 8 photos for `steps`, few-view or not; the run and its test PSNR.
 fn train(data: &std::path::Path, out: &std::path::Path, few: bool, steps: u64) -> (LoadedRun, f64) {
@@ -17,10 +32,8 @@ fn train(data: &std::path::Path, out: &std::path::Path, few: bool, steps: u64) -
     if let ModelConfig::Fast(m) = &mut config.model {
         m.few_view = few.then_some(FewView { photos: PHOTOS });
     }
-    run::train(&cpu_run(out, config), &mut |_| {}).expect("train");
-    let loaded = LoadedRun::open(out).expect("open run");
-    let report = eval_test(&loaded, 1, &out.join("eval"));
-    (loaded, f64::from(report.mean_psnr))
+    let (loaded, _, psnr) = train_and_score(out, config);
+    (loaded, psnr)
 }
 
 /// The floaters that 8 photos leave in space few of them see are what few-view training
@@ -60,16 +73,8 @@ fn train_vanilla(
     if let ModelConfig::Vanilla(m) = &mut config.model {
         m.free_nerf = free.then(nerf::model::free_nerf::FreeNerf::default);
     }
-    let mut losses = Vec::new();
-    let mut on_event = |e: run::Event| {
-        if let run::Event::Step(s) = e {
-            losses.push(s.loss);
-        }
-    };
-    run::train(&cpu_run(out, config), &mut on_event).expect("train");
-    let loaded = LoadedRun::open(out).expect("open run");
-    let report = eval_test(&loaded, 1, &out.join("eval"));
-    (losses, f64::from(report.mean_psnr))
+    let (_, losses, psnr) = train_and_score(out, config);
+    (losses, psnr)
 }
 
 /// FreeNeRF from 3 photos: its loss falls, and on held-out views it scores better than the
