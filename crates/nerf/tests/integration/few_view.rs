@@ -93,8 +93,9 @@ fn free_nerf_beats_the_plain_model_from_three_photos() {
     let mean = |l: &[f32]| l.iter().sum::<f32>() / l.len() as f32;
     let (first, last) = (mean(&losses[..50]), mean(&losses[losses.len() - 50..]));
     assert!(last < 0.5 * first, "loss {first} -> {last}");
+    // Measured: 18.82 against 17.63 dB.
     assert!(
-        free >= plain + 0.5,
+        free >= plain + 0.6,
         "FreeNeRF {free:.2} dB against {plain:.2} dB"
     );
 }
