@@ -33,6 +33,7 @@ pub mod render;
 pub mod rng;
 pub mod simd;
 pub mod stage;
+pub mod step_clock;
 pub mod train;
 pub mod views;
 

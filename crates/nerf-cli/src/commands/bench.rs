@@ -163,6 +163,15 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         "  {:.1}% of the gradient blocks touched per step (reduction and Adam skip the rest)",
         100.0 * r.touched_fraction
     );
+    println!("  where a step without a refresh spends its time (mean over the steps):");
+    for s in &r.stages {
+        println!(
+            "    {:<20} {:>7.1} ms  {:>5.1}%",
+            s.stage,
+            1e3 * s.seconds,
+            100.0 * s.share
+        );
+    }
     println!(
         "rendering {}x{}: {:.2} s per view, {:.0} rays/s",
         r.render_width, r.render_height, r.render_seconds, r.render_rays_per_second

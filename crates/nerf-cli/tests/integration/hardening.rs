@@ -414,6 +414,37 @@ fn bench_json_is_json() {
         serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("not JSON ({e}):\n{t}"));
     assert!(v.is_object(), "{t}");
     assert_eq!(v["distortion"].as_f64(), Some(0.0), "{t}");
+    // The stage clocks ran: the step's stages in the order it runs them, each timed.
+    let stages: Vec<(String, f64)> = v["stages"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no stages:\n{t}"))
+        .iter()
+        .map(|s| {
+            let name = s["stage"].as_str().unwrap_or_default().to_string();
+            (name, s["seconds"].as_f64().unwrap_or(-1.0))
+        })
+        .collect();
+    let names: Vec<&str> = stages.iter().map(|(n, _)| n.as_str()).collect();
+    let mut order = names.iter();
+    for stage in [
+        "marching",
+        "hash grid",
+        "networks",
+        "compositing + loss",
+        "networks backward",
+        "hash grid backward",
+        "Adam",
+        "the rest",
+    ] {
+        assert!(
+            order.any(|n| *n == stage),
+            "{stage} missing or out of order in {names:?}"
+        );
+    }
+    assert!(
+        stages.iter().all(|(n, s)| *s > 0.0 || n == "the rest"),
+        "{stages:?}"
+    );
 }
 
 /// The debug switch: NERF_CHECK_FINITE=1 names the stage, step and buffer of the first

@@ -18,6 +18,7 @@ use crate::data::synth::{self, SceneKind, SynthOptions};
 use crate::data::Split;
 use crate::error::{NerfError, Result};
 use crate::model::{FastModelConfig, ModelConfig};
+use crate::step_clock;
 use crate::train::{TrainConfig, Trainer};
 use crate::views::{render_view, RenderSettings};
 
@@ -71,6 +72,21 @@ pub struct FastBenchReport {
     pub render_seconds: f64,
     pub render_rays_per_second: f64,
     pub peak_resident_mib: f64,
+    /// Where the time of a step without a refresh goes, stage by stage (see
+    /// [`StageTime`]), in the order a step runs them; the rest of the step last.
+    pub stages: Vec<StageTime>,
+}
+
+/// One stage's share of a training step.
+#[derive(Clone, Debug, Serialize)]
+pub struct StageTime {
+    pub stage: String,
+    /// Mean wall time per step. Stages the CPU engine runs inside its workers are
+    /// measured in thread time and divided by the threads (they run side by side); on the
+    /// GPU engine each stage ends when the device has done its work.
+    pub seconds: f64,
+    /// Its fraction of the mean step (the steps timed stage by stage).
+    pub share: f64,
 }
 
 pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastBenchReport> {
@@ -169,10 +185,16 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     }
     let every = opts.model.occupancy.update_every.max(1);
     let (mut plain, mut refresh, mut rays) = (Vec::new(), Vec::new(), Vec::new());
+    // The stage clocks run over the steps without a refresh (its density queries would
+    // count as the networks' and the hash grid's time).
+    step_clock::reset();
     for k in 0..opts.steps.max(every as usize) {
+        step_clock::enable((trainer.step + 1) % every != 0);
         let t = Instant::now();
-        let s = trainer.step()?;
+        let s = trainer.step();
         let dt = t.elapsed().as_secs_f64();
+        step_clock::enable(false);
+        let s = s?;
         rays.push(s.rays as f64);
         if s.step % every == 0 {
             refresh.push(dt);
@@ -184,6 +206,15 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         }
     }
     let rays_median = median(rays);
+    let per_worker = match trainer.engine.kind() {
+        crate::engine::caps::EngineKind::Cpu => threads as f64,
+        _ => 1.0,
+    };
+    let stages = stage_times(
+        plain.iter().sum::<f64>() / plain.len().max(1) as f64,
+        plain.len(),
+        per_worker,
+    );
     let step_s = median(plain);
     let refresh_s = median(refresh);
     let amortised = ((every - 1) as f64 * step_s + refresh_s) / every as f64;
@@ -220,5 +251,32 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         render_seconds: render_s,
         render_rays_per_second: (camera.width * camera.height) as f64 / render_s,
         peak_resident_mib: peak_resident_mib(),
+        stages,
     })
+}
+
+/// The stage clocks' figures over `steps` steps of `mean_step` seconds on average;
+/// `workers`: what to divide the per-worker stages' thread time by.
+fn stage_times(mean_step: f64, steps: usize, workers: f64) -> Vec<StageTime> {
+    let steps = steps.max(1) as f64;
+    let mut out: Vec<StageTime> = step_clock::read()
+        .into_iter()
+        .filter(|(_, d)| !d.is_zero())
+        .map(|(stage, d)| {
+            let divisor = if stage.per_worker() { workers } else { 1.0 };
+            let seconds = d.as_secs_f64() / steps / divisor;
+            StageTime {
+                stage: stage.name().to_string(),
+                seconds,
+                share: seconds / mean_step,
+            }
+        })
+        .collect();
+    let rest = mean_step - out.iter().map(|s| s.seconds).sum::<f64>();
+    out.push(StageTime {
+        stage: "the rest".into(),
+        seconds: rest.max(0.0),
+        share: rest.max(0.0) / mean_step,
+    });
+    out
 }

@@ -18,6 +18,7 @@ use crate::nn::{GradBuffer, ParamLayout};
 use crate::render::loss::mean_scale;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{RayBatch, RayOutput};
+use crate::step_clock::{self, Stage};
 
 /// Points per work unit of density queries.
 const DENSITY_CHUNK: usize = 4096;
@@ -142,7 +143,9 @@ impl<M: Model> Engine for CpuEngine<M> {
             .iter_mut()
             .map(|w| std::mem::replace(&mut w.grads, GradBuffer::new(0)))
             .collect();
+        let clock = step_clock::start(Stage::Reduction);
         let finite = GradBuffer::reduce_into_first(&mut buffers);
+        clock.stop();
         for (w, b) in self.workers.iter_mut().zip(buffers) {
             w.grads = b;
         }
@@ -164,6 +167,7 @@ impl<M: Model> Engine for CpuEngine<M> {
         // A frozen field is a learning rate of zero: Adam leaves every parameter before
         // the camera group where it is.
         let field_lr = if spec.frozen_field { 0.0 } else { spec.lr };
+        let clock = step_clock::start(Stage::Adam);
         self.adam.step_dirty(
             &mut self.params,
             &mut self.workers[0].grads,
@@ -175,6 +179,7 @@ impl<M: Model> Engine for CpuEngine<M> {
                 group: rule.group_start.map(|at| (at, spec.camera_lr)),
             },
         );
+        clock.stop();
         check.check("adam", "parameters", &self.params);
         if let Some(e) = check.take(step + 1) {
             return Err(e);

@@ -29,6 +29,7 @@ use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;
 use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput};
+use crate::step_clock::{self, Stage};
 
 /// Log-densities are clamped here before `exp` so one bad step cannot overflow to infinity.
 pub const LOG_SIGMA_MAX: f32 = 15.0;
@@ -443,10 +444,17 @@ impl FastField {
         grow(&mut ws.geo, n * g);
         grow(&mut ws.sigma, n);
         self.to_unit(positions, &mut ws.unit[..n * 3]);
+        let clock = step_clock::start(Stage::Encoding);
         self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
+        clock.stop();
+        let clock = step_clock::start(Stage::LevelWeights);
         self.level_scales(footprints, n, &mut ws.level_scale);
         self.weigh_levels(&mut ws.enc[..n * e], &ws.level_scale);
+        clock.stop();
+        let clock = step_clock::start(Stage::Encoding);
         self.encode_motion(params, moments, n, ws);
+        clock.stop();
+        let _clock = step_clock::start(Stage::Networks);
         let h = &mut ws.h[..n * w];
         matmul(
             h,
@@ -524,6 +532,7 @@ impl FastField {
         );
         let dims = self.appearance_dims();
         self.eval_density(params, positions, footprints, Moments::of(times), ws);
+        let _clock = step_clock::start(Stage::Networks);
         self.gather_codes(params, appearance, n, ws);
         let codes = self.codes(params);
         grow(&mut ws.colour_in, n * ci);
@@ -586,6 +595,7 @@ impl FastField {
             self.colour_in_dims(),
             self.grid.dims(),
         );
+        let networks = step_clock::start(Stage::NetworksBackward);
         grow(&mut ws.d_logit, n * 3);
         grow(&mut ws.d_c2, n * w);
         grow(&mut ws.d_c1, n * w);
@@ -700,7 +710,11 @@ impl FastField {
                 false,
             );
         }
+        networks.stop();
+        let clock = step_clock::start(Stage::LevelWeights);
         self.weigh_levels(&mut ws.d_enc[..n * e], &ws.level_scale);
+        clock.stop();
+        let _clock = step_clock::start(Stage::EncodingBackward);
         grads.mark(self.mlp_range());
         self.grid
             .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);

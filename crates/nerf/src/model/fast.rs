@@ -30,6 +30,7 @@ use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
 use crate::render::volume::composite_packed;
 use crate::stage::finite::{check_outputs, FiniteCheck};
 use crate::stage::{Field, FieldOutput, PackedSamples, RayBatch, RayOutput};
+use crate::step_clock::{self, Stage};
 
 /// Rays per marching block of a training step.
 pub const BLOCK_RAYS: usize = 16;
@@ -365,6 +366,7 @@ impl FastModel {
         };
         check.check("field.forward", "sigma", field.sigma);
         check.check("field.forward", "rgb", field.rgb);
+        let clock = step_clock::start(Stage::Compositing);
         composite_packed(
             &ws.samples,
             field,
@@ -389,6 +391,7 @@ impl FastModel {
                 self.config.distortion,
             );
         }
+        clock.stop();
         check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
         check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
         if n > 0 && !cameras.is_empty() {
@@ -532,7 +535,9 @@ impl Model for FastModel {
             sampling: input.sampling,
             cameras: &cameras,
         };
+        let clock = step_clock::start(Stage::Marching);
         let (used, last_rays) = self.march_step(&march, shared);
+        clock.stop();
         let blocks = &shared.blocks[..used];
         let n_rays = (used - 1) * BLOCK_RAYS + last_rays;
         let samples_of = |g: usize| blocks[g / BLOCK_RAYS].samples.ray(g % BLOCK_RAYS).len();

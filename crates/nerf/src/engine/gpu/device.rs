@@ -5,6 +5,7 @@ use cubecl::device::WgpuDeviceKind;
 use cubecl::ir::{ElemType, FloatKind, Type};
 
 use crate::error::{NerfError, Result};
+use crate::step_clock;
 
 /// Which kernels the dense layers run (`mlp`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -65,6 +66,16 @@ fn has_tensor_cores(client: &Client) -> bool {
 }
 
 impl Gpu {
+    /// Stops a stage's clock once the device has done the work queued so far (waiting
+    /// for it only while the clocks run: kernels are queued, not run, when launched).
+    pub fn stage_done(&self, clock: step_clock::Timer) {
+        if clock.running() {
+            // A device error surfaces at the step's next read; the clock just stops.
+            let _ = cubecl::future::block_on(self.client.sync());
+        }
+        clock.stop();
+    }
+
     /// The client of an opened CubeCL device, described.
     fn from_device(device: cubecl::Device, runtime: &str) -> Gpu {
         let client = device.client();

@@ -37,6 +37,7 @@ use crate::render::march::Marcher;
 use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{Appearance, RayBatch, RayOutput, MEAN_APPEARANCE};
+use crate::step_clock::{self, Stage};
 
 /// The most samples one device call takes, in a training step or a rendering round: at
 /// 2^20 a 64-wide activation (256 MiB) overflows the largest storage binding of common
@@ -413,6 +414,7 @@ impl Engine for GpuEngine {
         if !marked && self.model.grid.possible.is_some() {
             (self.occupancy, self.marcher) = GpuEngine::upload_occupancy(&self.gpu, &self.model);
         }
+        let clock = step_clock::start(Stage::Marching);
         let StepRays {
             cut,
             samples,
@@ -425,6 +427,7 @@ impl Engine for GpuEngine {
         } = self.march_step(data, spec)?;
         let (rays, n) = (cut.rays, cut.samples);
         let gpu = &self.gpu;
+        gpu.stage_done(clock);
         let check = FiniteCheck::new(self.check_finite);
 
         let input = DeviceInput {
@@ -437,6 +440,7 @@ impl Engine for GpuEngine {
         let acts = self.field.forward(gpu, &self.state.values, &input);
         check_device(gpu, &check, "field.forward", "sigma", &acts.sigma, n)?;
         check_device(gpu, &check, "field.forward", "rgb", &acts.rgb, n * 3)?;
+        let clock = step_clock::start(Stage::Compositing);
         let weights = gpu.floats(n);
         let out = gpu.floats(rays * volume::OUT_WORDS);
         volume::composite(
@@ -483,6 +487,7 @@ impl Engine for GpuEngine {
                 config.distortion,
             );
         }
+        gpu.stage_done(clock);
         check_device(gpu, &check, "loss.backward", "d_sigma", &d_sigma, n)?;
         check_device(gpu, &check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
         self.field.backward(
@@ -511,8 +516,10 @@ impl Engine for GpuEngine {
             return Err(e);
         }
         let rule = self.model.update_rule();
+        let clock = step_clock::start(Stage::Adam);
         self.state
             .finish_step(gpu, step, loss, spec.lr, scale as f32, rule)?;
+        gpu.stage_done(clock);
         check_device(
             gpu,
             &check,

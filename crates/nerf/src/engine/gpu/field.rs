@@ -18,6 +18,7 @@ use super::mlp::Dense;
 use crate::encoding::spherical_harmonics::SH_DIMS;
 use crate::field::fast::LOG_SIGMA_MAX;
 use crate::field::FastField;
+use crate::step_clock::{self, Stage};
 
 /// Threads per workgroup.
 const GROUP: u32 = 256;
@@ -300,6 +301,7 @@ impl GpuFastField {
             return acts;
         }
         let np = self.n_params;
+        let clock = step_clock::start(Stage::Encoding);
         // SAFETY: every buffer was made above with the length given here; the kernels
         // bounds-check the buffer they write.
         unsafe {
@@ -314,10 +316,14 @@ impl GpuFastField {
             );
         }
         self.grid.encode(gpu, params, &acts.unit, n, &acts.enc);
+        gpu.stage_done(clock);
         let mut acts = acts;
         if let Some(aa) = &self.antialias {
+            let clock = step_clock::start(Stage::LevelWeights);
             acts.level_weights = Some(aa.forward(gpu, &self.grid, footprints, &acts.enc, n));
+            gpu.stage_done(clock);
         }
+        let clock = step_clock::start(Stage::Networks);
         d0.forward(gpu, params, np, &acts.enc, &acts.h, n);
         d1.forward(gpu, params, np, &acts.h, &acts.geo, n);
         // SAFETY: as above.
@@ -333,6 +339,7 @@ impl GpuFastField {
                 LOG_SIGMA_MAX,
             );
         }
+        gpu.stage_done(clock);
         acts
     }
 
@@ -355,6 +362,7 @@ impl GpuFastField {
             return acts;
         }
         let np = self.n_params;
+        let clock = step_clock::start(Stage::Networks);
         // SAFETY: as in `density`.
         unsafe {
             let (count, dim) = Self::launch(n * (15 + self.geo));
@@ -394,6 +402,7 @@ impl GpuFastField {
                 BufferArg::from_raw_parts(acts.rgb.clone(), n * 3),
             );
         }
+        gpu.stage_done(clock);
         acts
     }
 
@@ -416,6 +425,7 @@ impl GpuFastField {
         }
         let np = self.n_params;
         let [d0, d1, c0, c1, c2] = &self.layers;
+        let networks = step_clock::start(Stage::NetworksBackward);
         let d_logit = gpu.floats(n * 3);
         // SAFETY: as in `density`.
         unsafe {
@@ -515,11 +525,16 @@ impl GpuFastField {
             Some((&d_enc, false)),
             n,
         );
+        gpu.stage_done(networks);
         if let Some(weights) = &acts.level_weights {
+            let clock = step_clock::start(Stage::LevelWeights);
             LevelWeights::backward(gpu, weights, &d_enc, n, self.grid.n_levels);
+            gpu.stage_done(clock);
         }
+        let clock = step_clock::start(Stage::EncodingBackward);
         self.grid
             .encode_bwd(gpu, self.scatter, &acts.unit, &d_enc, n, grads);
+        gpu.stage_done(clock);
     }
 }
 
