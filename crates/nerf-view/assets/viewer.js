@@ -323,7 +323,7 @@ function pan(dx, dy) {
 function pathSpec() {
   const [width, height] = renderSize();
   return {
-    keyframes: keys.map((k) => ({ c2w: k.c2w, fov_y: k.fov_y })),
+    keyframes: keys.map((k) => ({ c2w: k.c2w, fov_y: k.fov_y, time: k.time })),
     seconds: Number($("seconds").value),
     fps: Number($("fps").value),
     width,
@@ -337,7 +337,7 @@ function keysChanged() {
   list.innerHTML = "";
   keys.forEach((k, i) => {
     const li = document.createElement("li");
-    li.textContent = `fov ${Math.round(k.fov_y)}° `;
+    li.textContent = `fov ${Math.round(k.fov_y)}°${k.time === null ? "" : ` · t ${k.time.toFixed(2)}`} `;
     const button = (label, act) => {
       const b = document.createElement("button");
       b.className = "small";
@@ -345,7 +345,11 @@ function keysChanged() {
       b.onclick = act;
       li.appendChild(b);
     };
-    button("go", () => { setPose(k.c2w, k.fov_y); requestView(false); });
+    button("go", () => {
+      setPose(k.c2w, k.fov_y);
+      if (k.time !== null) setTime(k.time);
+      requestView(false);
+    });
     button("↑", () => { if (i > 0) { [keys[i - 1], keys[i]] = [keys[i], keys[i - 1]]; keysChanged(); } });
     button("↓", () => { if (i + 1 < keys.length) { [keys[i + 1], keys[i]] = [keys[i], keys[i + 1]]; keysChanged(); } });
     button("✕", () => { keys.splice(i, 1); keysChanged(); });
@@ -368,6 +372,7 @@ function pathReady(msg) {
 function showPathFrame(i) {
   if (!pathPoses) return;
   setPose(pathPoses.poses[i], pathPoses.fov_y[i]);
+  if (pathPoses.times) setTime(pathPoses.times[i]);
   changed();
 }
 
@@ -497,7 +502,11 @@ async function start() {
   $("time").oninput = (e) => { setTime(Number(e.target.value)); changed(); };
   $("time-play").onclick = playTime;
   $("photo-close").onclick = () => { $("photo-box").hidden = true; selected = -1; drawOverlay(); };
-  $("key-add").onclick = () => { keys.push({ c2w: pose(), fov_y: view.fov }); keysChanged(); };
+  // A moving scene's keyframes keep the moment shown when they were added.
+  $("key-add").onclick = () => {
+    keys.push({ c2w: pose(), fov_y: view.fov, time: scene.dynamic ? time : null });
+    keysChanged();
+  };
   for (const id of ["seconds", "fps", "loop"]) $(id).onchange = keysChanged;
   $("scrub").oninput = (e) => showPathFrame(Number(e.target.value));
   $("play").onclick = play;

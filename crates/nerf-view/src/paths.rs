@@ -17,34 +17,58 @@ use crate::state::Viewer;
 pub const PATHS_DIR: &str = "camera_paths";
 pub const RENDERS_DIR: &str = "renders";
 
-/// Every frame's pose and vertical field of view.
-pub fn frames(path: &CameraPath) -> (Vec<Pose>, Vec<f32>) {
+/// A path's frames.
+pub struct Frames {
+    pub poses: Vec<Pose>,
+    /// Vertical fields of view (degrees).
+    pub fov_y: Vec<f32>,
+    /// Each frame's moment, where the keyframes carry time.
+    pub times: Option<Vec<f32>>,
+}
+
+/// Every frame's pose and vertical field of view, and its moment where the keyframes
+/// carry time (both run linearly between keyframes).
+pub fn frames(path: &CameraPath) -> Frames {
     let keys: Vec<Pose> = path.keyframes.iter().map(|k| k.c2w).collect();
     let n = path.frames();
-    let poses = through_keyframes(&keys, n, path.looped);
-    let fov = (0..n)
-        .map(|f| {
-            let (i, t) = path_parameter(f, n, keys.len(), path.looped);
-            let a = path.keyframes[i].fov_y;
-            let b = path.keyframes[(i + 1) % keys.len()].fov_y;
-            a + (b - a) * t
-        })
-        .collect();
-    (poses, fov)
+    let between = |of: &dyn Fn(usize) -> f32| -> Vec<f32> {
+        (0..n)
+            .map(|f| {
+                let (i, t) = path_parameter(f, n, keys.len(), path.looped);
+                let (a, b) = (of(i), of((i + 1) % keys.len()));
+                a + (b - a) * t
+            })
+            .collect()
+    };
+    let timed = path.keyframes.iter().all(|k| k.time.is_some());
+    Frames {
+        poses: through_keyframes(&keys, n, path.looped),
+        fov_y: between(&|k| path.keyframes[k].fov_y),
+        times: timed.then(|| between(&|k| path.keyframes[k].time.unwrap_or(0.0))),
+    }
 }
 
 /// The path as nerfstudio writes `camera_path.json` (what `nerf render --path file`
 /// reads), with the editor's keyframes kept beside it.
 pub fn nerfstudio_json(path: &CameraPath) -> serde_json::Value {
-    let (poses, fov) = frames(path);
+    let Frames {
+        poses,
+        fov_y,
+        times,
+    } = frames(path);
     let aspect = path.width as f32 / path.height as f32;
     let frames: Vec<_> = poses
         .iter()
-        .zip(&fov)
-        .map(|(p, f)| {
+        .zip(&fov_y)
+        .enumerate()
+        .map(|(k, (p, f))| {
             let mut m: Vec<f32> = p.iter().flatten().copied().collect();
             m.extend([0.0, 0.0, 0.0, 1.0]);
-            json!({"camera_to_world": m, "fov": f, "aspect": aspect})
+            let mut frame = json!({"camera_to_world": m, "fov": f, "aspect": aspect});
+            if let Some(t) = times.as_ref().map(|t| t[k]) {
+                frame["time"] = json!(t);
+            }
+            frame
         })
         .collect();
     json!({
@@ -122,6 +146,7 @@ mod tests {
         Keyframe {
             c2w: nerf::camera::look_at(eye, [0.0; 3], [0.0, 0.0, 1.0]),
             fov_y,
+            time: None,
         }
     }
 
@@ -158,5 +183,37 @@ mod tests {
         }
         assert!(save(dir.path(), "../out", &p).is_err());
         assert!(!dir.path().join("out.json").exists());
+        // Without keyed times the frames carry none.
+        let times = nerf::camera::path::load_camera_path_times(&file).expect("times");
+        assert!(times.iter().all(Option::is_none), "{times:?}");
+    }
+
+    /// Keyed moments run linearly between the keyframes, in the preview and in the saved
+    /// file, which `nerf render --path file` renders frame by frame at its moment.
+    #[test]
+    fn keyed_times_run_between_the_keyframes() {
+        let mut p = path();
+        p.keyframes[0].time = Some(0.2);
+        p.keyframes[1].time = Some(0.6);
+        let times = frames(&p).times.expect("times");
+        let expected = [0.2, 0.3, 0.4, 0.5, 0.6];
+        assert_eq!(times.len(), expected.len());
+        for (t, e) in times.iter().zip(expected) {
+            assert!((t - e).abs() < 1e-6, "{times:?}");
+        }
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = save(dir.path(), "moving", &p).expect("save");
+        let read = nerf::camera::path::load_camera_path_times(&file).expect("times");
+        assert_eq!(read.len(), 5);
+        for (t, e) in read.iter().zip(expected) {
+            assert!(t.is_some_and(|t| (t - e).abs() < 1e-6), "{read:?}");
+        }
+        // A looped path comes back to the first keyframe's moment.
+        p.looped = true;
+        let looped = frames(&p).times.expect("times");
+        assert!(
+            (looped[0] - 0.2).abs() < 1e-6 && looped[4] < 0.6,
+            "{looped:?}"
+        );
     }
 }

@@ -55,6 +55,10 @@ pub struct ViewCamera {
 pub struct Keyframe {
     pub c2w: [[f32; 4]; 3],
     pub fov_y: f32,
+    /// Models of a moving scene: the moment this keyframe shows, in [0, 1] (time runs
+    /// linearly between keyframes). A path keys time at every keyframe or at none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub time: Option<f32>,
 }
 
 /// A camera path as the editor holds it.
@@ -111,10 +115,13 @@ pub enum ClientMessage {
 pub enum ServerMessage {
     /// A request could not be served; the connection stays open.
     Error { message: String },
-    /// The path's interpolated cameras (3x4 camera-to-world each), one per frame.
+    /// The path's interpolated cameras (3x4 camera-to-world each), one per frame, and
+    /// each frame's moment where the keyframes carry time.
     PathPoses {
         poses: Vec<[[f32; 4]; 3]>,
         fov_y: Vec<f32>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        times: Option<Vec<f32>>,
     },
     /// A path was saved (its location relative to the run folder).
     Saved { file: String },
@@ -198,6 +205,20 @@ impl CameraPath {
         for (k, key) in self.keyframes.iter().enumerate() {
             check_pose(&key.c2w, &format!("keyframe {k}"))?;
             check_fov(key.fov_y, &format!("keyframe {k}"))?;
+            if let Some(t) = key.time.filter(|t| !(0.0..=1.0).contains(t)) {
+                return Err(ProtocolError::OutOfRange(format!(
+                    "keyframe {k}: time {t} is not a moment in [0, 1]"
+                )));
+            }
+        }
+        let timed = self.keyframes.iter().filter(|k| k.time.is_some()).count();
+        if timed != 0 && timed != n {
+            let untimed = self.keyframes.iter().position(|k| k.time.is_none());
+            return Err(ProtocolError::OutOfRange(format!(
+                "keyframe {} has no time while {timed} others have one: key time at every \
+                 keyframe or at none",
+                untimed.unwrap_or(0)
+            )));
         }
         if !(self.seconds > 0.0 && self.seconds <= MAX_SECONDS) {
             return Err(ProtocolError::OutOfRange(format!(
@@ -356,11 +377,36 @@ mod tests {
                     .to_string(),
                 "name",
             ),
+            (path_with_times("0.5", "1.5"), "keyframe 1: time 1.5"),
+            (path_with_times("0.5", "null"), "keyframe 1 has no time"),
         ];
         for (text, why) in cases {
             let e = ClientMessage::parse(&text).expect_err(&text);
             assert!(e.to_string().contains(why), "{text}: {e}");
         }
+    }
+
+    /// A path preview of two keyframes whose `time`s are `a` and `b` (JSON values).
+    fn path_with_times(a: &str, b: &str) -> String {
+        let key =
+            |t: &str| format!(r#"{{"c2w":[[1,0,0,0],[0,1,0,0],[0,0,1,4]],"fov_y":40,"time":{t}}}"#);
+        format!(
+            r#"{{"type":"preview_path","path":{{"keyframes":[{},{}],"seconds":1,"fps":24,"width":8,"height":8}}}}"#,
+            key(a),
+            key(b)
+        )
+    }
+
+    #[test]
+    fn keyframes_carry_their_moment() {
+        let m = ClientMessage::parse(&path_with_times("0.25", "0.75")).expect("parses");
+        let ClientMessage::PreviewPath { path } = m else {
+            panic!("not a preview");
+        };
+        let times: Vec<_> = path.keyframes.iter().map(|k| k.time).collect();
+        assert_eq!(times, [Some(0.25), Some(0.75)]);
+        let untimed = path_with_times("null", "null");
+        assert!(ClientMessage::parse(&untimed).is_ok(), "a still path");
     }
 
     #[test]

@@ -176,8 +176,16 @@ fn handle(
             }
         },
         ClientMessage::PreviewPath { path } => {
-            let (poses, fov_y) = paths::frames(&path);
-            let _ = tx.send(text(&ServerMessage::PathPoses { poses, fov_y }));
+            let paths::Frames {
+                poses,
+                fov_y,
+                times,
+            } = paths::frames(&path);
+            let _ = tx.send(text(&ServerMessage::PathPoses {
+                poses,
+                fov_y,
+                times,
+            }));
         }
         ClientMessage::SavePath { name, path } => {
             let (viewer, tx) = (viewer.clone(), tx.clone());

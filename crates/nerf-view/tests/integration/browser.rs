@@ -359,7 +359,10 @@ fn the_page_draws_the_model_follows_the_mouse_and_saves_paths() {
     let (_, _, _, moved) = final_frame(&browser, "the frame after the drag");
     assert_ne!(moved, px, "the picture did not change");
 
-    // Two keyframes, saved from the editor, render through `nerf render --path file`.
+    // Two keyframes, saved from the editor, render through `nerf render --path file`; the
+    // second keeps the last moment, so time runs from 0 to 1 along the path.
+    browser.js("const t = document.getElementById('time'); t.value = '1'; \
+         t.dispatchEvent(new Event('input')); return true;");
     browser.click("key-add");
     browser.js(
         "document.getElementById('path-name').value = 'browser_take'; \
@@ -376,6 +379,27 @@ fn the_page_draws_the_model_follows_the_mouse_and_saves_paths() {
     );
     assert_eq!(status, json!("saved camera_paths/browser_take.json"));
     let file = run_dir.join("camera_paths/browser_take.json");
+    let times = nerf::camera::path::load_camera_path_times(&file).expect("times");
+    let expected = [0.0, 1.0 / 3.0, 2.0 / 3.0, 1.0];
+    assert!(
+        times.len() == 4
+            && times
+                .iter()
+                .zip(expected)
+                .all(|(t, e)| t.is_some_and(|t| (t - e).abs() < 1e-5)),
+        "the saved path's moments: {times:?}"
+    );
+    // Scrubbing the preview shows each frame at its moment.
+    let scrubbed = browser.js(
+        "const s = document.getElementById('scrub'); s.value = '2'; \
+         s.dispatchEvent(new Event('input')); return time;",
+    );
+    assert!(
+        scrubbed
+            .as_f64()
+            .is_some_and(|t| (t - 2.0 / 3.0).abs() < 1e-5),
+        "scrubbed to frame 2: time {scrubbed}"
+    );
     let mut opts = FramesOptions::orbit(2, 1.0, dir.path().join("take.gif"));
     opts.path = PathKind::File;
     opts.camera_path = Some(file);

@@ -270,8 +270,9 @@ fn the_viewer_serves_its_run_and_only_its_run() {
             .await
             .expect("send");
         match next_text(&mut ws).await {
-            ServerMessage::PathPoses { poses, fov_y } => {
+            ServerMessage::PathPoses { poses, fov_y, times } => {
                 assert_eq!((poses.len(), fov_y.len()), (3, 3));
+                assert_eq!(times, None, "keyframes without time");
             }
             other => panic!("{other:?}"),
         }
