@@ -201,7 +201,16 @@ impl HashGrid {
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
     pub fn encode_bwd(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        encode_levels_bwd(&self.levels, points, d_out, grads);
+        let layout = GradLayout::by_sample(self.levels.len());
+        encode_levels_bwd(&self.levels, points, d_out, layout, grads);
+    }
+
+    /// [`encode_bwd`](Self::encode_bwd) with `d_out` laid out level by level (level `l`'s
+    /// gradients of every point, [`FEATURES`] each, then level `l + 1`'s): a pass over one
+    /// level then reads its gradients in sequence.
+    pub fn encode_bwd_by_level(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
+        let layout = GradLayout::by_level(points.len() / 3);
+        encode_levels_bwd(&self.levels, points, d_out, layout, grads);
     }
 }
 
@@ -442,9 +451,9 @@ pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>
     levels: &[L],
     points: &[f32],
     d_out: &[f32],
+    layout: GradLayout,
     grads: &mut Grads,
 ) {
-    let d = levels.len() * FEATURES;
     let n = points.len() / D;
     let mut corners = Corners::<C>::default();
     for (l, level) in levels.iter().enumerate() {
@@ -454,7 +463,7 @@ pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>
             let table = &grads.values_mut()[offset..][..entries * FEATURES];
             corners.compute(level, table, &points[first * D..(first + len) * D]);
             for j in 0..len {
-                let g = &d_out[(first + j) * d + l * FEATURES..][..FEATURES];
+                let g = &d_out[layout.at(l, first + j)..][..FEATURES];
                 if g[0] == 0.0 && g[1] == 0.0 {
                     continue;
                 }
@@ -465,6 +474,36 @@ pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>
                 }
             }
         }
+    }
+}
+
+/// Where the gradient of level `l` of point `s` starts in a backward's `d_out`.
+#[derive(Clone, Copy)]
+pub(crate) struct GradLayout {
+    level_stride: usize,
+    point_stride: usize,
+}
+
+impl GradLayout {
+    /// Each point's levels together (`n x levels x FEATURES`), as the encoding writes them.
+    pub(crate) fn by_sample(levels: usize) -> Self {
+        GradLayout {
+            level_stride: FEATURES,
+            point_stride: levels * FEATURES,
+        }
+    }
+
+    /// Each level's points together (`levels x n x FEATURES`).
+    pub(crate) fn by_level(n: usize) -> Self {
+        GradLayout {
+            level_stride: n * FEATURES,
+            point_stride: FEATURES,
+        }
+    }
+
+    #[inline(always)]
+    fn at(self, l: usize, s: usize) -> usize {
+        l * self.level_stride + s * self.point_stride
     }
 }
 

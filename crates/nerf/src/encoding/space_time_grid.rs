@@ -12,7 +12,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::hash_grid::{encode_levels, encode_levels_bwd, geometric, Lattice, FEATURES};
+use super::hash_grid::{
+    encode_levels, encode_levels_bwd, geometric, GradLayout, Lattice, FEATURES,
+};
 use crate::nn::{Grads, ParamLayout};
 use crate::rng::Rng;
 
@@ -185,7 +187,8 @@ impl SpaceTimeGrid {
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
     pub fn encode_bwd(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        encode_levels_bwd(&self.levels, points, d_out, grads);
+        let layout = GradLayout::by_sample(self.levels.len());
+        encode_levels_bwd(&self.levels, points, d_out, layout, grads);
     }
 }
 

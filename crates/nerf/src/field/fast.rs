@@ -19,7 +19,7 @@ use serde::{Deserialize, Serialize};
 
 pub use super::level_weights::level_weight;
 use super::level_weights::{cell_factor, fill_level_weights};
-use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
+use crate::encoding::hash_grid::{HashGrid, HashGridConfig, FEATURES};
 use crate::encoding::space_time_grid::{SpaceTimeConfig, SpaceTimeGrid};
 use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
@@ -182,6 +182,12 @@ pub struct FastWorkspace {
     d_geo: Vec<f32>,
     d_h: Vec<f32>,
     d_enc: Vec<f32>,
+    /// Set to the samples to come: backward passes leave the hash grid's scatter for
+    /// [`FastField::scatter_deferred`], keeping their points and encoding gradients here
+    /// (level by level, room for that many samples).
+    pub defer_grid: Option<usize>,
+    deferred_unit: Vec<f32>,
+    deferred_d_enc: Vec<f32>,
 }
 
 /// `dz = dh * (h > 0)` in place.
@@ -716,8 +722,31 @@ impl FastField {
         clock.stop();
         let _clock = step_clock::start(Stage::EncodingBackward);
         grads.mark(self.mlp_range());
-        self.grid
-            .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
+        if let Some(room) = ws.defer_grid {
+            // More samples came than there is room for: what waits goes first, in order.
+            if ws.deferred_unit.len() / 3 + n > room {
+                self.scatter_deferred(ws, grads);
+            }
+        }
+        match ws.defer_grid {
+            Some(room) if ws.deferred_unit.len() / 3 + n <= room => {
+                let kept = ws.deferred_unit.len() / 3;
+                if kept == 0 {
+                    ws.deferred_d_enc.resize(room * e, 0.0);
+                }
+                let planes = &mut ws.deferred_d_enc[..room * e];
+                for (s, row) in ws.d_enc[..n * e].chunks_exact(e).enumerate() {
+                    for (l, g) in row.chunks_exact(FEATURES).enumerate() {
+                        let at = (l * room + kept + s) * FEATURES;
+                        planes[at..at + FEATURES].copy_from_slice(g);
+                    }
+                }
+                ws.deferred_unit.extend_from_slice(&ws.unit[..n * 3]);
+            }
+            _ => self
+                .grid
+                .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads),
+        }
         if let Some(m) = &self.motion {
             m.encode_bwd(
                 &ws.unit_time[..n * 4],
@@ -781,6 +810,34 @@ impl FastField {
         ws.d_smooth[..k * md].iter_mut().for_each(|d| *d = -*d);
         motion.encode_bwd(&ws.later[..k * 4], &ws.d_smooth[..k * md], grads);
         value * f64::from(weight)
+    }
+
+    /// Scatters into the hash grid's gradients what the backward passes since
+    /// [`FastWorkspace::defer_grid`] was set left there, level by level over all their
+    /// samples at once, and forgets it. Chunk by chunk, a fine level's table (megabytes)
+    /// is fetched into the caches again for every chunk's few thousand writes; over a
+    /// worker's whole share it stays there while they all land. The sums are the same,
+    /// bit for bit: an entry belongs to one level, and each level takes the samples in
+    /// the same order.
+    pub fn scatter_deferred(&self, ws: &mut FastWorkspace, grads: &mut Grads) {
+        let _clock = step_clock::start(Stage::EncodingBackward);
+        let (kept, room) = (ws.deferred_unit.len() / 3, ws.defer_grid.unwrap_or(0));
+        if kept > 0 {
+            // The planes hold `room` samples a level; the first `kept` of each are filled.
+            let e = self.grid.dims();
+            if kept < room {
+                let planes = &mut ws.deferred_d_enc;
+                for l in 0..e / FEATURES {
+                    planes.copy_within(
+                        l * room * FEATURES..(l * room + kept) * FEATURES,
+                        l * kept * FEATURES,
+                    );
+                }
+            }
+            self.grid
+                .encode_bwd_by_level(&ws.deferred_unit, &ws.deferred_d_enc[..kept * e], grads);
+        }
+        ws.deferred_unit.clear();
     }
 
     /// [`Field::backward`], and also `dL/d position` (`n x 3`, field space) into
@@ -1142,6 +1199,59 @@ mod tests {
         );
         assert_eq!(before.1[3..], after.1[3..], "photo 1's does not");
         assert_eq!(field.codes(&params).len(), 12);
+    }
+
+    /// Backward passes over two chunks with the grid's scatter deferred to one pass over
+    /// both give the gradients of the passes scattered one by one, bit for bit.
+    #[test]
+    fn a_deferred_grid_scatter_is_the_immediate_one() {
+        let mut rng = Rng::new(8);
+        let field = tiny();
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let chunks: Vec<_> = (0..2)
+            .map(|_| {
+                let n = 7;
+                let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+                let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
+                let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+                let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+                (pos, dirs, a, b)
+            })
+            .collect();
+        // Room for the 14 samples that come, for more (the planes close up before the
+        // scatter), or for fewer (what waits is scattered when a chunk does not fit).
+        let run = |room: Option<usize>| {
+            let mut ws = FastWorkspace {
+                defer_grid: room,
+                ..Default::default()
+            };
+            let mut grads = GradBuffer::new(field.num_params());
+            for (pos, dirs, a, b) in &chunks {
+                field.forward(&params, input(pos, dirs), &mut ws);
+                let d = FieldGrad {
+                    d_sigma: a,
+                    d_rgb: b,
+                };
+                field.backward(&params, &mut ws, d, &mut grads.all());
+            }
+            let before = grads.values.clone();
+            field.scatter_deferred(&mut ws, &mut grads.all());
+            let dirty = grads.dirty_fraction();
+            (before, grads.values, dirty)
+        };
+        let (immediate, after_nothing, dirty) = run(None);
+        assert_eq!(immediate, after_nothing, "nothing was deferred");
+        for room in [14, 20, 10] {
+            let (before, deferred, deferred_dirty) = run(Some(room));
+            assert_ne!(
+                before, deferred,
+                "the tables' gradients waited (room {room})"
+            );
+            assert_eq!(deferred, immediate, "room {room}");
+            assert_eq!(deferred_dirty, dirty, "room {room}");
+        }
     }
 
     /// The straight-through schedule: weighting the levels of the position gradient

@@ -571,6 +571,8 @@ impl Model for FastModel {
             .for_each(|(w, (worker, sse))| {
                 let first = shares[w];
                 let (mut start, mut held) = (first, 0);
+                let share: usize = (first..shares[w + 1]).map(samples_of).sum();
+                worker.ws.field.defer_grid = Some(share);
                 for g in first..shares[w + 1] {
                     held += samples_of(g);
                     if held >= batch || g + 1 == shares[w + 1] {
@@ -591,6 +593,9 @@ impl Model for FastModel {
                         held = 0;
                     }
                 }
+                self.field
+                    .scatter_deferred(&mut worker.ws.field, &mut worker.grads.all());
+                worker.ws.field.defer_grid = None;
             });
         let sse: f64 = sse.iter().sum();
         PassTotals {
