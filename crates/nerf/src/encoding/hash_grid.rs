@@ -169,14 +169,24 @@ impl HashGrid {
 
     /// Encodes `n` unit-cube points (packed `n x 3`) into `out` (`n x dims()`).
     pub fn encode(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
-        encode_levels(&self.levels, params, points, out);
+        let layout = Layout::by_sample(self.levels.len());
+        encode_levels(&self.levels, params, points, layout, out);
+    }
+
+    /// [`encode`](Self::encode) into `out` laid out level by level (level `l`'s features of
+    /// every point, then level `l + 1`'s), as [`encode_bwd_by_level`](Self::encode_bwd_by_level)
+    /// reads gradients.
+    pub fn encode_by_level(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
+        let layout = Layout::by_level(points.len() / 3);
+        encode_levels(&self.levels, params, points, layout, out);
     }
 
     /// [`encode`](Self::encode) one sample at a time (its grouping and prefetch, without
     /// the AVX2 loops): their reference and their benchmark's baseline.
     pub fn encode_scalar(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
         let levels: Vec<Scalar> = self.levels.iter().map(Scalar).collect();
-        encode_levels(&levels, params, points, out);
+        let layout = Layout::by_sample(levels.len());
+        encode_levels(&levels, params, points, layout, out);
     }
 
     /// The plain per-sample loop that [`encode`](Self::encode) replaced (no grouping, no
@@ -201,7 +211,7 @@ impl HashGrid {
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
     pub fn encode_bwd(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        let layout = GradLayout::by_sample(self.levels.len());
+        let layout = Layout::by_sample(self.levels.len());
         encode_levels_bwd(&self.levels, points, d_out, layout, grads);
     }
 
@@ -209,7 +219,7 @@ impl HashGrid {
     /// gradients of every point, [`FEATURES`] each, then level `l + 1`'s): a pass over one
     /// level then reads its gradients in sequence.
     pub fn encode_bwd_by_level(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        let layout = GradLayout::by_level(points.len() / 3);
+        let layout = Layout::by_level(points.len() / 3);
         encode_levels_bwd(&self.levels, points, d_out, layout, grads);
     }
 }
@@ -402,11 +412,11 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
     levels: &[L],
     params: &[f32],
     points: &[f32],
+    layout: Layout,
     out: &mut [f32],
 ) {
-    let d = levels.len() * FEATURES;
     let n = points.len() / D;
-    assert!(out.len() >= n * d);
+    assert!(out.len() >= n * levels.len() * FEATURES);
     #[cfg(target_arch = "x86_64")]
     let vectorised = L::VECTORISED && grid_simd::available();
     let mut corners = Corners::<C>::default();
@@ -425,7 +435,7 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
                     // SAFETY: AVX2 is present; the corners index this level's table.
                     let f = unsafe { grid_simd::interpolate8(table, &corners.idx, &corners.w, j) };
                     for i in 0..LANES {
-                        let row = &mut out[(first + j + i) * d + l * FEATURES..][..FEATURES];
+                        let row = &mut out[layout.at(l, first + j + i)..][..FEATURES];
                         row.copy_from_slice(&[f[0][i], f[1][i]]);
                     }
                     j += LANES;
@@ -439,7 +449,7 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
                     f[0] += w * e[0];
                     f[1] += w * e[1];
                 }
-                out[(first + j) * d + l * FEATURES..][..FEATURES].copy_from_slice(&f);
+                out[layout.at(l, first + j)..][..FEATURES].copy_from_slice(&f);
             }
         }
     }
@@ -451,7 +461,7 @@ pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>
     levels: &[L],
     points: &[f32],
     d_out: &[f32],
-    layout: GradLayout,
+    layout: Layout,
     grads: &mut Grads,
 ) {
     let n = points.len() / D;
@@ -477,17 +487,17 @@ pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>
     }
 }
 
-/// Where the gradient of level `l` of point `s` starts in a backward's `d_out`.
+/// Where level `l` of point `s` starts in a buffer of encodings (or of their gradients).
 #[derive(Clone, Copy)]
-pub(crate) struct GradLayout {
+pub(crate) struct Layout {
     level_stride: usize,
     point_stride: usize,
 }
 
-impl GradLayout {
+impl Layout {
     /// Each point's levels together (`n x levels x FEATURES`), as the encoding writes them.
     pub(crate) fn by_sample(levels: usize) -> Self {
-        GradLayout {
+        Layout {
             level_stride: FEATURES,
             point_stride: levels * FEATURES,
         }
@@ -495,7 +505,7 @@ impl GradLayout {
 
     /// Each level's points together (`levels x n x FEATURES`).
     pub(crate) fn by_level(n: usize) -> Self {
-        GradLayout {
+        Layout {
             level_stride: n * FEATURES,
             point_stride: FEATURES,
         }

@@ -12,9 +12,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::hash_grid::{
-    encode_levels, encode_levels_bwd, geometric, GradLayout, Lattice, FEATURES,
-};
+use super::hash_grid::{encode_levels, encode_levels_bwd, geometric, Lattice, Layout, FEATURES};
 use crate::nn::{Grads, ParamLayout};
 use crate::rng::Rng;
 
@@ -181,13 +179,14 @@ impl SpaceTimeGrid {
     /// Encodes `n` points (packed `n x 4`: unit-cube position, then time) into `out`
     /// (`n x dims()`).
     pub fn encode(&self, params: &[f32], points: &[f32], out: &mut [f32]) {
-        encode_levels(&self.levels, params, points, out);
+        let layout = Layout::by_sample(self.levels.len());
+        encode_levels(&self.levels, params, points, layout, out);
     }
 
     /// Backward of [`encode`](Self::encode): scatters `d_out` (`n x dims()`) into the table
     /// gradients, marking the blocks it touches.
     pub fn encode_bwd(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        let layout = GradLayout::by_sample(self.levels.len());
+        let layout = Layout::by_sample(self.levels.len());
         encode_levels_bwd(&self.levels, points, d_out, layout, grads);
     }
 }

@@ -188,6 +188,11 @@ pub struct FastWorkspace {
     pub defer_grid: Option<usize>,
     deferred_unit: Vec<f32>,
     deferred_d_enc: Vec<f32>,
+    /// A worker's share encoded ahead of its chunks ([`FastField::pre_encode`]): its points
+    /// and their encodings level by level, the next chunk's first sample at `share_next`.
+    share_unit: Vec<f32>,
+    share_enc: Vec<f32>,
+    share_next: usize,
 }
 
 /// `dz = dh * (h > 0)` in place.
@@ -451,7 +456,9 @@ impl FastField {
         grow(&mut ws.sigma, n);
         self.to_unit(positions, &mut ws.unit[..n * 3]);
         let clock = step_clock::start(Stage::Encoding);
-        self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
+        if !self.take_pre_encoded(n, ws) {
+            self.grid.encode(params, &ws.unit[..n * 3], &mut ws.enc);
+        }
         clock.stop();
         let clock = step_clock::start(Stage::LevelWeights);
         self.level_scales(footprints, n, &mut ws.level_scale);
@@ -487,6 +494,46 @@ impl FastField {
         for (s, row) in ws.sigma[..n].iter_mut().zip(ws.geo.chunks_exact(g)) {
             *s = row[0].min(LOG_SIGMA_MAX).exp();
         }
+    }
+
+    /// Encodes the points at `positions` (a worker's whole share of a step, in the order its
+    /// chunks will come) level by level, ahead of the forward passes, which then take their
+    /// encodings from here: as in the backward ([`scatter_deferred`](Self::scatter_deferred)),
+    /// one pass a level over the whole share keeps a fine level's table in the caches, where
+    /// chunk by chunk it is fetched again for each. The encodings are the same, bit for bit.
+    pub fn pre_encode(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
+        let _clock = step_clock::start(Stage::Encoding);
+        let n = positions.len() / 3;
+        ws.share_unit.resize(n * 3, 0.0);
+        self.to_unit(positions, &mut ws.share_unit);
+        ws.share_enc.resize(n * self.grid.dims(), 0.0);
+        self.grid
+            .encode_by_level(params, &ws.share_unit, &mut ws.share_enc);
+        ws.share_next = 0;
+    }
+
+    /// Forgets what [`pre_encode`](Self::pre_encode) left.
+    pub fn end_pre_encoded(&self, ws: &mut FastWorkspace) {
+        ws.share_unit.clear();
+        ws.share_next = 0;
+    }
+
+    /// Fills `ws.enc` for the `n` points in `ws.unit` from the share encoded ahead, if they
+    /// are its next points (anything else is encoded as it comes); whether it did.
+    fn take_pre_encoded(&self, n: usize, ws: &mut FastWorkspace) -> bool {
+        let (room, next) = (ws.share_unit.len() / 3, ws.share_next);
+        if next + n > room || ws.unit[..n * 3] != ws.share_unit[next * 3..(next + n) * 3] {
+            return false;
+        }
+        let e = self.grid.dims();
+        for l in 0..e / FEATURES {
+            let plane = &ws.share_enc[(l * room + next) * FEATURES..][..n * FEATURES];
+            for (s, f) in plane.chunks_exact(FEATURES).enumerate() {
+                ws.enc[s * e + l * FEATURES..][..FEATURES].copy_from_slice(f);
+            }
+        }
+        ws.share_next += n;
+        true
     }
 
     /// Densities at `positions` into `out`, in a workspace of the calling thread's own: for
@@ -1199,6 +1246,46 @@ mod tests {
         );
         assert_eq!(before.1[3..], after.1[3..], "photo 1's does not");
         assert_eq!(field.codes(&params).len(), 12);
+    }
+
+    /// Forward passes over two chunks of a share encoded ahead give the forward of each
+    /// chunk alone, bit for bit; points that are not the share's next are encoded as they
+    /// come.
+    #[test]
+    fn a_share_encoded_ahead_gives_the_chunks_own_encodings() {
+        let mut rng = Rng::new(9);
+        let field = tiny();
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let chunks: Vec<(Vec<f32>, Vec<f32>)> = [7, 5]
+            .iter()
+            .map(|&n| {
+                let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+                let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
+                (pos, dirs)
+            })
+            .collect();
+        let forward = |ws: &mut FastWorkspace, (pos, dirs): &(Vec<f32>, Vec<f32>)| {
+            let out = field.forward(&params, input(pos, dirs), ws);
+            (out.sigma.to_vec(), out.rgb.to_vec())
+        };
+        let alone: Vec<_> = chunks
+            .iter()
+            .map(|c| forward(&mut FastWorkspace::default(), c))
+            .collect();
+        let mut ws = FastWorkspace::default();
+        let share: Vec<f32> = chunks.iter().flat_map(|c| c.0.clone()).collect();
+        field.pre_encode(&params, &share, &mut ws);
+        // A chunk out of turn (the second first) is encoded as it comes.
+        assert_eq!(forward(&mut ws, &chunks[1]), alone[1]);
+        assert_eq!(ws.share_next, 0, "the share waits for its first chunk");
+        for (c, want) in chunks.iter().zip(&alone) {
+            assert_eq!(&forward(&mut ws, c), want);
+        }
+        assert_eq!(ws.share_next, 12, "both chunks came from the share");
+        field.end_pre_encoded(&mut ws);
+        assert_eq!(forward(&mut ws, &chunks[0]), alone[0]);
     }
 
     /// Backward passes over two chunks with the grid's scatter deferred to one pass over

@@ -573,6 +573,17 @@ impl Model for FastModel {
                 let (mut start, mut held) = (first, 0);
                 let share: usize = (first..shares[w + 1]).map(samples_of).sum();
                 worker.ws.field.defer_grid = Some(share);
+                let positions: Vec<f32> = (first..shares[w + 1])
+                    .flat_map(|g| {
+                        let s = &blocks[g / BLOCK_RAYS].samples;
+                        s.positions[s.ray(g % BLOCK_RAYS)]
+                            .as_flattened()
+                            .iter()
+                            .copied()
+                    })
+                    .collect();
+                self.field
+                    .pre_encode(input.params, &positions, &mut worker.ws.field);
                 for g in first..shares[w + 1] {
                     held += samples_of(g);
                     if held >= batch || g + 1 == shares[w + 1] {
@@ -596,6 +607,7 @@ impl Model for FastModel {
                 self.field
                     .scatter_deferred(&mut worker.ws.field, &mut worker.grads.all());
                 worker.ws.field.defer_grid = None;
+                self.field.end_pre_encoded(&mut worker.ws.field);
             });
         let sse: f64 = sse.iter().sum();
         PassTotals {
