@@ -408,11 +408,11 @@ impl Lattice<3, 8> for Scalar<'_> {
 /// Encodes `n` points (packed `n x D`) into `out` (`n x levels x FEATURES`), level by level
 /// (one table in cache at a time), a [`GROUP`] of samples' corners computed before any is
 /// read.
-pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
+pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>, const B: bool>(
     levels: &[L],
     params: &[f32],
     points: &[f32],
-    layout: Layout,
+    layout: Layout<B>,
     out: &mut [f32],
 ) {
     let n = points.len() / D;
@@ -457,11 +457,11 @@ pub(crate) fn encode_levels<const D: usize, const C: usize, L: Lattice<D, C>>(
 
 /// Backward of [`encode_levels`]: scatters `d_out` into the tables' gradients, marking
 /// the blocks it touches.
-pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>>(
+pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>, const B: bool>(
     levels: &[L],
     points: &[f32],
     d_out: &[f32],
-    layout: Layout,
+    layout: Layout<B>,
     grads: &mut Grads,
 ) {
     let n = points.len() / D;
@@ -487,33 +487,37 @@ pub(crate) fn encode_levels_bwd<const D: usize, const C: usize, L: Lattice<D, C>
     }
 }
 
-/// Where level `l` of point `s` starts in a buffer of encodings (or of their gradients).
+/// Where level `l` of point `s` starts in a buffer of encodings (or of their gradients):
+/// each point's levels together (`BY_LEVEL = false`, as the encoding writes them) or each
+/// level's points together. A constant, so each loop is compiled for its own arithmetic.
 #[derive(Clone, Copy)]
-pub(crate) struct Layout {
-    level_stride: usize,
-    point_stride: usize,
+pub(crate) struct Layout<const BY_LEVEL: bool> {
+    /// Levels (by point) or points (by level).
+    count: usize,
 }
 
-impl Layout {
-    /// Each point's levels together (`n x levels x FEATURES`), as the encoding writes them.
+impl Layout<false> {
+    /// Each point's levels together (`n x levels x FEATURES`).
     pub(crate) fn by_sample(levels: usize) -> Self {
-        Layout {
-            level_stride: FEATURES,
-            point_stride: levels * FEATURES,
-        }
+        Layout { count: levels }
     }
+}
 
+impl Layout<true> {
     /// Each level's points together (`levels x n x FEATURES`).
     pub(crate) fn by_level(n: usize) -> Self {
-        Layout {
-            level_stride: n * FEATURES,
-            point_stride: FEATURES,
-        }
+        Layout { count: n }
     }
+}
 
+impl<const BY_LEVEL: bool> Layout<BY_LEVEL> {
     #[inline(always)]
     fn at(self, l: usize, s: usize) -> usize {
-        l * self.level_stride + s * self.point_stride
+        if BY_LEVEL {
+            (l * self.count + s) * FEATURES
+        } else {
+            (s * self.count + l) * FEATURES
+        }
     }
 }
 
