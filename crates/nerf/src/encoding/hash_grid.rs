@@ -216,10 +216,18 @@ impl HashGrid {
     }
 
     /// [`encode_bwd`](Self::encode_bwd) with `d_out` laid out level by level (level `l`'s
-    /// gradients of every point, [`FEATURES`] each, then level `l + 1`'s): a pass over one
-    /// level then reads its gradients in sequence.
-    pub fn encode_bwd_by_level(&self, points: &[f32], d_out: &[f32], grads: &mut Grads) {
-        let layout = Layout::by_level(points.len() / 3);
+    /// gradients in a plane of `plane` points, [`FEATURES`] each, the first of them the
+    /// gradients of `points`, then level `l + 1`'s plane): a pass over one level then reads
+    /// its gradients in sequence.
+    pub fn encode_bwd_by_level(
+        &self,
+        points: &[f32],
+        d_out: &[f32],
+        plane: usize,
+        grads: &mut Grads,
+    ) {
+        assert!(points.len() / 3 <= plane, "more points than a plane holds");
+        let layout = Layout::by_level(plane);
         encode_levels_bwd(&self.levels, points, d_out, layout, grads);
     }
 }

@@ -868,21 +868,10 @@ impl FastField {
     /// the same order.
     pub fn scatter_deferred(&self, ws: &mut FastWorkspace, grads: &mut Grads) {
         let _clock = step_clock::start(Stage::EncodingBackward);
-        let (kept, room) = (ws.deferred_unit.len() / 3, ws.defer_grid.unwrap_or(0));
-        if kept > 0 {
-            // The planes hold `room` samples a level; the first `kept` of each are filled.
-            let e = self.grid.dims();
-            if kept < room {
-                let planes = &mut ws.deferred_d_enc;
-                for l in 0..e / FEATURES {
-                    planes.copy_within(
-                        l * room * FEATURES..(l * room + kept) * FEATURES,
-                        l * kept * FEATURES,
-                    );
-                }
-            }
+        if let (Some(room), false) = (ws.defer_grid, ws.deferred_unit.is_empty()) {
+            // The planes hold `room` samples a level; the first of each are filled.
             self.grid
-                .encode_bwd_by_level(&ws.deferred_unit, &ws.deferred_d_enc[..kept * e], grads);
+                .encode_bwd_by_level(&ws.deferred_unit, &ws.deferred_d_enc, room, grads);
         }
         ws.deferred_unit.clear();
     }
@@ -1307,8 +1296,8 @@ mod tests {
                 (pos, dirs, a, b)
             })
             .collect();
-        // Room for the 14 samples that come, for more (the planes close up before the
-        // scatter), or for fewer (what waits is scattered when a chunk does not fit).
+        // Room for the 14 samples that come, for more (the planes are read part-filled), or
+        // for fewer (what waits is scattered when a chunk does not fit).
         let run = |room: Option<usize>| {
             let mut ws = FastWorkspace {
                 defer_grid: room,
