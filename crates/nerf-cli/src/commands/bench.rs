@@ -163,7 +163,7 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         "  {:.1}% of the gradient blocks touched per step (reduction and Adam skip the rest)",
         100.0 * r.touched_fraction
     );
-    println!("  where a step without a refresh spends its time (mean over the steps):");
+    println!("  where a step without a refresh spends its time (as many steps again, clocked stage by stage):");
     for s in &r.stages {
         println!(
             "    {:<20} {:>7.1} ms  {:>5.1}%",

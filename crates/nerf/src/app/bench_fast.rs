@@ -173,7 +173,9 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     let mut config = TrainConfig::fast("(in memory)".into());
     let distortion = model.distortion;
     config.model = ModelConfig::Fast(model);
-    config.steps = opts.warmup_steps + opts.steps as u64;
+    // Warm-up, the timed steps (a refresh among them) and the clocked ones.
+    let every = opts.model.occupancy.update_every.max(1);
+    config.steps = opts.warmup_steps + 2 * (opts.steps as u64).max(every);
     let mut trainer = Trainer::on(opts.device, config, data)?;
     say(format!("engine: {}", trainer.engine.describe()));
     say(format!(
@@ -183,18 +185,11 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     for _ in 0..opts.warmup_steps {
         trainer.step()?;
     }
-    let every = opts.model.occupancy.update_every.max(1);
     let (mut plain, mut refresh, mut rays) = (Vec::new(), Vec::new(), Vec::new());
-    // The stage clocks run over the steps without a refresh (its density queries would
-    // count as the networks' and the hash grid's time).
-    step_clock::reset();
     for k in 0..opts.steps.max(every as usize) {
-        step_clock::enable((trainer.step + 1) % every != 0);
         let t = Instant::now();
-        let s = trainer.step();
+        let s = trainer.step()?;
         let dt = t.elapsed().as_secs_f64();
-        step_clock::enable(false);
-        let s = s?;
         rays.push(s.rays as f64);
         if s.step % every == 0 {
             refresh.push(dt);
@@ -206,13 +201,31 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         }
     }
     let rays_median = median(rays);
+    // The stage clocks run over steps of their own, after the timed ones: on the GPU a
+    // stage ends when the device has done its work, and those waits would slow the timed
+    // steps. Steps with a refresh are left out (its density queries would count as the
+    // networks' and the hash grid's time).
     let per_worker = match trainer.engine.kind() {
         crate::engine::caps::EngineKind::Cpu => threads as f64,
         _ => 1.0,
     };
+    step_clock::reset();
+    let mut clocked = Vec::new();
+    while clocked.len() < opts.steps.max(1) {
+        let timed = (trainer.step + 1) % every != 0;
+        step_clock::enable(timed);
+        let t = Instant::now();
+        let s = trainer.step();
+        let dt = t.elapsed().as_secs_f64();
+        step_clock::enable(false);
+        s?;
+        if timed {
+            clocked.push(dt);
+        }
+    }
     let stages = stage_times(
-        plain.iter().sum::<f64>() / plain.len().max(1) as f64,
-        plain.len(),
+        clocked.iter().sum::<f64>() / clocked.len() as f64,
+        clocked.len(),
         per_worker,
     );
     let step_s = median(plain);

@@ -143,6 +143,47 @@ fn train_steps(
     (losses, t)
 }
 
+/// A step whose targets are NaN is refused on the device as on the CPU: the optimiser,
+/// queued behind the device's count of non-finite values, writes nothing, and neither the
+/// weights, Adam's moments nor its step count move; a finite step after it trains.
+#[test]
+fn a_nan_step_on_the_gpu_leaves_the_weights_and_adam_alone() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 16);
+    let c = config(&data, 4);
+    let train = c
+        .open_scene(1)
+        .expect("scene")
+        .load(Split::Train, 1)
+        .expect("load");
+    let mut poisoned = train.clone();
+    for v in &mut poisoned.views {
+        v.image.data.iter_mut().for_each(|x| *x = f32::NAN);
+    }
+    let mut t = Trainer::on(Device::Wgpu, c.clone(), poisoned).expect("trainer");
+    let before = t.engine.state();
+    let err = t.step().expect_err("NaN targets must stop training");
+    assert!(
+        matches!(err, nerf::NerfError::Diverged { step: 1, .. }),
+        "{err}"
+    );
+    let after = t.engine.state();
+    assert!(
+        after.params == before.params,
+        "a refused step moved the weights"
+    );
+    assert!(after.adam_m == before.adam_m && after.adam_v == before.adam_v);
+    assert_eq!((after.adam_t, t.step), (before.adam_t, 0));
+    let mut fresh = Trainer::on(Device::Wgpu, c, train).expect("trainer");
+    fresh.engine.set_state(after).expect("state");
+    let s = fresh.step().expect("a finite step");
+    assert!(s.loss.is_finite() && fresh.engine.state().params != before.params);
+}
+
 /// The largest difference of two loss curves, relative to the first.
 fn relative_apart(a: &[f32], b: &[f32]) -> f32 {
     a.iter()

@@ -1,5 +1,7 @@
 //! Adam on the GPU: `nn::adam`'s update over the whole parameter vector in one pass, one
-//! thread per parameter, clearing the gradient behind it for the next step. Hash-table
+//! thread per parameter, clearing the gradient behind it for the next step. The update is
+//! queued behind a device-side count of the step's non-finite values (`finite`) and does
+//! nothing where it is not zero, so the host need not wait for the count before queuing it. Hash-table
 //! entries (before `lazy_end`) update lazily: an exact-zero gradient leaves the entry and
 //! its moments alone, as the CPU's dirty-block path does; the MLP weights after it take
 //! the weight decay. (The CPU skips whole untouched blocks of MLP weights too; every MLP
@@ -28,9 +30,16 @@ struct Update {
 }
 
 #[cube(launch_unchecked)]
-fn adam_step(params: &mut [f32], m: &mut [f32], v: &mut [f32], grads: &mut [f32], u: Update) {
+fn adam_step(
+    params: &mut [f32],
+    m: &mut [f32],
+    v: &mut [f32],
+    grads: &mut [f32],
+    nonfinite: &[u32],
+    u: Update,
+) {
     let i = ABSOLUTE_POS;
-    if i < params.len() {
+    if i < params.len() && nonfinite[0] == 0 {
         let p = params[i];
         let lazy = (i as u32) < u.lazy_end;
         let raw = grads[i] * u.scale;
@@ -47,7 +56,8 @@ fn adam_step(params: &mut [f32], m: &mut [f32], v: &mut [f32], grads: &mut [f32]
 }
 
 /// Applies `step` (from `Adam::begin_step`) to `n` parameters and their moments, reading
-/// and clearing `grads`.
+/// and clearing `grads`, unless the `u32` in `nonfinite` is not zero when the update runs
+/// (then nothing is written).
 #[allow(clippy::too_many_arguments)]
 pub fn step(
     gpu: &Gpu,
@@ -59,6 +69,7 @@ pub fn step(
     m: &Handle,
     v: &Handle,
     grads: &Handle,
+    nonfinite: &Handle,
 ) {
     if n == 0 {
         return;
@@ -84,6 +95,7 @@ pub fn step(
             BufferArg::from_raw_parts(m.clone(), n),
             BufferArg::from_raw_parts(v.clone(), n),
             BufferArg::from_raw_parts(grads.clone(), n),
+            BufferArg::from_raw_parts(nonfinite.clone(), 1),
             update,
         );
     }
@@ -157,6 +169,7 @@ mod tests {
                 &m,
                 &v,
                 &g,
+                &gpu.upload_u32(&[0]),
             );
             let read = |h: &Handle| {
                 let bytes = gpu.client.read_one(h.clone()).expect("read back");
@@ -174,5 +187,33 @@ mod tests {
             }
             assert!(read(&g).iter().all(|&x| x == 0.0), "gradients cleared");
         }
+        // A step with a non-finite value counted writes nothing: parameters, moments and
+        // gradients stay as they were.
+        let read = |h: &Handle| {
+            let bytes = gpu.client.read_one(h.clone()).expect("read back");
+            f32::from_bytes(&bytes).to_vec()
+        };
+        let before = [read(&p), read(&m), read(&v)];
+        let grads: Vec<f32> = (0..n).map(|_| rng.range(-3.0, 3.0)).collect();
+        let g = upload(&grads);
+        let refused = gpu_adam.begin_step(1e-2);
+        step(
+            &gpu,
+            &config,
+            refused,
+            how,
+            n,
+            &p,
+            &m,
+            &v,
+            &g,
+            &gpu.upload_u32(&[2]),
+        );
+        assert_eq!(
+            [read(&p), read(&m), read(&v)],
+            before,
+            "a refused step wrote"
+        );
+        assert_eq!(read(&g), grads, "a refused step cleared the gradients");
     }
 }

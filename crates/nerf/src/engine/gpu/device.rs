@@ -45,10 +45,16 @@ pub struct Gpu {
     /// on a data-centre GPU it rendered no faster than the layers while marching rounds
     /// set the pace, and its compilation delays the first frame (docs/benchmarks.md).
     pub fused_field: bool,
+    /// Consecutive samples a thread of the hash grid's backward takes (`hash_grid`), its
+    /// sums kept while they share a cell; `NERF_GPU_GRID_RUN` overrides, for measuring.
+    pub grid_run: usize,
     /// Whether the adapter multiplies 16 x 16 x 16 `f16` matrices into `f32` on warps of
     /// [`WARP`] threads (cooperative matrices: a `spirv` build on a GPU with tensor cores).
     pub tensor_cores: bool,
 }
+
+/// See [`Gpu::grid_run`].
+pub const GRID_RUN: usize = 8;
 
 /// Threads a warp (plane) as the tensor-core kernel takes them.
 pub const WARP: u32 = 32;
@@ -102,7 +108,13 @@ impl Gpu {
             _ => Path::Wide,
         };
         let fused_field = std::env::var("NERF_GPU_FIELD").as_deref() == Ok("fused");
+        let grid_run = std::env::var("NERF_GPU_GRID_RUN")
+            .ok()
+            .and_then(|v| v.parse::<usize>().ok())
+            .filter(|&r| (1..=256).contains(&r))
+            .unwrap_or(GRID_RUN);
         Gpu {
+            grid_run,
             matmul,
             fused_field,
             tensor_cores,

@@ -507,18 +507,18 @@ impl Engine for GpuEngine {
             &self.state.grads,
             self.state.n,
         )?;
-        // Per ray, summed in ray order in f64: the CPU engine's loss to rounding.
-        let sse: f64 = gpu.read(&sse, rays)?.iter().map(|&e| e as f64).sum();
-        let scale = mean_scale(rays);
-        let loss = (sse * scale) as f32;
         if let Some(e) = check.take(step + 1) {
             self.state.clear_grads(gpu);
             return Err(e);
         }
+        let scale = mean_scale(rays);
         let rule = self.model.update_rule();
         let clock = step_clock::start(Stage::Adam);
-        self.state
-            .finish_step(gpu, step, loss, spec.lr, scale as f32, rule)?;
+        // The per-ray errors summed in ray order in f64: the CPU engine's loss to rounding.
+        let sse = self
+            .state
+            .finish_step(gpu, step, &sse, rays, spec.lr, scale as f32, rule)?;
+        let loss = (sse * scale) as f32;
         gpu.stage_done(clock);
         check_device(
             gpu,

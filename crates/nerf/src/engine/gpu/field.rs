@@ -532,8 +532,15 @@ impl GpuFastField {
             gpu.stage_done(clock);
         }
         let clock = step_clock::start(Stage::EncodingBackward);
-        self.grid
-            .encode_bwd(gpu, self.scatter, &acts.unit, &d_enc, n, grads);
+        self.grid.encode_bwd(
+            gpu,
+            self.scatter,
+            &acts.unit,
+            &d_enc,
+            n,
+            grads,
+            gpu.grid_run,
+        );
         gpu.stage_done(clock);
     }
 }

@@ -1,5 +1,6 @@
 //! Counting non-finite values on the device, so a step that diverged is refused before the
-//! optimiser writes it (one `u32` read back instead of the whole gradient).
+//! optimiser writes it: the count stays on the device, where the optimiser reads it
+//! (`adam`), and comes back as one `u32` rather than the whole gradient.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
@@ -32,6 +33,13 @@ fn count_nonfinite_kernel(values: &[f32], count: &mut [Atomic<u32>], n: u32, per
 /// How many of the first `n` floats of `values` are NaN or infinite.
 pub fn count_nonfinite(gpu: &Gpu, values: &Handle, n: usize) -> Result<u32> {
     let count = gpu.upload_u32(&[0]);
+    add_nonfinite(gpu, values, n, &count);
+    Ok(gpu.read_u32(&count, 1)?[0])
+}
+
+/// Adds how many of the first `n` floats of `values` are NaN or infinite to the `u32` in
+/// `count`, on the device.
+pub fn add_nonfinite(gpu: &Gpu, values: &Handle, n: usize, count: &Handle) {
     if n > 0 {
         let (c, d) = grid(n.div_ceil(PER_THREAD), GROUP);
         // SAFETY: `values` holds `n` floats and `count` one `u32`; each thread reads only
@@ -48,7 +56,6 @@ pub fn count_nonfinite(gpu: &Gpu, values: &Handle, n: usize) -> Result<u32> {
             );
         }
     }
-    Ok(gpu.read_u32(&count, 1)?[0])
 }
 
 #[cfg(test)]

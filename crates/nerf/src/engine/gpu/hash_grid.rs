@@ -143,7 +143,46 @@ impl ScatterAdd for u32 {
     }
 }
 
+/// Adds a cell's eight corners' summed gradients (`acc`: two features a corner) into
+/// `grads` through `S`, skipping corners whose sums are exactly zero, and clears `acc`.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+fn flush_cell<S: ScatterAdd>(
+    grads: &mut [Atomic<S>],
+    acc: &mut Array<f32>,
+    cx: u32,
+    cy: u32,
+    cz: u32,
+    res: u32,
+    entries: u32,
+    dense: u32,
+    offset: usize,
+) {
+    #[unroll]
+    for k in 0..8u32 {
+        let (a0, a1) = (acc[2 * k as usize], acc[2 * k as usize + 1]);
+        if a0 != 0.0 || a1 != 0.0 {
+            let v = vertex(
+                cx + (k & 1),
+                cy + ((k >> 1) & 1),
+                cz + ((k >> 2) & 1),
+                res,
+                entries,
+                dense,
+            );
+            S::scatter_add(&grads[offset + 2 * v], a0);
+            S::scatter_add(&grads[offset + 2 * v + 1], a1);
+        }
+        acc[2 * k as usize] = 0.0;
+        acc[2 * k as usize + 1] = 0.0;
+    }
+}
+
 /// Backward: `grads[corner] += w * d_out` for each sample's eight corners, through `S`.
+/// A thread takes one level of `run` consecutive samples and sums in registers while they
+/// stay in one cell, adding to the table once per cell rather than once per sample:
+/// samples along a ray share the coarse levels' cells for many steps, and those cells'
+/// few entries are where the atomic adds of many threads would queue.
 #[cube(launch_unchecked)]
 fn encode_bwd<S: ScatterAdd>(
     levels: &[u32],
@@ -151,31 +190,52 @@ fn encode_bwd<S: ScatterAdd>(
     d_out: &[f32],
     grads: &mut [Atomic<S>],
     n_levels: u32,
+    samples: u32,
+    run: u32,
 ) {
     let nl = n_levels as usize;
-    let s = ABSOLUTE_POS / nl;
+    let first = (ABSOLUTE_POS / nl) * run as usize;
     let l = ABSOLUTE_POS % nl;
-    if s * 3 < points.len() {
-        let g0 = d_out[(s * nl + l) * 2];
-        let g1 = d_out[(s * nl + l) * 2 + 1];
-        if g0 != 0.0 || g1 != 0.0 {
-            let res = levels[4 * l];
-            let (cx, cy, cz, fx, fy, fz) = cell(points, s, res);
-            let offset = levels[4 * l + 3] as usize;
-            #[unroll]
-            for k in 0..8u32 {
-                let w = weight(k, fx, fy, fz);
-                let v = vertex(
-                    cx + (k & 1),
-                    cy + ((k >> 1) & 1),
-                    cz + ((k >> 2) & 1),
-                    res,
-                    levels[4 * l + 1],
-                    levels[4 * l + 2],
-                );
-                S::scatter_add(&grads[offset + 2 * v], w * g0);
-                S::scatter_add(&grads[offset + 2 * v + 1], w * g1);
+    if first < samples as usize {
+        let last = usize::min(first + run as usize, samples as usize);
+        let res = levels[4 * l];
+        let entries = levels[4 * l + 1];
+        let dense = levels[4 * l + 2];
+        let offset = levels[4 * l + 3] as usize;
+        let mut acc = Array::<f32>::new(16usize);
+        #[unroll]
+        for k in 0..16usize {
+            acc[k] = 0.0;
+        }
+        // The cell whose sums `acc` holds; `res` on x: none yet.
+        let mut held_x = res;
+        let mut held_y = 0u32;
+        let mut held_z = 0u32;
+        for s in first..last {
+            let g0 = d_out[(s * nl + l) * 2];
+            let g1 = d_out[(s * nl + l) * 2 + 1];
+            if g0 != 0.0 || g1 != 0.0 {
+                let (cx, cy, cz, fx, fy, fz) = cell(points, s, res);
+                if held_x != res && (cx != held_x || cy != held_y || cz != held_z) {
+                    flush_cell::<S>(
+                        grads, &mut acc, held_x, held_y, held_z, res, entries, dense, offset,
+                    );
+                }
+                held_x = cx;
+                held_y = cy;
+                held_z = cz;
+                #[unroll]
+                for k in 0..8u32 {
+                    let w = weight(k, fx, fy, fz);
+                    acc[2 * k as usize] += w * g0;
+                    acc[2 * k as usize + 1] += w * g1;
+                }
             }
+        }
+        if held_x != res {
+            flush_cell::<S>(
+                grads, &mut acc, held_x, held_y, held_z, res, entries, dense, offset,
+            );
         }
     }
 }
@@ -261,7 +321,9 @@ impl GpuHashGrid {
     }
 
     /// Backward of [`encode`](Self::encode): adds `d_out` (`samples x levels x 2`), spread
-    /// over each sample's corners, into `grads` (laid out as the parameter vector).
+    /// over each sample's corners, into `grads` (laid out as the parameter vector), a thread
+    /// a level of `run` consecutive samples (1: a thread a sample and level).
+    #[allow(clippy::too_many_arguments)]
     pub fn encode_bwd(
         &self,
         gpu: &Gpu,
@@ -270,11 +332,13 @@ impl GpuHashGrid {
         d_out: &Handle,
         samples: usize,
         grads: &Handle,
+        run: usize,
     ) {
         if samples == 0 {
             return;
         }
-        let (count, dim) = self.launch_size(samples);
+        let run = run.max(1);
+        let (count, dim) = self.launch_size(samples.div_ceil(run));
         let (nl, np) = (self.n_levels, self.num_params);
         // SAFETY: as in `encode`; `grads` has one slot per parameter.
         unsafe {
@@ -292,6 +356,8 @@ impl GpuHashGrid {
                     d_out(),
                     grads(),
                     nl as u32,
+                    samples as u32,
+                    run as u32,
                 ),
                 Scatter::CompareAndSwap => encode_bwd::launch_unchecked::<u32>(
                     &gpu.client,
@@ -302,6 +368,8 @@ impl GpuHashGrid {
                     d_out(),
                     grads(),
                     nl as u32,
+                    samples as u32,
+                    run as u32,
                 ),
             }
         }
@@ -364,21 +432,25 @@ mod tests {
         assert!(worst < 1e-5, "largest difference {worst}");
     }
 
-    /// Both scatter paths against the CPU backward: gradients within 1e-4 (atomic adds
-    /// run in any order, so the sums are rounded differently).
+    /// Both scatter paths against the CPU backward, a thread a sample and a thread a run of
+    /// samples: gradients within 1e-4 (atomic adds run in any order, so the sums are
+    /// rounded differently). The points are random ones, then points along rays in short
+    /// steps (consecutive samples sharing cells, as a training step's do), with some
+    /// samples' gradients exactly zero and the runs not dividing the samples.
     #[test]
     fn encode_bwd_matches_the_cpu_with_both_scatters() {
         let Some(gpu) = test_gpu() else { return };
-        let (grid, params, points) = setup();
-        let n = points.len() / 3;
-        let mut rng = Rng::new(9);
-        let d_out: Vec<f32> = (0..n * grid.dims()).map(|_| rng.range(-1.0, 1.0)).collect();
-        let mut buffer = GradBuffer::new(params.len());
-        grid.encode_bwd(&points, &d_out, &mut buffer.all());
-        let want = buffer.values.clone();
-        let g = GpuHashGrid::new(&gpu, &grid);
-        let x = gpu.upload(&points);
-        let d = gpu.upload(&d_out);
+        let (grid, params, random) = setup();
+        let mut rng = Rng::new(5);
+        let mut along_rays = Vec::new();
+        for _ in 0..40 {
+            let o: Vec<f32> = (0..3).map(|_| rng.range(0.0, 1.0)).collect();
+            let d: Vec<f32> = (0..3).map(|_| rng.range(-1.0, 1.0)).collect();
+            let steps = 5 + (rng.uniform() * 40.0) as usize;
+            for k in 0..steps {
+                along_rays.extend((0..3).map(|a| o[a] + 0.004 * k as f32 * d[a]));
+            }
+        }
         let mut scatters = vec![Scatter::CompareAndSwap];
         if gpu.float_atomics {
             scatters.push(Scatter::FloatAtomic);
@@ -388,22 +460,82 @@ mod tests {
                 gpu.name
             );
         }
-        for scatter in scatters {
+        for points in [random, along_rays] {
+            let n = points.len() / 3;
+            let mut d_out: Vec<f32> = (0..n * grid.dims()).map(|_| rng.range(-1.0, 1.0)).collect();
+            for s in (0..n).step_by(7) {
+                d_out[s * grid.dims()..(s + 1) * grid.dims()].fill(0.0);
+            }
+            let mut buffer = GradBuffer::new(params.len());
+            grid.encode_bwd(&points, &d_out, &mut buffer.all());
+            let want = buffer.values.clone();
+            let g = GpuHashGrid::new(&gpu, &grid);
+            let x = gpu.upload(&points);
+            let d = gpu.upload(&d_out);
+            for &scatter in &scatters {
+                for run in [1, 3, 8, 64] {
+                    let grads = gpu.zeros(params.len());
+                    g.encode_bwd(&gpu, scatter, &x, &d, n, &grads, run);
+                    let got = read(&gpu, grads);
+                    let worst = got
+                        .iter()
+                        .zip(&want)
+                        .map(|(a, b)| (a - b).abs() / (1.0 + b.abs()))
+                        .fold(0.0f32, f32::max);
+                    assert!(
+                        worst < 1e-4,
+                        "{scatter:?}, runs of {run}: largest relative difference {worst}"
+                    );
+                    assert!(
+                        got[..7].iter().all(|&v| v == 0.0),
+                        "{scatter:?} wrote outside the grid"
+                    );
+                }
+            }
+        }
+    }
+
+    /// Many samples in one coarse cell, summed in registers over whole runs and added
+    /// once, give the CPU's gradients: the run's flush at its end and at a cell change.
+    #[test]
+    fn runs_sum_many_samples_of_one_cell() {
+        let Some(gpu) = test_gpu() else { return };
+        let (grid, params, _) = setup();
+        // 64 samples in one level-0 cell (4 cells a side), each with gradient 1 on both
+        // features of every level: every corner of that cell sums 64 trilinear weights.
+        let n = 64;
+        let points: Vec<f32> = (0..n)
+            .flat_map(|k| [0.05 + 0.002 * k as f32, 0.1, 0.1])
+            .collect();
+        let d_out = vec![1.0; n * grid.dims()];
+        let mut buffer = GradBuffer::new(params.len());
+        grid.encode_bwd(&points, &d_out, &mut buffer.all());
+        let g = GpuHashGrid::new(&gpu, &grid);
+        for run in [1, 16, 64] {
             let grads = gpu.zeros(params.len());
-            g.encode_bwd(&gpu, scatter, &x, &d, n, &grads);
+            let scatter = if gpu.float_atomics {
+                Scatter::FloatAtomic
+            } else {
+                Scatter::CompareAndSwap
+            };
+            g.encode_bwd(
+                &gpu,
+                scatter,
+                &gpu.upload(&points),
+                &gpu.upload(&d_out),
+                n,
+                &grads,
+                run,
+            );
             let got = read(&gpu, grads);
             let worst = got
                 .iter()
-                .zip(&want)
+                .zip(&buffer.values)
                 .map(|(a, b)| (a - b).abs() / (1.0 + b.abs()))
                 .fold(0.0f32, f32::max);
             assert!(
-                worst < 1e-4,
-                "{scatter:?}: largest relative difference {worst}"
-            );
-            assert!(
-                got[..7].iter().all(|&v| v == 0.0),
-                "{scatter:?} wrote outside the grid"
+                worst < 1e-5,
+                "runs of {run}: largest relative difference {worst}"
             );
         }
     }

@@ -89,6 +89,23 @@ impl Gpu {
         Ok(all[..n.min(all.len())].to_vec())
     }
 
+    /// The first `n` floats of `h` and the `u32` in `count`, read back together (one wait
+    /// for the device rather than two).
+    pub fn read_with_count(&self, h: &Handle, n: usize, count: &Handle) -> Result<(Vec<f32>, u32)> {
+        let buffers = self
+            .client
+            .read(vec![h.clone(), count.clone()])
+            .map_err(|e| NerfError::Device(format!("reading buffers back failed: {e:?}")))?;
+        let [values, count] = buffers.as_slice() else {
+            return Err(NerfError::Device(
+                "a read of two buffers returned another number".into(),
+            ));
+        };
+        let values = f32::from_bytes(values);
+        let count = u32::from_bytes(count).first().copied().unwrap_or(u32::MAX);
+        Ok((values[..n.min(values.len())].to_vec(), count))
+    }
+
     /// The first `n` `u32`s of `h`, read back.
     pub fn read_u32(&self, h: &Handle, n: usize) -> Result<Vec<u32>> {
         self.read_u32_later(h, n).wait()

@@ -6,7 +6,7 @@ use cubecl::server::Handle;
 
 use super::adam;
 use super::device::Gpu;
-use super::finite::count_nonfinite;
+use super::finite::add_nonfinite;
 use crate::engine::EngineState;
 use crate::error::{NerfError, Result};
 use crate::model::UpdateRule;
@@ -38,23 +38,28 @@ impl DeviceParams {
         }
     }
 
-    /// Ends step `step` (0-based) whose summed squared errors give `loss` (the mean, via
-    /// `scale`): refused, with the gradients cleared and the parameters untouched, when the
-    /// loss or a gradient is not finite; else one Adam update under `rule`.
+    /// Ends step `step` (0-based) whose squared errors are the first `rays` floats of
+    /// `errors` (their sum, via `scale`, is the mean loss): one Adam update under `rule`,
+    /// refused (gradients cleared; parameters, moments and Adam's step count untouched) when
+    /// an error or a gradient is not finite. The update is queued behind the device's count
+    /// of non-finite values, and the errors and the count come back in one read after it,
+    /// so the device runs the check and the update without waiting for the host. Returns
+    /// the summed squared error, added in ray order in `f64`.
+    #[allow(clippy::too_many_arguments)]
     pub fn finish_step(
         &mut self,
         gpu: &Gpu,
         step: u64,
-        loss: f32,
+        errors: &Handle,
+        rays: usize,
         lr: f32,
         scale: f32,
         rule: UpdateRule,
-    ) -> Result<()> {
-        let bad = count_nonfinite(gpu, &self.grads, self.n)?;
-        if !loss.is_finite() || bad > 0 {
-            self.clear_grads(gpu);
-            return Err(crate::engine::diverged(step, loss, Some(bad as usize)));
-        }
+    ) -> Result<f64> {
+        let nonfinite = gpu.upload_u32(&[0]);
+        add_nonfinite(gpu, errors, rays, &nonfinite);
+        add_nonfinite(gpu, &self.grads, self.n, &nonfinite);
+        let counted_before = self.adam.t;
         let update = self.adam.begin_step(lr);
         adam::step(
             gpu,
@@ -71,8 +76,18 @@ impl DeviceParams {
             &self.m,
             &self.v,
             &self.grads,
+            &nonfinite,
         );
-        Ok(())
+        let (errors, bad) = gpu.read_with_count(errors, rays, &nonfinite)?;
+        let sse: f64 = errors.iter().map(|&e| e as f64).sum();
+        if bad > 0 {
+            self.adam.t = counted_before;
+            self.clear_grads(gpu);
+            let loss = (sse * scale as f64) as f32;
+            // A finite loss means every error was finite: the count is the gradients'.
+            return Err(crate::engine::diverged(step, loss, Some(bad as usize)));
+        }
+        Ok(sse)
     }
 
     pub fn clear_grads(&mut self, gpu: &Gpu) {

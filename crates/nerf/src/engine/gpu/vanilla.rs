@@ -345,8 +345,10 @@ impl Engine for GpuVanillaEngine {
         let scale = mean_scale(batch);
         let loss = (sse * scale) as f32;
         let rule = self.model.update_rule();
+        // The loss, summed on the host already, is the one error the update checks.
+        let errors = self.gpu.upload(&[sse as f32]);
         self.state
-            .finish_step(&self.gpu, step, loss, spec.lr, scale as f32, rule)?;
+            .finish_step(&self.gpu, step, &errors, 1, spec.lr, scale as f32, rule)?;
         let check = FiniteCheck::new(self.check_finite);
         check_device(
             &self.gpu,
