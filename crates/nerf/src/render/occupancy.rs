@@ -52,6 +52,9 @@ pub struct OccupancyGrid {
     /// Remembered optical thickness per cell, x fastest.
     pub thickness: Vec<f32>,
     occupied: Vec<bool>,
+    /// `occupied` packed 64 cells a word, for marching: an eighth of the bytes, so a
+    /// 128^3 grid's lookups (one per cell a ray crosses) stay in a core's L2 cache.
+    bits: Vec<u64>,
     /// Cells that may hold anything (`None`: all): few-view training keeps the space the
     /// training cameras do not see empty (`model::few_view`).
     pub possible: Option<Vec<bool>>,
@@ -87,6 +90,7 @@ impl OccupancyGrid {
             bound,
             thickness: vec![0.0; n],
             occupied: vec![true; n],
+            bits: pack(&vec![true; n]),
             possible: None,
         }
     }
@@ -122,7 +126,7 @@ impl OccupancyGrid {
     }
 
     pub fn is_occupied(&self, p: [f32; 3]) -> bool {
-        self.occupied[self.index(self.cell(p))]
+        self.occupied_at(self.index(self.cell(p)))
     }
 
     /// A grid with the given per-cell thickness and occupied cells (as a GPU refresh
@@ -138,6 +142,7 @@ impl OccupancyGrid {
             resolution,
             bound,
             thickness,
+            bits: pack(&occupied),
             occupied,
             possible: None,
         }
@@ -169,6 +174,12 @@ impl OccupancyGrid {
         for (i, (o, &v)) in self.occupied.iter_mut().zip(&self.thickness).enumerate() {
             *o = v >= cut && self.possible.as_ref().is_none_or(|p| p[i]);
         }
+        self.bits = pack(&self.occupied);
+    }
+
+    #[inline]
+    fn occupied_at(&self, index: usize) -> bool {
+        (self.bits[index >> 6] >> (index & 63)) & 1 == 1
     }
 
     /// Marches a ray (unit direction `d`) over `span` (from a lattice depth to the exit),
@@ -189,7 +200,7 @@ impl OccupancyGrid {
         while t < t_end && added < max {
             let p = [o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]];
             let c = self.cell(p);
-            if self.occupied[self.index(c)] {
+            if self.occupied_at(self.index(c)) {
                 out.push(t);
                 added += 1;
                 t += dt;
@@ -203,7 +214,7 @@ impl OccupancyGrid {
                     exit = exit.min((wall - p[a]) / d[a]);
                 }
             }
-            t += ((exit.max(0.0) / dt).floor() + 1.0) * dt;
+            t += (whole_steps(exit.max(0.0) / dt) + 1.0) * dt;
         }
         t
     }
@@ -256,6 +267,29 @@ impl OccupancyGrid {
             });
         self.refresh(config.threshold);
     }
+}
+
+/// Occupancy flags packed 64 to a word, the first flag in the lowest bit.
+fn pack(occupied: &[bool]) -> Vec<u64> {
+    occupied
+        .chunks(64)
+        .map(|flags| {
+            flags
+                .iter()
+                .enumerate()
+                .fold(0u64, |word, (i, &o)| word | (u64::from(o) << i))
+        })
+        .collect()
+}
+
+/// The floor of a quotient that is not negative, as the truncating cast computes it: one
+/// instruction, where `f32::floor` is a library call on the baseline x86-64 target (and
+/// marching calls it once per empty cell a ray crosses). Exact for every finite value below
+/// 2^63 (f32 values from 2^24 up are whole already); larger or infinite quotients saturate
+/// there, which still lands past the end of any span.
+#[inline]
+fn whole_steps(x: f32) -> f32 {
+    x as i64 as f32
 }
 
 #[cfg(test)]
@@ -366,5 +400,47 @@ mod tests {
         g.update(&config, 16, 1, 0.01, &empty);
         let after = g.thickness.iter().cloned().fold(0.0, f32::max);
         assert!((after - before * 0.95).abs() < 1e-6);
+    }
+
+    /// The cast floors like `f32::floor` for every quotient marching forms, and saturates
+    /// beyond (still past any span).
+    #[test]
+    fn whole_steps_floor_every_quotient() {
+        let mut x = 0.0f32;
+        while x < 1e7 {
+            for v in [x, x.next_up(), (x + 1.0).next_down()] {
+                assert_eq!(whole_steps(v), v.floor(), "{v}");
+            }
+            x = x * 1.37 + 0.01;
+        }
+        for v in [
+            0.0, 0.49999997, 0.5, 0.99999994, 1.0, 16777215.5, 16777216.0, 3.0e18,
+        ] {
+            assert_eq!(whole_steps(v), v.floor(), "{v}");
+        }
+        assert!(whole_steps(f32::INFINITY) > 9.0e18 && whole_steps(f32::MAX) > 9.0e18);
+    }
+
+    /// The packed flags marching reads say what the flags say, cell by cell, for a grid
+    /// whose cell count is not a multiple of 64, after a refresh as well.
+    #[test]
+    fn packed_flags_match_the_cells() {
+        let res = 5;
+        let flags: Vec<bool> = (0..res * res * res).map(|i| (i * 7919) % 3 == 0).collect();
+        let thickness: Vec<f32> = flags.iter().map(|&o| if o { 1.0 } else { 0.0 }).collect();
+        let mut g = OccupancyGrid::from_parts(res, 1.0, thickness, flags.clone());
+        let check = |g: &OccupancyGrid, want: &[bool]| {
+            for (i, &o) in want.iter().enumerate() {
+                assert_eq!(g.occupied_at(i), o, "cell {i}");
+                let c = [i % res, (i / res) % res, i / (res * res)];
+                let centre = c.map(|k| (k as f32 + 0.5) * g.cell_size() - g.bound);
+                assert_eq!(g.is_occupied(centre), o, "cell {i}");
+            }
+        };
+        check(&g, &flags);
+        g.thickness.iter_mut().for_each(|v| *v = 1.0 - *v);
+        g.refresh(0.5);
+        let flipped: Vec<bool> = flags.iter().map(|&o| !o).collect();
+        check(&g, &flipped);
     }
 }
