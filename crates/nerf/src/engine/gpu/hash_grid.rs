@@ -28,6 +28,20 @@ fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
     select(dense == 1, indexed, hashed) as usize
 }
 
+/// The table slot of corner `k` (bit 0: +x, bit 1: +y, bit 2: +z) of the cell at
+/// `(cx, cy, cz)`.
+#[cube]
+fn corner(k: u32, cx: u32, cy: u32, cz: u32, res: u32, entries: u32, dense: u32) -> usize {
+    vertex(
+        cx + (k & 1),
+        cy + ((k >> 1) & 1),
+        cz + ((k >> 2) & 1),
+        res,
+        entries,
+        dense,
+    )
+}
+
 /// Where sample `s` of `points` sits in a level's grid of `res` cells a side: the cell's
 /// corner and the fractions.
 #[cube]
@@ -85,14 +99,7 @@ pub(super) fn encode_level(
     #[unroll]
     for k in 0..8u32 {
         let w = weight(k, fx, fy, fz);
-        let v = vertex(
-            cx + (k & 1),
-            cy + ((k >> 1) & 1),
-            cz + ((k >> 2) & 1),
-            res,
-            entries,
-            dense,
-        );
+        let v = corner(k, cx, cy, cz, res, entries, dense);
         f0 += w * params[offset + 2 * v];
         f1 += w * params[offset + 2 * v + 1];
     }
@@ -162,14 +169,7 @@ fn flush_cell<S: ScatterAdd>(
     for k in 0..8u32 {
         let (a0, a1) = (acc[2 * k as usize], acc[2 * k as usize + 1]);
         if a0 != 0.0 || a1 != 0.0 {
-            let v = vertex(
-                cx + (k & 1),
-                cy + ((k >> 1) & 1),
-                cz + ((k >> 2) & 1),
-                res,
-                entries,
-                dense,
-            );
+            let v = corner(k, cx, cy, cz, res, entries, dense);
             S::scatter_add(&grads[offset + 2 * v], a0);
             S::scatter_add(&grads[offset + 2 * v + 1], a1);
         }
