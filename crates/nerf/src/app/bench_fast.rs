@@ -204,7 +204,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     // The stage clocks run over steps of their own, after the timed ones: on the GPU a
     // stage ends when the device has done its work, and those waits would slow the timed
     // steps. Steps with a refresh are left out (its density queries would count as the
-    // networks' and the hash grid's time).
+    // networks' and the hash grid's time), unless every step refreshes.
     let per_worker = match trainer.engine.kind() {
         crate::engine::caps::EngineKind::Cpu => threads as f64,
         _ => 1.0,
@@ -212,7 +212,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     step_clock::reset();
     let mut clocked = Vec::new();
     while clocked.len() < opts.steps.max(1) {
-        let timed = (trainer.step + 1) % every != 0;
+        let timed = every == 1 || (trainer.step + 1) % every != 0;
         step_clock::enable(timed);
         let t = Instant::now();
         let s = trainer.step();
