@@ -195,6 +195,25 @@ pub struct FastWorkspace {
     share_next: usize,
 }
 
+impl FastWorkspace {
+    /// Keeps the last backward's `n` points and their encoding gradients (`e` a sample) for
+    /// a deferred scatter, after those already waiting, in planes of `room` samples a level.
+    fn keep_for_scatter(&mut self, n: usize, e: usize, room: usize) {
+        let kept = self.deferred_unit.len() / 3;
+        if kept == 0 {
+            self.deferred_d_enc.resize(room * e, 0.0);
+        }
+        let planes = &mut self.deferred_d_enc[..room * e];
+        for (s, row) in self.d_enc[..n * e].chunks_exact(e).enumerate() {
+            for (l, g) in row.chunks_exact(FEATURES).enumerate() {
+                let at = (l * room + kept + s) * FEATURES;
+                planes[at..at + FEATURES].copy_from_slice(g);
+            }
+        }
+        self.deferred_unit.extend_from_slice(&self.unit[..n * 3]);
+    }
+}
+
 /// `dz = dh * (h > 0)` in place.
 fn relu_bwd(dh: &mut [f32], h: &[f32]) {
     for (d, &y) in dh.iter_mut().zip(h) {
@@ -769,30 +788,23 @@ impl FastField {
         clock.stop();
         let _clock = step_clock::start(Stage::EncodingBackward);
         grads.mark(self.mlp_range());
-        if let Some(room) = ws.defer_grid {
-            // More samples came than there is room for: what waits goes first, in order.
-            if ws.deferred_unit.len() / 3 + n > room {
-                self.scatter_deferred(ws, grads);
-            }
-        }
-        match ws.defer_grid {
-            Some(room) if ws.deferred_unit.len() / 3 + n <= room => {
-                let kept = ws.deferred_unit.len() / 3;
-                if kept == 0 {
-                    ws.deferred_d_enc.resize(room * e, 0.0);
+        let deferred = match ws.defer_grid {
+            Some(room) => {
+                // More samples came than there is room for: what waits goes first, in order.
+                if ws.deferred_unit.len() / 3 + n > room {
+                    self.scatter_waiting(ws, grads);
                 }
-                let planes = &mut ws.deferred_d_enc[..room * e];
-                for (s, row) in ws.d_enc[..n * e].chunks_exact(e).enumerate() {
-                    for (l, g) in row.chunks_exact(FEATURES).enumerate() {
-                        let at = (l * room + kept + s) * FEATURES;
-                        planes[at..at + FEATURES].copy_from_slice(g);
-                    }
+                let fits = n <= room;
+                if fits {
+                    ws.keep_for_scatter(n, e, room);
                 }
-                ws.deferred_unit.extend_from_slice(&ws.unit[..n * 3]);
+                fits
             }
-            _ => self
-                .grid
-                .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads),
+            None => false,
+        };
+        if !deferred {
+            self.grid
+                .encode_bwd(&ws.unit[..n * 3], &ws.d_enc[..n * e], grads);
         }
         if let Some(m) = &self.motion {
             m.encode_bwd(
@@ -868,6 +880,11 @@ impl FastField {
     /// the same order.
     pub fn scatter_deferred(&self, ws: &mut FastWorkspace, grads: &mut Grads) {
         let _clock = step_clock::start(Stage::EncodingBackward);
+        self.scatter_waiting(ws, grads);
+    }
+
+    /// [`scatter_deferred`](Self::scatter_deferred) inside a stage already clocked.
+    fn scatter_waiting(&self, ws: &mut FastWorkspace, grads: &mut Grads) {
         if let (Some(room), false) = (ws.defer_grid, ws.deferred_unit.is_empty()) {
             // The planes hold `room` samples a level; the first of each are filled.
             self.grid

@@ -380,7 +380,7 @@ impl GpuHashGrid {
 mod tests {
     use super::*;
     use crate::encoding::hash_grid::HashGridConfig;
-    use crate::engine::gpu::device::test_gpu;
+    use crate::engine::gpu::device::{test_gpu, worst};
     use crate::nn::{GradBuffer, ParamLayout};
     use crate::rng::Rng;
 
@@ -477,11 +477,7 @@ mod tests {
                     let grads = gpu.zeros(params.len());
                     g.encode_bwd(&gpu, scatter, &x, &d, n, &grads, run);
                     let got = read(&gpu, grads);
-                    let worst = got
-                        .iter()
-                        .zip(&want)
-                        .map(|(a, b)| (a - b).abs() / (1.0 + b.abs()))
-                        .fold(0.0f32, f32::max);
+                    let worst = worst(&got[..want.len()], &want);
                     assert!(
                         worst < 1e-4,
                         "{scatter:?}, runs of {run}: largest relative difference {worst}"
@@ -528,11 +524,7 @@ mod tests {
                 run,
             );
             let got = read(&gpu, grads);
-            let worst = got
-                .iter()
-                .zip(&buffer.values)
-                .map(|(a, b)| (a - b).abs() / (1.0 + b.abs()))
-                .fold(0.0f32, f32::max);
+            let worst = worst(&got[..buffer.values.len()], &buffer.values);
             assert!(
                 worst < 1e-5,
                 "runs of {run}: largest relative difference {worst}"
