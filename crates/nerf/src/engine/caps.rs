@@ -46,7 +46,7 @@ const TABLE: [(Feature, bool, bool); 8] = [
     (Feature::Mip, true, true),
     (Feature::FewView, true, true),
     (Feature::Dynamic, true, false),
-    (Feature::FreeNerf, true, false),
+    (Feature::FreeNerf, true, true),
 ];
 
 impl Feature {
@@ -206,8 +206,10 @@ mod tests {
         let preset = |name| ModelConfig::Vanilla(crate::presets::build(name).expect(name).0);
         assert_eq!(Feature::used_by(&preset("mip")), [Feature::Mip]);
         assert_eq!(Feature::used_by(&preset("freenerf")), [Feature::FreeNerf]);
-        assert!(refusal(EngineKind::Gpu, &preset("freenerf"))
-            .is_some_and(|why| why.contains("--preset freenerf")));
+        assert_eq!(refusal(EngineKind::Gpu, &preset("freenerf")), None);
+        assert_eq!(Feature::used_by(&preset("dnerf")), [Feature::Dynamic]);
+        assert!(refusal(EngineKind::Gpu, &preset("dnerf"))
+            .is_some_and(|why| why.contains("--preset dnerf")));
         assert_eq!(Feature::used_by(&preset("paper")), []);
     }
 

@@ -1,12 +1,15 @@
 //! The photometric loss on the GPU: `render::loss::squared_error` per ray. Each ray's
 //! squared error is written to its own slot (summed on the host, in ray order, in f64, so
 //! the logged loss is the CPU's to rounding) with the gradient `dL/dC = 2 (C - target)`.
+//! FreeNeRF's occlusion penalty adds its density gradient on the device too.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::device::Gpu;
-use super::volume::OUT_WORDS;
+use super::launch::grid;
+use super::volume::{GpuSamples, OUT_WORDS};
+use crate::model::free_nerf::FreeNerf;
 
 /// Threads per workgroup.
 const GROUP: u32 = 256;
@@ -51,6 +54,45 @@ pub fn squared_error_per_ray(
             BufferArg::from_raw_parts(targets.clone(), rays * 3),
             BufferArg::from_raw_parts(sse.clone(), rays),
             BufferArg::from_raw_parts(d_out.clone(), rays * 3),
+        );
+    }
+}
+
+#[cube(launch_unchecked)]
+fn occlusion(offsets: &[u32], d_sigma: &mut [f32], first: u32, weight: f32) {
+    let r = ABSOLUTE_POS;
+    if r + 1 < offsets.len() {
+        let start = offsets[r] as usize;
+        let end = u32::min(offsets[r + 1], offsets[r] + first) as usize;
+        let gradient = weight / f32::cast_from(u32::max(1u32, (end - start) as u32));
+        for i in start..end {
+            d_sigma[i] += gradient;
+        }
+    }
+}
+
+/// Adds FreeNeRF's occlusion penalty's gradient to `d_sigma` (one per sample of
+/// `samples`, sorted by depth along each ray): `FreeNerf::add_occlusion`'s, in the same
+/// units (before the loss's `1 / (3 rays)`): the weight spread over each ray's first
+/// `occlusion_samples` samples, or all of them where it has fewer.
+pub fn add_occlusion(gpu: &Gpu, free: &FreeNerf, samples: &GpuSamples, d_sigma: &Handle) {
+    let first = free.occlusion_samples;
+    if samples.rays == 0 || first == 0 {
+        return;
+    }
+    let weight = 3.0 * free.occlusion_weight;
+    // SAFETY: `offsets` holds `rays + 1` ascending sample indices, all within `d_sigma`'s
+    // `len` floats; the kernel bounds-checks the ray index.
+    unsafe {
+        let (count, dim) = grid(samples.rays, GROUP);
+        occlusion::launch_unchecked(
+            &gpu.client,
+            count,
+            dim,
+            BufferArg::from_raw_parts(samples.offsets.clone(), samples.rays + 1),
+            BufferArg::from_raw_parts(d_sigma.clone(), samples.len),
+            first as u32,
+            weight,
         );
     }
 }
@@ -115,5 +157,54 @@ mod tests {
             .map(|(a, b)| (a - b).abs())
             .fold(0.0f32, f32::max);
         assert!(worst < 1e-6, "gradient differs by {worst}");
+    }
+
+    /// FreeNeRF's occlusion gradient against the CPU's on the same densities: rays of 7
+    /// samples (more than the 3 penalised) and of 2 (fewer).
+    #[test]
+    fn occlusion_matches_the_cpu() {
+        let Some(gpu) = Gpu::vulkan()
+            .map_err(|e| eprintln!("skipping the GPU kernel test: {e}"))
+            .ok()
+        else {
+            return;
+        };
+        let free = FreeNerf {
+            occlusion_samples: 3,
+            ..FreeNerf::default()
+        };
+        let mut rng = Rng::new(5);
+        let mut want = Vec::new();
+        let mut offsets = vec![0u32];
+        for spr in [7usize, 2] {
+            let rays = 50;
+            let sigma: Vec<f32> = (0..rays * spr).map(|_| rng.range(0.0, 5.0)).collect();
+            let mut d: Vec<f32> = (0..rays * spr).map(|_| rng.range(-1.0, 1.0)).collect();
+            let before = d.clone();
+            free.add_occlusion(&sigma, spr, &mut d);
+            want.extend(before.iter().zip(&d).map(|(b, a)| (*b, *a)));
+            for _ in 0..rays {
+                offsets.push(offsets[offsets.len() - 1] + spr as u32);
+            }
+        }
+        let len = want.len();
+        let before: Vec<f32> = want.iter().map(|w| w.0).collect();
+        let samples = GpuSamples {
+            offsets: gpu.upload_u32(&offsets),
+            t: gpu.floats(len),
+            dt: gpu.floats(len),
+            rays: offsets.len() - 1,
+            len,
+        };
+        let d_sigma = gpu.upload(&before);
+        add_occlusion(&gpu, &free, &samples, &d_sigma);
+        let got = gpu.read(&d_sigma, len).expect("read");
+        for (i, (g, w)) in got.iter().zip(&want).enumerate() {
+            assert!((g - w.1).abs() < 1e-6, "sample {i}: {g} vs {}", w.1);
+        }
+        assert!(
+            want.iter().any(|w| w.0 != w.1),
+            "the penalty adds something"
+        );
     }
 }

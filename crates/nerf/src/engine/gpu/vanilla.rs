@@ -9,7 +9,8 @@
 //! backward, and Adam. mip-NeRF's frustums, and rendering's fine samples (measured
 //! faster there), are made on the host from weights read back. The host reads back one
 //! float per ray per pass (the loss) and one count (non-finite gradients). Rendering goes
-//! through the same two passes in chunks of rays.
+//! through the same two passes in chunks of rays. FreeNeRF's band mask is applied by the
+//! device's encoding and its occlusion penalty by a kernel beside the loss.
 
 use cubecl::server::Handle;
 
@@ -173,6 +174,9 @@ impl GpuVanillaEngine {
             &d_sigma,
             &d_rgb,
         );
+        if let Some(free) = &self.model.config.free_nerf {
+            loss::add_occlusion(gpu, free, &pass.samples, &d_sigma);
+        }
         check_device(gpu, check, "loss.backward", "d_sigma", &d_sigma, n)?;
         check_device(gpu, check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
         net.backward(
@@ -222,6 +226,22 @@ impl GpuVanillaEngine {
             (n_c, n_f),
         );
         Ok(self.pass_on_device(net, samples, None, backgrounds))
+    }
+
+    /// FreeNeRF: the position encoding's bands visible at `progress` of training, as the
+    /// CPU engine's `Model::set_progress` sets them.
+    fn set_progress(&mut self, progress: f32) {
+        let Some(free) = self.model.config.free_nerf else {
+            return;
+        };
+        let mask = free.band_mask(
+            self.model.config.net.position_encoding.frequencies,
+            progress,
+        );
+        self.coarse.set_band_mask(&self.gpu, &mask);
+        if let Some(fine) = &mut self.fine {
+            fine.set_band_mask(&self.gpu, &mask);
+        }
     }
 
     fn check_forward(&self, check: &FiniteCheck, pass: &Pass) -> Result<()> {
@@ -290,6 +310,7 @@ impl Engine for GpuVanillaEngine {
 
     fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
         let step = spec.sampling.step;
+        self.set_progress(spec.progress);
         let batch = spec.batch_rays.max(1);
         let mut rays = std::mem::take(&mut self.rays);
         let mut ws = std::mem::take(&mut self.ws);

@@ -22,18 +22,21 @@ const GROUP: u32 = 256;
 /// the highest frequency multiplies by 512, where a GPU's fast `sin` loses accuracy. With
 /// `integrated` each point is a Gaussian's mean with the diagonal covariance `variances`,
 /// and each frequency `s` fades by `exp(-s^2 var / 2)` (mip-NeRF's integrated encoding,
-/// `encoding::integrated`).
+/// `encoding::integrated`). With `masked`, band `k` is scaled by `mask[k]` (FreeNeRF's
+/// reveal, `field::vanilla`'s `band_mask`); the raw position passes whole.
 #[cube(launch_unchecked)]
 #[allow(clippy::too_many_arguments)]
 fn frequency_encode(
     points: &[f32],
     variances: &[f32],
+    mask: &[f32],
     out: &mut [f32],
     n: u32,
     frequencies: u32,
     paper_form: u32,
     base: f32,
     integrated: u32,
+    masked: u32,
 ) {
     let idx = ABSOLUTE_POS;
     let id = 6 * frequencies as usize + select(paper_form == 1, 0usize, 3usize);
@@ -57,6 +60,9 @@ fn frequency_encode(
             let mut v = select(within < 3, f32::sin(r), f32::cos(r));
             if integrated == 1 {
                 v *= f32::exp(-0.5f32 * f * f * variances[(3 * s + c) % variances.len()]);
+            }
+            if masked == 1 {
+                v *= mask[k % mask.len()];
             }
             out[idx] = v;
         }
@@ -157,6 +163,8 @@ pub struct GpuVanillaNet {
     trunk: Vec<Dense>,
     heads: Heads,
     n_params: usize,
+    /// Each position band's visibility (FreeNeRF's reveal); `None`: every band whole.
+    band_mask: Option<Handle>,
 }
 
 /// The activations of one batch, kept by the forward for the backward.
@@ -221,21 +229,31 @@ impl GpuVanillaNet {
             trunk,
             heads,
             n_params,
+            band_mask: None,
         }
+    }
+
+    /// Scales the position encoding's bands by `mask` (one value per band, as
+    /// `field::vanilla`'s `band_mask`) from the next forward on; empty: every band whole.
+    pub fn set_band_mask(&mut self, gpu: &Gpu, mask: &[f32]) {
+        self.band_mask = (!mask.is_empty()).then(|| gpu.upload(mask));
     }
 
     /// The encoding of `n` points (`n x 3`), integrated over Gaussians of diagonal
     /// covariance `variances` (`n x 3`) when given.
+    /// With `mask`, band `k` is scaled by its `k`th value.
     fn encode(
         gpu: &Gpu,
         e: FrequencyEncoding,
         points: &Handle,
         variances: Option<&Handle>,
+        mask: Option<&Handle>,
         n: usize,
     ) -> Handle {
         let out = gpu.floats(n * e.dims());
         let none = gpu.floats(1);
         let (var, var_len) = variances.map_or((&none, 1), |v| (v, n * 3));
+        let (bands, bands_len) = mask.map_or((&none, 1), |m| (m, e.frequencies.max(1)));
         // SAFETY: `points` holds `n x 3` floats, `variances` as many (or one, unread), `out`
         // `n x dims`; bounds-checked.
         unsafe {
@@ -246,6 +264,7 @@ impl GpuVanillaNet {
                 d,
                 BufferArg::from_raw_parts(points.clone(), n * 3),
                 BufferArg::from_raw_parts(var.clone(), var_len),
+                BufferArg::from_raw_parts(bands.clone(), bands_len),
                 BufferArg::from_raw_parts(out.clone(), n * e.dims()),
                 n as u32,
                 e.frequencies as u32,
@@ -256,6 +275,7 @@ impl GpuVanillaNet {
                     1.0
                 },
                 u32::from(variances.is_some()),
+                u32::from(mask.is_some()),
             );
         }
         out
@@ -313,7 +333,14 @@ impl GpuVanillaNet {
         n: usize,
     ) -> VanillaActs {
         let (np, w, in_x) = (self.n_params, self.width, self.pe.dims());
-        let enc = GpuVanillaNet::encode(gpu, self.pe, positions, variances, n);
+        let enc = GpuVanillaNet::encode(
+            gpu,
+            self.pe,
+            positions,
+            variances,
+            self.band_mask.as_ref(),
+            n,
+        );
         let mut inputs = Vec::new();
         let mut h = gpu.floats(n * w);
         self.trunk[0].forward(gpu, params, np, &enc, &h, n);
@@ -340,7 +367,7 @@ impl GpuVanillaNet {
                 s.forward(gpu, params, np, &h, &sigma, n);
                 let feat = gpu.floats(n * w);
                 feature.forward(gpu, params, np, &h, &feat, n);
-                let dir_enc = GpuVanillaNet::encode(gpu, *dir, dirs, None, n);
+                let dir_enc = GpuVanillaNet::encode(gpu, *dir, dirs, None, None, n);
                 let view_in = GpuVanillaNet::concat(gpu, &feat, w, &dir_enc, dir.dims(), n);
                 let hidden = gpu.floats(n * view.outputs);
                 view.forward(gpu, params, np, &view_in, &hidden, n);
