@@ -8,12 +8,19 @@
 //!
 //! Rays march with a fixed step `dt` on a lattice `t0 + (k + jitter) dt`: a sample is
 //! taken in occupied cells, and an empty cell is crossed in whole steps, so skipping changes
-//! only which lattice points are visited, never where they are.
+//! only which lattice points are visited, never where they are. Where the whole block of
+//! [`BLOCK`]^3 cells around an empty cell is empty, the block is crossed in one skip: a ray
+//! through empty space looks up a flag per block instead of one per cell, and lands on the
+//! lattice point the cell-by-cell walk would reach (the first past the block's wall).
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::rng::Rng;
+
+/// Cells per axis of the blocks that marching crosses in one skip when all of their cells
+/// are empty (grids whose resolution it does not divide skip cell by cell).
+pub const BLOCK: usize = 4;
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct OccupancyConfig {
@@ -55,6 +62,9 @@ pub struct OccupancyGrid {
     /// `occupied` packed 64 cells a word, for marching: an eighth of the bytes, so a
     /// 128^3 grid's lookups (one per cell a ray crosses) stay in a core's L2 cache.
     bits: Vec<u64>,
+    /// Per block of `BLOCK^3` cells, whether any of its cells is occupied, packed as `bits`
+    /// (empty when `BLOCK` does not divide the resolution).
+    blocks: Vec<u64>,
     /// Cells that may hold anything (`None`: all): few-view training keeps the space the
     /// training cameras do not see empty (`model::few_view`).
     pub possible: Option<Vec<bool>>,
@@ -91,6 +101,7 @@ impl OccupancyGrid {
             thickness: vec![0.0; n],
             occupied: vec![true; n],
             bits: pack(&vec![true; n]),
+            blocks: block_flags(&vec![true; n], resolution),
             possible: None,
         }
     }
@@ -143,6 +154,7 @@ impl OccupancyGrid {
             bound,
             thickness,
             bits: pack(&occupied),
+            blocks: block_flags(&occupied, resolution),
             occupied,
             possible: None,
         }
@@ -175,6 +187,56 @@ impl OccupancyGrid {
             *o = v >= cut && self.possible.as_ref().is_none_or(|p| p[i]);
         }
         self.bits = pack(&self.occupied);
+        self.blocks = block_flags(&self.occupied, self.resolution);
+    }
+
+    /// Per block of `BLOCK^3` cells (x fastest), whether any of its cells is occupied;
+    /// empty when `BLOCK` does not divide the resolution (what a GPU marcher uploads).
+    pub fn occupied_blocks(&self) -> Vec<bool> {
+        let n = (self.resolution / BLOCK).pow(3);
+        if self.blocks.is_empty() {
+            return Vec::new();
+        }
+        (0..n)
+            .map(|i| (self.blocks[i >> 6] >> (i & 63)) & 1 == 1)
+            .collect()
+    }
+
+    /// The same grid marched cell by cell (the plain walk the block skips are tested
+    /// against).
+    #[cfg(test)]
+    pub(crate) fn without_blocks(mut self) -> Self {
+        self.blocks.clear();
+        self
+    }
+
+    /// A sparse grid (a ball and a few scattered cells, most blocks empty) for marching
+    /// tests, at a resolution `BLOCK` divides.
+    #[cfg(test)]
+    pub(crate) fn sparse_for_tests(res: usize, seed: u64) -> OccupancyGrid {
+        let mut rng = Rng::new(seed);
+        let cell = 2.0 / res as f32;
+        let flags: Vec<bool> = (0..res * res * res)
+            .map(|i| {
+                let c = [i % res, (i / res) % res, i / (res * res)];
+                let p = c.map(|k| (k as f32 + 0.5) * cell - 1.0);
+                let r2 = p[0] * p[0] + 0.5 * p[1] * p[1] + p[2] * p[2];
+                r2 < 0.25 || rng.uniform() < 0.003
+            })
+            .collect();
+        let thickness = flags.iter().map(|&o| f32::from(u8::from(o))).collect();
+        OccupancyGrid::from_parts(res, 1.0, thickness, flags)
+    }
+
+    /// Whether the block around cell `c` holds no occupied cell.
+    #[inline]
+    fn block_empty(&self, c: [usize; 3]) -> bool {
+        if self.blocks.is_empty() {
+            return false;
+        }
+        let r = self.resolution / BLOCK;
+        let i = c[0] / BLOCK + r * (c[1] / BLOCK + r * (c[2] / BLOCK));
+        (self.blocks[i >> 6] >> (i & 63)) & 1 == 0
     }
 
     #[inline]
@@ -206,11 +268,14 @@ impl OccupancyGrid {
                 t += dt;
                 continue;
             }
-            // Distance to the cell's far wall along the ray, then whole steps past it.
+            // Distance to the far wall of the cell, or of its block if that is empty too,
+            // along the ray, then whole steps past it.
+            let k = if self.block_empty(c) { BLOCK } else { 1 };
             let mut exit = f32::INFINITY;
             for a in 0..3 {
                 if d[a] != 0.0 {
-                    let wall = if d[a] > 0.0 { c[a] + 1 } else { c[a] } as f32 * cs - self.bound;
+                    let low = c[a] / k * k;
+                    let wall = if d[a] > 0.0 { low + k } else { low } as f32 * cs - self.bound;
                     exit = exit.min((wall - p[a]) / d[a]);
                 }
             }
@@ -280,6 +345,25 @@ fn pack(occupied: &[bool]) -> Vec<u64> {
                 .fold(0u64, |word, (i, &o)| word | (u64::from(o) << i))
         })
         .collect()
+}
+
+/// Per block of `BLOCK^3` cells of a `resolution^3` grid, whether any of its cells is
+/// occupied, packed as [`pack`]; empty when `BLOCK` does not divide `resolution`.
+fn block_flags(occupied: &[bool], resolution: usize) -> Vec<u64> {
+    if !resolution.is_multiple_of(BLOCK) {
+        return Vec::new();
+    }
+    let r = resolution / BLOCK;
+    let mut any = vec![false; r * r * r];
+    for (i, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
+        let c = [
+            i % resolution,
+            (i / resolution) % resolution,
+            i / (resolution * resolution),
+        ];
+        any[c[0] / BLOCK + r * (c[1] / BLOCK + r * (c[2] / BLOCK))] = true;
+    }
+    pack(&any)
 }
 
 /// The floor of a quotient that is not negative, as the truncating cast computes it: one
@@ -442,5 +526,54 @@ mod tests {
         g.refresh(0.5);
         let flipped: Vec<bool> = flags.iter().map(|&o| !o).collect();
         check(&g, &flipped);
+    }
+
+    /// Crossing empty blocks in one skip visits the lattice points the cell-by-cell walk
+    /// visits: the same samples (depths equal to rounding) on rays through a sparse grid,
+    /// whole and resumed in pieces.
+    #[test]
+    fn block_skips_take_the_samples_of_the_cell_walk() {
+        let grid = OccupancyGrid::sparse_for_tests(32, 3);
+        let plain = grid.clone().without_blocks();
+        let blocks = grid.occupied_blocks();
+        let empty = blocks.iter().filter(|&&b| !b).count();
+        assert!(
+            empty * 2 > blocks.len(),
+            "{empty} of {} blocks empty",
+            blocks.len()
+        );
+        assert!(plain.occupied_blocks().is_empty());
+        let mut rng = Rng::new(9);
+        let (mut rays, mut samples) = (0, 0);
+        for _ in 0..400 {
+            let o = [0; 3].map(|_| rng.range(-3.0, 3.0));
+            let to = [0; 3].map(|_| rng.range(-0.5, 0.5));
+            let v = crate::math::sub(to, o);
+            let d = crate::math::scale(v, 1.0 / crate::math::length(v));
+            let Some((t0, t1)) = ray_box(o, d, 1.0, 0.0, 10.0) else {
+                continue;
+            };
+            let dt = 2.0 * 3f32.sqrt() / 256.0;
+            let start = t0 + rng.uniform() * dt;
+            let (mut fast, mut slow) = (Vec::new(), Vec::new());
+            grid.march(o, d, start..t1, dt, usize::MAX, &mut fast);
+            plain.march(o, d, start..t1, dt, usize::MAX, &mut slow);
+            assert_eq!(fast.len(), slow.len(), "ray from {o:?}");
+            for (a, b) in fast.iter().zip(&slow) {
+                assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+            }
+            let mut pieces = Vec::new();
+            let mut t = start;
+            while t < t1 {
+                t = grid.march(o, d, t..t1, dt, 3, &mut pieces);
+            }
+            assert_eq!(pieces, fast);
+            rays += 1;
+            samples += fast.len();
+        }
+        assert!(
+            rays > 300 && samples > 1000,
+            "{rays} rays, {samples} samples"
+        );
     }
 }

@@ -9,14 +9,16 @@
 //! every cell of the chunk, the field evaluates all of them (choosing on the device would
 //! need a compaction; every cell costs at most 4x the CPU's chosen ones and keeps the
 //! passes simple), and one kernel decays and updates the chunk's cells. Then a blocked sum
-//! gives the mean and a last kernel re-derives the occupied cells.
+//! gives the mean and a last kernel re-derives the occupied cells, and one more the flags
+//! of the blocks marching crosses whole.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::device::Gpu;
 use super::launch::grid;
-use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
+use super::march::{blocks_per_axis, grid_flags};
+use crate::render::occupancy::{OccupancyConfig, OccupancyGrid, BLOCK};
 
 const GROUP: u32 = 256;
 /// Cells per field evaluation.
@@ -141,10 +143,30 @@ fn occupied_cells(
     }
 }
 
+/// `flags[cells + b]`: 1 where block `b` (of `blocks^3`, each `block^3` cells of a
+/// `res^3` grid) holds an occupied cell (`flags[..cells]`).
+#[cube(launch_unchecked)]
+fn occupied_blocks(flags: &mut [u32], res: u32, blocks: u32, block: u32) {
+    let b = ABSOLUTE_POS as u32;
+    if b < blocks * blocks * blocks {
+        let (bx, by, bz) = (b % blocks, (b / blocks) % blocks, b / (blocks * blocks));
+        let mut any = 0u32;
+        for z in bz * block..(bz + 1) * block {
+            for y in by * block..(by + 1) * block {
+                for x in bx * block..(bx + 1) * block {
+                    any |= flags[(x + res * (y + res * z)) as usize];
+                }
+            }
+        }
+        flags[(res * res * res + b) as usize] = any;
+    }
+}
+
 /// The grid's state on the device.
 pub struct GpuOccupancy {
     pub thickness: Handle,
-    /// 1 per occupied cell, x fastest (what the marcher reads).
+    /// 1 per occupied cell, x fastest, then 1 per block holding one (what the marcher
+    /// reads, `march::grid_flags`).
     pub occupied: Handle,
     /// 1 per cell that may hold anything (`OccupancyGrid::possible`), when `masked`; one
     /// unread value otherwise.
@@ -161,7 +183,7 @@ impl GpuOccupancy {
         let possible = grid.possible.as_deref().map_or(vec![1], bits);
         GpuOccupancy {
             thickness: gpu.upload(&grid.thickness),
-            occupied: gpu.upload_u32(&bits(grid.occupied_cells())),
+            occupied: gpu.upload_u32(&grid_flags(grid)),
             possible: gpu.upload_u32(&possible),
             masked: grid.possible.is_some(),
             resolution: grid.resolution,
@@ -275,6 +297,24 @@ impl GpuOccupancy {
                 u32::from(self.masked),
             );
         }
+        let blocks = blocks_per_axis(self.resolution);
+        if blocks > 0 {
+            let flags = cells + blocks.pow(3);
+            // SAFETY: `occupied` holds the `cells` flags and the `blocks^3` after them; the
+            // kernel reads cells of its block only and bounds-checks the block index.
+            unsafe {
+                let (c, d) = grid(blocks.pow(3), GROUP);
+                occupied_blocks::launch_unchecked(
+                    &gpu.client,
+                    c,
+                    d,
+                    BufferArg::from_raw_parts(self.occupied.clone(), flags),
+                    self.resolution as u32,
+                    blocks as u32,
+                    BLOCK as u32,
+                );
+            }
+        }
     }
 }
 
@@ -371,6 +411,12 @@ mod tests {
             // The ball (about 15% of the box) is occupied and most of the rest is not.
             let share = bits.iter().filter(|&&b| b == 1).count() as f64 / bits.len() as f64;
             assert!((0.1..0.35).contains(&share), "{share} occupied");
+            // The blocks' flags after the cells' are the host grid's for these cells.
+            let host = OccupancyGrid::from_parts(res, g.bound, expected.clone(), occupied.clone());
+            let want = grid_flags(&host);
+            assert!(want.len() > bits.len(), "the grid has blocks");
+            let flags = gpu.read_u32(&g.occupied, want.len()).expect("read");
+            assert_eq!(flags, want);
         }
     }
 
