@@ -128,6 +128,14 @@ fn fifty_gpu_steps_track_fifty_cpu_steps() {
         (oa - ob).abs() < 0.02 + 0.1 * oa,
         "occupied: cpu {oa}, gpu {ob}"
     );
+    // The grid stays on the device between refreshes; the GPU's state (a checkpoint)
+    // carries the refreshed one: loaded into the CPU engine, the same cells are occupied.
+    cpu.engine.set_state(gpu.engine.state()).expect("gpu state");
+    let loaded = cpu.engine.occupancy().expect("fast");
+    assert!(
+        (loaded - ob).abs() < 1e-3,
+        "the GPU's grid occupied {ob}; its state loaded on the CPU {loaded}"
+    );
 }
 
 /// `steps` training steps of `c` on `device` from fresh weights: the losses, and the

@@ -9,8 +9,8 @@
 //! on the device), marches them through the occupancy grid (`march`: the same samples as
 //! the CPU marcher while the grids agree), cuts them at the sample budget (two numbers read
 //! back), and runs the field, compositing, the loss, the backward and Adam. Every
-//! `update_every` steps it refreshes the occupancy grid (`occupancy`) and the host takes
-//! a copy (for checkpoints, and each rendered ray's span). Rendering (`render`) marches,
+//! `update_every` steps it refreshes the occupancy grid (`occupancy`), which stays on the
+//! device (read back for a checkpoint or when its occupied share is asked for). Rendering (`render`) marches,
 //! evaluates and composites on the device in rounds, with early termination.
 
 use cubecl::server::Handle;
@@ -21,7 +21,9 @@ use super::device::Gpu;
 use super::field::{DeviceInput, GpuFastField};
 use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
-use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
+use super::params::{
+    check_device, density_in_chunks, fail_rays, report_device_failure, DeviceParams,
+};
 use super::rays::GpuViews;
 use super::{antialias, distortion, loss, rays, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
@@ -34,7 +36,6 @@ use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
 use crate::render::march::Marcher;
-use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{Appearance, RayBatch, RayOutput, MEAN_APPEARANCE};
 use crate::step_clock::{self, Stage};
@@ -335,30 +336,21 @@ impl GpuEngine {
         (on_device, of_view, radii, targets, backgrounds)
     }
 
-    /// Re-evaluates the occupancy grid on the device when the schedule says so, then
-    /// copies it to the host (for rendering, which marches there, and checkpoints).
-    fn refresh_occupancy(&mut self, steps_done: u64, seed: u64) -> Result<()> {
+    /// Re-evaluates the occupancy grid on the device when the schedule says so. The grid
+    /// stays there: the marchers read it in place, and a checkpoint or the occupied share
+    /// is read back when asked for ([`Engine::state`], [`Engine::occupancy`]); the host's
+    /// copy keeps only what the device's refresh does not change (the box, the cells
+    /// few-view training leaves empty).
+    fn refresh_occupancy(&mut self, steps_done: u64, seed: u64) {
         let config = self.model.config.occupancy;
         if !steps_done.is_multiple_of(config.update_every.max(1)) {
-            return Ok(());
+            return;
         }
         let dt = self.model.config.step_length();
         let (gpu, field, params) = (&self.gpu, &self.field, &self.state.values);
         let density = |points: &Handle, n: usize| field.infer_density(gpu, params, points, n);
         self.occupancy
             .update(gpu, &config, steps_done, seed, dt, &density);
-        let cells = self.occupancy.cells();
-        let thickness = gpu.read(&self.occupancy.thickness, cells)?;
-        let occupied = gpu.read_u32(&self.occupancy.occupied, cells)?;
-        let possible = self.model.grid.possible.take();
-        self.model.grid = OccupancyGrid::from_parts(
-            self.occupancy.resolution,
-            self.occupancy.bound,
-            thickness,
-            occupied.iter().map(|&b| b == 1).collect(),
-        );
-        self.model.grid.possible = possible;
-        Ok(())
     }
 
     /// Puts the host grid's state on the device.
@@ -531,7 +523,7 @@ impl Engine for GpuEngine {
         if let Some(e) = check.take(step + 1) {
             return Err(e);
         }
-        self.refresh_occupancy(step + 1, spec.sampling.seed)?;
+        self.refresh_occupancy(step + 1, spec.sampling.seed);
         Ok(StepStats {
             step: step + 1,
             loss,
@@ -656,8 +648,17 @@ impl Engine for GpuEngine {
         });
     }
 
+    /// The weights, Adam's moments and the device grid's thickness (the model's buffer).
     fn state(&self) -> EngineState {
-        self.state.state(&self.gpu, self.model.buffers())
+        let cells = self.occupancy.cells();
+        let thickness = self
+            .gpu
+            .read(&self.occupancy.thickness, cells)
+            .unwrap_or_else(|e| {
+                report_device_failure(&e);
+                vec![f32::NAN; cells]
+            });
+        self.state.state(&self.gpu, thickness)
     }
 
     fn set_state(&mut self, state: EngineState) -> Result<()> {
@@ -668,8 +669,11 @@ impl Engine for GpuEngine {
         Ok(())
     }
 
+    /// The device grid's occupied share.
     fn occupancy(&self) -> Option<f64> {
-        self.model.occupancy()
+        let cells = self.occupancy.cells();
+        let flags = self.gpu.read_u32(&self.occupancy.occupied, cells).ok()?;
+        Some(flags.iter().filter(|&&o| o == 1).count() as f64 / cells.max(1) as f64)
     }
 
     /// A hardware GPU's whole rendering chunk; a software adapter runs a call as slowly as
