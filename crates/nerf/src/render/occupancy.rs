@@ -34,11 +34,29 @@ pub struct OccupancyConfig {
     pub threshold: f32,
     /// During the first steps every cell is re-evaluated at each refresh (256).
     pub warmup_steps: u64,
-    /// After warm-up, this fraction of cells chosen at random is re-evaluated, plus every
-    /// occupied cell (1/16: an empty cell is looked at again every 256 steps on average;
-    /// Instant-NGP's quarter trained no better per step and cost the CPU engine far more
-    /// time, see docs/benchmarks.md).
+    /// After warm-up, this fraction of the cells, chosen at random, is re-evaluated, plus
+    /// every occupied cell (1/16: an empty cell is looked at again every 256 steps on
+    /// average; Instant-NGP's quarter trained no better per step and cost the CPU engine
+    /// far more time, see docs/benchmarks.md). A young field still moves fast: until
+    /// [`YOUNG_WARMUPS`] warm-ups have passed, at least a quarter is re-evaluated.
     pub update_fraction: f32,
+}
+
+/// For this many warm-ups' steps a field counts as young (see
+/// [`OccupancyConfig::recheck_fraction`]).
+pub const YOUNG_WARMUPS: u64 = 4;
+
+impl OccupancyConfig {
+    /// The share of cells re-evaluated at random by the refresh at step `step` (after the
+    /// warm-up, which re-evaluates every cell): `update_fraction`, but at least a quarter
+    /// while the field is young.
+    pub fn recheck_fraction(&self, step: u64) -> f32 {
+        if step < YOUNG_WARMUPS * self.warmup_steps {
+            self.update_fraction.max(0.25)
+        } else {
+            self.update_fraction
+        }
+    }
 }
 
 impl Default for OccupancyConfig {
@@ -299,6 +317,7 @@ impl OccupancyGrid {
     ) {
         const CELLS_PER_TASK: usize = 4096;
         let warm = step < config.warmup_steps;
+        let fraction = config.recheck_fraction(step);
         let (res, cs, bound) = (self.resolution, self.cell_size(), self.bound);
         let occupied = &self.occupied;
         self.thickness
@@ -311,7 +330,7 @@ impl OccupancyGrid {
                 let mut points = Vec::with_capacity(cells.len() * 3);
                 for i in 0..cells.len() {
                     let idx = first + i;
-                    let pick = rng.uniform() < config.update_fraction;
+                    let pick = rng.uniform() < fraction;
                     if !(warm || occupied[idx] || pick) {
                         continue;
                     }
@@ -452,6 +471,24 @@ mod tests {
             t = g.march(o, d, t..t1, dt, 4, &mut pieces);
         }
         assert_eq!(pieces, ts);
+    }
+
+    /// A quarter of the cells is rechecked while the field is young, the configured share
+    /// after; a larger configured share (runs saved with a quarter) is kept throughout.
+    #[test]
+    fn young_fields_recheck_a_quarter() {
+        let c = OccupancyConfig::default();
+        let young = YOUNG_WARMUPS * c.warmup_steps;
+        assert_eq!(c.recheck_fraction(c.warmup_steps), 0.25);
+        assert_eq!(c.recheck_fraction(young - 1), 0.25);
+        assert_eq!(c.recheck_fraction(young), c.update_fraction);
+        assert!(c.update_fraction < 0.25);
+        let old = OccupancyConfig {
+            update_fraction: 0.25,
+            ..c
+        };
+        assert_eq!(old.recheck_fraction(0), 0.25);
+        assert_eq!(old.recheck_fraction(10 * young), 0.25);
     }
 
     #[test]

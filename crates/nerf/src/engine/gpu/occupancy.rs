@@ -245,7 +245,7 @@ impl GpuOccupancy {
                 config.decay,
                 dt,
                 u32::from(step < config.warmup_steps),
-                config.update_fraction,
+                config.recheck_fraction(step),
                 seed32,
                 step32,
                 u32::from(self.masked),
@@ -325,7 +325,8 @@ mod tests {
     /// Two refreshes of a 40^3 grid (more than one chunk is not needed for the rule; the
     /// chunk loop is exercised by `CHUNK`-independent indexing) with a density known in
     /// closed form: every cell decays, the chosen ones (all during warm-up; then the
-    /// occupied ones and about `update_fraction` of the rest) rise to `sigma * dt` at a point
+    /// occupied ones and about `recheck_fraction` of the rest: a quarter while the field is
+    /// young, then `update_fraction`) rise to `sigma * dt` at a point
     /// inside the cell, and occupancy follows `min(threshold, mean)`.
     #[test]
     fn refresh_follows_the_cpu_rule() {
@@ -358,7 +359,7 @@ mod tests {
         let cs = 2.0 * bound / res as f32;
         let mut expected = vec![0.0f32; res * res * res];
         let mut occupied = vec![true; res * res * res];
-        for step in [5u64, 20] {
+        for step in [5u64, 20, 50] {
             seen.borrow_mut().clear();
             g.update(&gpu, &config, step, 7, dt, &density);
             let points = seen.borrow().clone();
@@ -397,8 +398,8 @@ mod tests {
             if step >= config.warmup_steps {
                 let share = picked_empty.0 as f64 / picked_empty.1 as f64;
                 assert!(
-                    (share - f64::from(config.update_fraction)).abs()
-                        < 0.2 * f64::from(config.update_fraction),
+                    (share - f64::from(config.recheck_fraction(step))).abs()
+                        < 0.2 * f64::from(config.recheck_fraction(step)),
                     "{share} of the empty cells picked"
                 );
             }
