@@ -213,13 +213,11 @@ impl OccupancyGrid {
     /// Per block of `BLOCK^3` cells (x fastest), whether any of its cells is occupied;
     /// empty when `BLOCK` does not divide the resolution (what a GPU marcher uploads).
     pub fn occupied_blocks(&self) -> Vec<bool> {
-        let n = (self.resolution / BLOCK).pow(3);
         if self.blocks.is_empty() {
             return Vec::new();
         }
-        (0..n)
-            .map(|i| (self.blocks[i >> 6] >> (i & 63)) & 1 == 1)
-            .collect()
+        let n = blocks_per_axis(self.resolution).pow(3);
+        (0..n).map(|i| bit(&self.blocks, i)).collect()
     }
 
     /// The same grid marched cell by cell (the plain walk the block skips are tested
@@ -251,17 +249,12 @@ impl OccupancyGrid {
     /// Whether the block around cell `c` holds no occupied cell.
     #[inline]
     fn block_empty(&self, c: [usize; 3]) -> bool {
-        if self.blocks.is_empty() {
-            return false;
-        }
-        let r = self.resolution / BLOCK;
-        let i = c[0] / BLOCK + r * (c[1] / BLOCK + r * (c[2] / BLOCK));
-        (self.blocks[i >> 6] >> (i & 63)) & 1 == 0
+        !self.blocks.is_empty() && !bit(&self.blocks, block_of(c, self.resolution))
     }
 
     #[inline]
     fn occupied_at(&self, index: usize) -> bool {
-        (self.bits[index >> 6] >> (index & 63)) & 1 == 1
+        bit(&self.bits, index)
     }
 
     /// Marches a ray (unit direction `d`) over `span` (from a lattice depth to the exit),
@@ -368,13 +361,36 @@ fn pack(occupied: &[bool]) -> Vec<u64> {
         .collect()
 }
 
+/// Flag `i` of flags packed by [`pack`].
+#[inline]
+fn bit(words: &[u64], i: usize) -> bool {
+    (words[i >> 6] >> (i & 63)) & 1 == 1
+}
+
+/// Blocks per axis of a `resolution^3` grid: 0 where `BLOCK` does not divide it (such a
+/// grid is marched cell by cell, on both engines).
+pub fn blocks_per_axis(resolution: usize) -> usize {
+    if resolution.is_multiple_of(BLOCK) {
+        resolution / BLOCK
+    } else {
+        0
+    }
+}
+
+/// The index of the block holding cell `c` of a `resolution^3` grid (x fastest).
+#[inline]
+fn block_of(c: [usize; 3], resolution: usize) -> usize {
+    let r = blocks_per_axis(resolution);
+    c[0] / BLOCK + r * (c[1] / BLOCK + r * (c[2] / BLOCK))
+}
+
 /// Per block of `BLOCK^3` cells of a `resolution^3` grid, whether any of its cells is
 /// occupied, packed as [`pack`]; empty when `BLOCK` does not divide `resolution`.
 fn block_flags(occupied: &[bool], resolution: usize) -> Vec<u64> {
-    if !resolution.is_multiple_of(BLOCK) {
+    let r = blocks_per_axis(resolution);
+    if r == 0 {
         return Vec::new();
     }
-    let r = resolution / BLOCK;
     let mut any = vec![false; r * r * r];
     for (i, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
         let c = [
@@ -382,7 +398,7 @@ fn block_flags(occupied: &[bool], resolution: usize) -> Vec<u64> {
             (i / resolution) % resolution,
             i / (resolution * resolution),
         ];
-        any[c[0] / BLOCK + r * (c[1] / BLOCK + r * (c[2] / BLOCK))] = true;
+        any[block_of(c, resolution)] = true;
     }
     pack(&any)
 }

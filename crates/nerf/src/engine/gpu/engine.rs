@@ -10,8 +10,9 @@
 //! the CPU marcher while the grids agree), cuts them at the sample budget (two numbers read
 //! back), and runs the field, compositing, the loss, the backward and Adam. Every
 //! `update_every` steps it refreshes the occupancy grid (`occupancy`), which stays on the
-//! device (read back for a checkpoint or when its occupied share is asked for). Rendering (`render`) marches,
-//! evaluates and composites on the device in rounds, with early termination.
+//! device (read back for a checkpoint or when its occupied share is asked for). Rendering
+//! (`render`) marches, evaluates and composites on the device in rounds, with early
+//! termination.
 
 use cubecl::server::Handle;
 use rayon::prelude::*;

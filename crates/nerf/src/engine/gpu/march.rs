@@ -24,7 +24,7 @@ use crate::error::{NerfError, Result};
 use crate::math::{length, scale};
 use crate::render::contraction::FAR_N;
 use crate::render::march::{Marcher, MIN_TRANSMITTANCE};
-use crate::render::occupancy::{OccupancyGrid, BLOCK};
+use crate::render::occupancy::{blocks_per_axis, OccupancyGrid, BLOCK};
 use crate::stage::RayBatch;
 
 const GROUP: u32 = 64;
@@ -604,16 +604,6 @@ impl PendingCut<'_> {
     }
 }
 
-/// Blocks per axis of a `res^3` grid on the device: as `OccupancyGrid`'s, 0 where `BLOCK`
-/// does not divide `res`.
-pub fn blocks_per_axis(res: usize) -> usize {
-    if res.is_multiple_of(BLOCK) {
-        res / BLOCK
-    } else {
-        0
-    }
-}
-
 /// A host grid's flags as the device marcher reads them: 1 per occupied cell (x fastest),
 /// then 1 per block of `BLOCK^3` cells holding an occupied one.
 pub fn grid_flags(grid: &OccupancyGrid) -> Vec<u32> {
@@ -660,13 +650,14 @@ impl GpuMarcher {
 
     /// A marcher over a copy of a host grid.
     pub fn with_grid(gpu: &Gpu, marcher: &Marcher, grid: &OccupancyGrid) -> Self {
-        let flags = gpu.upload_u32(&grid_flags(grid));
-        let mut m = GpuMarcher::new(marcher, flags, grid.resolution, grid.bound);
+        let flags = grid_flags(grid);
         // A grid without block flags (as tests make one) is walked cell by cell.
-        if grid.occupied_blocks().is_empty() {
-            m.blocks = 0;
+        let has_blocks = flags.len() > grid.resolution.pow(3);
+        let m = GpuMarcher::new(marcher, gpu.upload_u32(&flags), grid.resolution, grid.bound);
+        GpuMarcher {
+            blocks: if has_blocks { m.blocks } else { 0 },
+            ..m
         }
-        m
     }
 
     fn params(&self) -> MarchParamsLaunch {

@@ -17,8 +17,8 @@ use cubecl::server::Handle;
 
 use super::device::Gpu;
 use super::launch::grid;
-use super::march::{blocks_per_axis, grid_flags};
-use crate::render::occupancy::{OccupancyConfig, OccupancyGrid, BLOCK};
+use super::march::grid_flags;
+use crate::render::occupancy::{blocks_per_axis, OccupancyConfig, OccupancyGrid, BLOCK};
 
 const GROUP: u32 = 256;
 /// Cells per field evaluation.
