@@ -115,10 +115,7 @@ mod tests {
     /// moments within 1e-6 relative, and the gradients cleared.
     #[test]
     fn adam_matches_the_cpu_dirty_block_update() {
-        let Some(gpu) = Gpu::vulkan()
-            .map_err(|e| eprintln!("skipping the GPU kernel test: {e}"))
-            .ok()
-        else {
+        let Some(gpu) = crate::engine::gpu::device::test_gpu() else {
             return;
         };
         let (n, lazy_end) = (20_000usize, 12_000usize);

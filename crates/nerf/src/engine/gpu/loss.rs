@@ -108,10 +108,7 @@ mod tests {
     /// gradients agree exactly up to rounding (1e-6).
     #[test]
     fn loss_matches_the_cpu() {
-        let Some(gpu) = Gpu::vulkan()
-            .map_err(|e| eprintln!("skipping the GPU kernel test: {e}"))
-            .ok()
-        else {
+        let Some(gpu) = crate::engine::gpu::device::test_gpu() else {
             return;
         };
         let rays = 1000;
@@ -163,10 +160,7 @@ mod tests {
     /// samples (more than the 3 penalised) and of 2 (fewer).
     #[test]
     fn occlusion_matches_the_cpu() {
-        let Some(gpu) = Gpu::vulkan()
-            .map_err(|e| eprintln!("skipping the GPU kernel test: {e}"))
-            .ok()
-        else {
+        let Some(gpu) = crate::engine::gpu::device::test_gpu() else {
             return;
         };
         let free = FreeNerf {
