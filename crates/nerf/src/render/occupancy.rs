@@ -22,6 +22,9 @@ use crate::rng::Rng;
 /// are empty (grids whose resolution it does not divide skip cell by cell).
 pub const BLOCK: usize = 4;
 
+// The GPU marcher finds a cell's block by a shift.
+const _: () = assert!(BLOCK.is_power_of_two());
+
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct OccupancyConfig {
     /// Cells per axis (128).

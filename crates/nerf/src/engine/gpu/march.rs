@@ -44,11 +44,12 @@ pub struct MarchParams {
     inner: f32,
     /// `contraction::FAR_N`: rays end past this many inner half-extents.
     far_n: f32,
-    /// Blocks per axis (0: none) of `block^3` cells, whose flags (1 where any of its cells
+    /// Blocks per axis (0: none) of `BLOCK^3` cells, whose flags (1 where any of its cells
     /// is occupied) follow the cells' in the grid's buffer: an empty block is crossed in
     /// one skip, as `OccupancyGrid::march` does.
     blocks: u32,
-    block: u32,
+    /// `log2(BLOCK)`: a cell's block is its index shifted right by this.
+    block_shift: u32,
 }
 
 #[cube]
@@ -139,39 +140,42 @@ fn march_ray(
                 sz = z * s;
                 take = is_occupied(occ, sx, sy, sz, bound, cell, res);
             }
-        } else if is_occupied(occ, x, y, z, bound, cell, res) {
-            take = true;
         } else {
-            // Whole steps past the far wall of this empty cell, or of its block if that
-            // is empty too.
-            let mut exit = 3.4e38f32; // "no wall": larger than any depth
             let cx = cell_of(x, bound, cell, res);
             let cy = cell_of(y, bound, cell, res);
             let cz = cell_of(z, bound, cell, res);
-            let mut k = 1u32;
-            if p.blocks > 0 {
-                let (b, nb) = (p.block, p.blocks);
-                let bi = cx / b + nb * (cy / b + nb * (cz / b));
-                if occ[(res * res * res + bi) as usize] == 0 {
-                    k = b;
+            take = occ[(cx + res * (cy + res * cz)) as usize] != 0;
+            if !take {
+                // Whole steps past the far wall of this empty cell, or of its block if
+                // that is empty too: walls found by shifts (0 for a cell), where a
+                // division by a launch value costs a GPU tens of instructions a step.
+                let mut shift = 0u32;
+                if p.blocks > 0 {
+                    let (s, nb) = (p.block_shift, p.blocks);
+                    let bi = (cx >> s) + nb * ((cy >> s) + nb * (cz >> s));
+                    if occ[(res * res * res + bi) as usize] == 0 {
+                        shift = s;
+                    }
                 }
+                let k = 1u32 << shift;
+                let mut exit = 3.4e38f32; // "no wall": larger than any depth
+                if dx != 0.0 {
+                    let low = (cx >> shift) << shift;
+                    let wall = f32::cast_from(select(dx > 0.0, low + k, low)) * cell - bound;
+                    exit = f32::min(exit, (wall - x) / dx);
+                }
+                if dy != 0.0 {
+                    let low = (cy >> shift) << shift;
+                    let wall = f32::cast_from(select(dy > 0.0, low + k, low)) * cell - bound;
+                    exit = f32::min(exit, (wall - y) / dy);
+                }
+                if dz != 0.0 {
+                    let low = (cz >> shift) << shift;
+                    let wall = f32::cast_from(select(dz > 0.0, low + k, low)) * cell - bound;
+                    exit = f32::min(exit, (wall - z) / dz);
+                }
+                step = (f32::floor(f32::max(exit, 0.0) / dt) + 1.0) * dt;
             }
-            if dx != 0.0 {
-                let low = cx / k * k;
-                let wall = f32::cast_from(select(dx > 0.0, low + k, low)) * cell - bound;
-                exit = f32::min(exit, (wall - x) / dx);
-            }
-            if dy != 0.0 {
-                let low = cy / k * k;
-                let wall = f32::cast_from(select(dy > 0.0, low + k, low)) * cell - bound;
-                exit = f32::min(exit, (wall - y) / dy);
-            }
-            if dz != 0.0 {
-                let low = cz / k * k;
-                let wall = f32::cast_from(select(dz > 0.0, low + k, low)) * cell - bound;
-                exit = f32::min(exit, (wall - z) / dz);
-            }
-            step = (f32::floor(f32::max(exit, 0.0) / dt) + 1.0) * dt;
         }
         if running {
             if take {
@@ -671,7 +675,7 @@ impl GpuMarcher {
             self.contract.unwrap_or(1.0),
             FAR_N,
             self.blocks as u32,
-            BLOCK as u32,
+            BLOCK.trailing_zeros(),
         )
     }
 
