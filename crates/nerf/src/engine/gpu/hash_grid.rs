@@ -31,7 +31,15 @@ fn vertex(x: u32, y: u32, z: u32, res: u32, entries: u32, dense: u32) -> usize {
 /// The table slot of corner `k` (bit 0: +x, bit 1: +y, bit 2: +z) of the cell at
 /// `(cx, cy, cz)`.
 #[cube]
-fn corner(k: u32, cx: u32, cy: u32, cz: u32, res: u32, entries: u32, dense: u32) -> usize {
+pub(super) fn corner(
+    k: u32,
+    cx: u32,
+    cy: u32,
+    cz: u32,
+    res: u32,
+    entries: u32,
+    dense: u32,
+) -> usize {
     vertex(
         cx + (k & 1),
         cy + ((k >> 1) & 1),
@@ -51,7 +59,7 @@ fn cell(points: &[f32], s: usize, res: u32) -> (u32, u32, u32, f32, f32, f32) {
 
 /// [`cell`] of the unit-cube point `(x, y, z)`.
 #[cube]
-fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, f32, f32) {
+pub(super) fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, f32, f32) {
     let rf = f32::cast_from(res);
     let px = f32::clamp(x, 0.0, 1.0) * rf;
     let py = f32::clamp(y, 0.0, 1.0) * rf;

@@ -58,6 +58,7 @@ pub mod march;
 pub mod mlp;
 pub mod occupancy;
 pub mod params;
+pub mod pose_grad;
 pub mod rays;
 pub mod render;
 pub mod vanilla;
