@@ -26,7 +26,7 @@ pub const RAY_WORDS: usize = 9;
 /// `level_scale` (the straight-through schedule's weights of the position gradient). A
 /// coordinate clamped at the cube's face gets none along its axis.
 #[cube(launch_unchecked)]
-#[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments, clippy::manual_range_contains)]
 fn position_bwd(
     params: &[f32],
     levels: &[u32],
