@@ -122,7 +122,12 @@ pub fn refine_test_poses(
         fit_model.field.appearance_images = data.views.len();
     }
     let config = ModelConfig::Fast(fit_model);
-    let mut engine = crate::engine::cpu::open(&config, cfg.engine_options(), cfg.seed);
+    // On the run's own kind of engine (camera refinement runs on both).
+    let device = match run.engine.kind() {
+        crate::engine::caps::EngineKind::Cpu => crate::engine::Device::Cpu,
+        crate::engine::caps::EngineKind::Gpu => crate::engine::Device::Wgpu,
+    };
+    let mut engine = crate::engine::open_on(device, &config, cfg.engine_options(), cfg.seed)?;
     params.resize(engine.param_layout().total, 0.0);
     let n = params.len();
     engine.set_state(EngineState {

@@ -41,7 +41,7 @@ pub enum Feature {
 const TABLE: [(Feature, bool, bool); 8] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
-    (Feature::CameraRefinement, true, false),
+    (Feature::CameraRefinement, true, true),
     (Feature::Distortion, true, true),
     (Feature::Mip, true, true),
     (Feature::FewView, true, true),

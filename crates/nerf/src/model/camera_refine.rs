@@ -550,6 +550,17 @@ impl CameraStep {
     }
 }
 
+/// Corrects each drawn training ray of `rays` by its camera's step (the view a ray's pixel
+/// index names; rays of views without a step stay as drawn).
+pub fn correct_drawn_rays(rays: &mut crate::stage::RayBatch, cameras: &[CameraStep]) {
+    for r in 0..rays.len() {
+        if let Some(camera) = cameras.get((rays.pixels[r] >> 32) as usize) {
+            (rays.origins[r], rays.dirs[r], rays.view_dirs[r]) =
+                camera.correct_drawn(rays.origins[r], rays.dirs[r], rays.view_dirs[r]);
+        }
+    }
+}
+
 /// The corrections of a parameter vector laid out by `layout`, one 6-vector per camera
 /// (none when the model refines no camera).
 pub fn corrections<'a>(layout: &crate::nn::ParamLayout, params: &'a [f32]) -> Option<&'a [f32]> {

@@ -165,10 +165,24 @@ impl FastModel {
 
     /// This step's correction of every training camera of `data` (none without refinement).
     fn camera_steps(&self, params: &[f32], data: &Dataset) -> Vec<CameraStep> {
-        let (Some(at), Some(refinement)) = (self.cameras_at, self.config.refine_cameras) else {
+        match self.cameras_at {
+            Some(at) => self.camera_steps_of(&params[at..], data),
+            None => Vec::new(),
+        }
+    }
+
+    /// Where the camera corrections begin in the parameter vector (`None`: cameras are
+    /// not refined).
+    pub fn cameras_at(&self) -> Option<usize> {
+        self.cameras_at
+    }
+
+    /// Every training camera's step for `corrections` (6 values a camera, from
+    /// [`cameras_at`](Self::cameras_at) on; none without refinement).
+    pub fn camera_steps_of(&self, corrections: &[f32], data: &Dataset) -> Vec<CameraStep> {
+        let Some(refinement) = self.config.refine_cameras else {
             return Vec::new();
         };
-        let corrections = &params[at..];
         data.views
             .iter()
             .zip(corrections.chunks_exact(camera_refine::PER_CAMERA))
@@ -247,13 +261,7 @@ impl FastModel {
             &input.sampling,
             first..first + BLOCK_RAYS as u64,
         );
-        let rays = &mut block.rays.rays;
-        for r in 0..rays.len() {
-            if let Some(camera) = input.cameras.get((rays.pixels[r] >> 32) as usize) {
-                (rays.origins[r], rays.dirs[r], rays.view_dirs[r]) =
-                    camera.correct_drawn(rays.origins[r], rays.dirs[r], rays.view_dirs[r]);
-            }
-        }
+        camera_refine::correct_drawn_rays(&mut block.rays.rays, input.cameras);
         block.samples.clear();
         for r in 0..block.rays.len() {
             let jitter = block.rays.rngs[r].uniform();

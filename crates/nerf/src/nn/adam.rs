@@ -59,7 +59,7 @@ impl Adam {
     }
 
     /// The factors of the update under way (`t` already counted) at learning rate `lr`.
-    fn step_at(&self, lr: f32) -> AdamStep {
+    pub fn step_at(&self, lr: f32) -> AdamStep {
         let AdamConfig { beta1, beta2, .. } = self.config;
         AdamStep {
             lr_over_bc1: lr / (1.0 - beta1.powf(self.t as f32)),

@@ -432,6 +432,60 @@ fn appearance_codes_train_alike_on_both_engines() {
     assert!(differ, "a photo's look renders as the mean one");
 }
 
+/// Camera refinement on both engines, with BARF's schedule (the field's levels weighted
+/// in) and with the straight-through one (only the pose gradient's): ten steps from the
+/// same weights on the same rays give the same losses to rounding, and the corrections
+/// (which start at zero) learn alike.
+#[test]
+fn camera_refinement_trains_alike_on_both_engines() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 24);
+    for straight_through in [false, true] {
+        let mut c = config(&data, 10);
+        let train = c
+            .open_scene(1)
+            .expect("scene")
+            .load(Split::Train, 1)
+            .expect("load");
+        if let nerf::model::ModelConfig::Fast(m) = &mut c.model {
+            let refinement = nerf::model::camera_refine::CameraRefinement {
+                pose_gradient_only: straight_through,
+                ..nerf::model::camera_refine::CameraRefinement::new(train.views.len())
+            };
+            m.refine_cameras = Some(refinement.with_learning_rate(1e-2));
+        }
+        let (cpu, cpu_trainer) = train_steps(Device::Cpu, &c, &train, 10);
+        let (gpu, gpu_trainer) = train_steps(Device::Wgpu, &c, &train, 10);
+        let corrections = |t: &Trainer| {
+            let params = t.engine.state().params;
+            nerf::model::camera_refine::corrections(t.engine.param_layout(), &params)
+                .expect("corrections")
+                .to_vec()
+        };
+        let (a, b) = (corrections(&cpu_trainer), corrections(&gpu_trainer));
+        let worst = relative_apart(&cpu, &gpu);
+        let largest = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let apart = a
+            .iter()
+            .zip(&b)
+            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        eprintln!(
+            "straight-through {straight_through}: worst relative loss difference \
+             {worst:.1e}; corrections up to {largest:.2e}, engines apart by at most {apart:.2e}"
+        );
+        assert!(worst < 1e-3, "cpu {cpu:?}, gpu {gpu:?}");
+        assert!(largest > 1e-3, "the corrections did not learn");
+        assert!(
+            apart < 0.1 * largest,
+            "corrections apart by {apart} of {largest}"
+        );
+    }
+}
+
 /// A run trained on the GPU resumes on the CPU and back, through the same checkpoint
 /// file; rendering the result on either device gives the same images.
 #[test]

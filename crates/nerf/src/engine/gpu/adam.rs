@@ -27,6 +27,10 @@ struct Update {
     lr_over_bc1: f32,
     inv_bc2: f32,
     lazy_end: u32,
+    /// Parameters from here on (camera corrections) update densely, without weight
+    /// decay, at their own rate.
+    group_start: u32,
+    group_lr_over_bc1: f32,
 }
 
 #[cube(launch_unchecked)]
@@ -42,12 +46,14 @@ fn adam_step(
     if i < params.len() && nonfinite[0] == 0 {
         let p = params[i];
         let lazy = (i as u32) < u.lazy_end;
+        let grouped = (i as u32) >= u.group_start;
         let raw = grads[i] * u.scale;
         let keep = lazy && raw == 0.0;
-        let g = raw + select(lazy, 0.0, u.weight_decay) * p;
+        let g = raw + select(lazy || grouped, 0.0, u.weight_decay) * p;
         let m_new = u.beta1 * m[i] + (1.0 - u.beta1) * g;
         let v_new = u.beta2 * v[i] + (1.0 - u.beta2) * g * g;
-        let p_new = p - u.lr_over_bc1 * m_new / (f32::sqrt(v_new * u.inv_bc2) + u.eps);
+        let rate = select(grouped, u.group_lr_over_bc1, u.lr_over_bc1);
+        let p_new = p - rate * m_new / (f32::sqrt(v_new * u.inv_bc2) + u.eps);
         m[i] = select(keep, m[i], m_new);
         v[i] = select(keep, v[i], v_new);
         params[i] = select(keep, p, p_new);
@@ -57,12 +63,14 @@ fn adam_step(
 
 /// Applies `step` (from `Adam::begin_step`) to `n` parameters and their moments, reading
 /// and clearing `grads`, unless the `u32` in `nonfinite` is not zero when the update runs
-/// (then nothing is written).
+/// (then nothing is written). The group of `how` (if any) updates with `group_step`'s
+/// rate (`Adam::step_at` of its learning rate).
 #[allow(clippy::too_many_arguments)]
 pub fn step(
     gpu: &Gpu,
     config: &AdamConfig,
     step: AdamStep,
+    group_step: AdamStep,
     how: DirtyStep,
     n: usize,
     params: &Handle,
@@ -75,6 +83,7 @@ pub fn step(
         return;
     }
     let (lr_over_bc1, inv_bc2) = step.factors();
+    let group_start = how.group.map_or(n, |(start, _)| start.min(n));
     let update = UpdateLaunch::new(
         how.scale,
         how.weight_decay,
@@ -84,6 +93,8 @@ pub fn step(
         lr_over_bc1,
         inv_bc2,
         how.lazy_end.min(n) as u32,
+        group_start as u32,
+        group_step.factors().0,
     );
     // SAFETY: the four buffers hold `n` floats each; the kernel bounds-checks `i < n`.
     unsafe {
@@ -111,7 +122,7 @@ mod tests {
 
     /// Three steps against the CPU's dirty-block Adam: a lazy region with untouched entries
     /// and whole untouched blocks (different ones each step), a dense region with weight
-    /// decay. Parameters and both
+    /// decay, a group at its own rate. Parameters and both
     /// moments within 1e-6 relative, and the gradients cleared.
     #[test]
     fn adam_matches_the_cpu_dirty_block_update() {
@@ -128,7 +139,8 @@ mod tests {
             scale: 1.0 / 4096.0,
             lazy_end,
             weight_decay: 1e-6,
-            group: None,
+            // Camera corrections at the end: dense, no decay, their own rate.
+            group: Some((n - 600, 3e-3)),
         };
         let mut rng = Rng::new(11);
         let mut params: Vec<f32> = (0..n).map(|_| rng.range(-0.5, 0.5)).collect();
@@ -156,10 +168,12 @@ mod tests {
             buffer.mark(0..n);
             cpu.step_dirty(&mut params, &mut buffer, 1e-2, how);
             let g = upload(&grads);
+            let field_step = gpu_adam.begin_step(1e-2);
             step(
                 &gpu,
                 &config,
-                gpu_adam.begin_step(1e-2),
+                field_step,
+                gpu_adam.step_at(3e-3),
                 how,
                 n,
                 &p,
@@ -197,6 +211,7 @@ mod tests {
         step(
             &gpu,
             &config,
+            refused,
             refused,
             how,
             n,

@@ -19,20 +19,21 @@ use rayon::prelude::*;
 
 use super::codes::SampleCodes;
 use super::device::Gpu;
-use super::field::{DeviceInput, GpuFastField};
+use super::field::{Activations, DeviceInput, GpuFastField, InputGradients};
 use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
 use super::params::{
     check_device, density_in_chunks, fail_rays, report_device_failure, DeviceParams,
 };
 use super::rays::GpuViews;
-use super::{antialias, distortion, loss, rays, render, volume};
+use super::{antialias, distortion, loss, pose_grad, rays, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
 use crate::engine::{
     render_in_chunks, Engine, EngineOptions, EngineState, PixelRays, StepSpec, StepStats,
 };
 use crate::error::Result;
+use crate::model::camera_refine::{correct_drawn_rays, CameraStep, PER_CAMERA};
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
@@ -141,6 +142,8 @@ struct StepRays {
     footprints: Option<Handle>,
     targets: Handle,
     backgrounds: Handle,
+    /// The rays' world origins and unit directions, where cameras are refined.
+    frame: Option<(Handle, Handle)>,
 }
 
 /// The fast model on one GPU.
@@ -218,7 +221,12 @@ impl GpuEngine {
 
     /// Draws the step's rays (the same rays as the CPU engine: `data::pixels`) and marches
     /// them on the device until the sample budget is reached.
-    fn march_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepRays> {
+    fn march_step(
+        &mut self,
+        data: &Dataset,
+        spec: &StepSpec,
+        cameras: &[CameraStep],
+    ) -> Result<StepRays> {
         let marcher = self.model.marcher(data.near, data.far);
         let budget = self.model.config.samples_per_step;
         // As the CPU engine: rays that find no occupied cell add no samples, and this
@@ -230,7 +238,7 @@ impl GpuEngine {
         }
         loop {
             let (on_device, views, radii, targets, backgrounds) =
-                self.draw_rays(data, spec, &marcher, want);
+                self.draw_rays(data, spec, &marcher, want, cameras);
             let counted = self.marcher.count(&self.gpu, &on_device);
             let cut = self
                 .marcher
@@ -261,6 +269,8 @@ impl GpuEngine {
                         cut.samples,
                     )
                 });
+                let frame = (!cameras.is_empty())
+                    .then(|| (on_device.origins.clone(), on_device.dirs.clone()));
                 return Ok(StepRays {
                     cut,
                     samples,
@@ -270,6 +280,7 @@ impl GpuEngine {
                     footprints,
                     targets,
                     backgrounds,
+                    frame,
                 });
             }
             want = (want * 2).min(max_rays);
@@ -279,7 +290,9 @@ impl GpuEngine {
     /// Rays `0..want` of the step on the device, with the index of each one's view (its
     /// appearance code, for a field with codes), their cone radii (for an anti-aliased
     /// field), targets and backgrounds: made there from the pixels the host picks (`rays`),
-    /// or drawn whole on the host where the views are not on the device.
+    /// or drawn whole on the host where the views are not on the device or the cameras
+    /// are refined (each ray corrected by its camera's step in `cameras`, as the CPU
+    /// engine corrects it).
     #[allow(clippy::type_complexity)]
     fn draw_rays(
         &mut self,
@@ -287,11 +300,12 @@ impl GpuEngine {
         spec: &StepSpec,
         marcher: &Marcher,
         want: usize,
+        cameras: &[CameraStep],
     ) -> (GpuRays, Option<Handle>, Option<Handle>, Handle, Handle) {
         let footprints = self.model.config.field.antialias.is_some();
         let codes = self.field.has_codes();
         let gpu = &self.gpu;
-        if let Some((_, Some(views))) = &self.views {
+        if let (Some((_, Some(views))), true) = (&self.views, cameras.is_empty()) {
             let mut choices: Vec<PixelChoice> = (0..want as u64)
                 .into_par_iter()
                 .map(|k| PixelChoice::draw(data, &spec.sampling, k))
@@ -325,6 +339,7 @@ impl GpuEngine {
         }
         let rays = &mut self.rays;
         rays.draw_parallel(data, &spec.sampling, 0..want as u64);
+        correct_drawn_rays(&mut rays.rays, cameras);
         let jitter: Vec<f32> = rays.rngs.iter_mut().map(|r| r.uniform()).collect();
         let on_device = GpuRays::new(gpu, marcher, &self.model.grid, &rays.rays, &jitter);
         let targets = gpu.upload(rays.targets.as_flattened());
@@ -335,6 +350,85 @@ impl GpuEngine {
         });
         let radii = footprints.then(|| gpu.upload(&rays.rays.radii));
         (on_device, of_view, radii, targets, backgrounds)
+    }
+
+    /// This step's correction of every training camera, from the corrections on the device
+    /// (none where cameras are not refined).
+    fn camera_steps(&self, data: &Dataset) -> Result<Vec<CameraStep>> {
+        let (Some(at), Some(refinement)) =
+            (self.model.cameras_at(), self.model.config.refine_cameras)
+        else {
+            return Ok(Vec::new());
+        };
+        let corrections =
+            self.gpu
+                .read_range(&self.state.values, at, refinement.cameras * PER_CAMERA)?;
+        Ok(self.model.camera_steps_of(&corrections, data))
+    }
+
+    /// Camera refinement's share of the step's backward, as the CPU engine's
+    /// (`FastModel::camera_gradients`): the samples' position and direction gradients on
+    /// the device, summed per ray there, and carried by the host through each ray's
+    /// correction into its camera's gradient, added to the device's gradients.
+    #[allow(clippy::too_many_arguments)]
+    fn add_camera_gradients(
+        &self,
+        cameras: &[CameraStep],
+        acts: &Activations,
+        inputs: &InputGradients,
+        samples: &volume::GpuSamples,
+        dirs: &Handle,
+        (origins, units): &(Handle, Handle),
+    ) -> Result<()> {
+        let Some(at) = self.model.cameras_at() else {
+            return Ok(());
+        };
+        let (gpu, field) = (&self.gpu, &self.model.field);
+        let levels = field.grid.levels.len();
+        let scale = match field.position_level_weights.len() {
+            0 => vec![1.0; levels],
+            _ => field.position_level_weights.clone(),
+        };
+        let d_points = pose_grad::position_gradients(
+            gpu,
+            self.field.hash_grid(),
+            &self.state.values,
+            self.state.n,
+            acts.unit(),
+            &inputs.d_enc,
+            &scale,
+            samples.len,
+            field.config.bound,
+        );
+        let d_dirs = pose_grad::direction_gradients(
+            gpu,
+            dirs,
+            &inputs.d_colour_in,
+            inputs.colour_columns,
+            samples.len,
+        );
+        let contract = self.model.marcher(0.0, 1.0).contract;
+        let per_ray =
+            pose_grad::ray_gradients(gpu, samples, &d_points, &d_dirs, origins, units, contract);
+        let g = gpu.read(&per_ray, samples.rays * pose_grad::RAY_WORDS)?;
+        let rays = &self.rays.rays;
+        let mut grad = vec![0.0f32; cameras.len() * PER_CAMERA];
+        for (r, w) in g.chunks_exact(pose_grad::RAY_WORDS).enumerate() {
+            let view = (rays.pixels[r] >> 32) as usize;
+            let Some(camera) = cameras.get(view) else {
+                continue;
+            };
+            camera.accumulate_drawn(
+                rays.dirs[r],
+                rays.view_dirs[r],
+                [w[0], w[1], w[2]],
+                [w[3], w[4], w[5]],
+                [w[6], w[7], w[8]],
+                &mut grad[view * PER_CAMERA..][..PER_CAMERA],
+            );
+        }
+        gpu.add_range(&self.state.grads, at, &grad);
+        Ok(())
     }
 
     /// Re-evaluates the occupancy grid on the device when the schedule says so. The grid
@@ -407,6 +501,11 @@ impl Engine for GpuEngine {
         if !marked && self.model.grid.possible.is_some() {
             (self.occupancy, self.marcher) = GpuEngine::upload_occupancy(&self.gpu, &self.model);
         }
+        // Camera refinement's coarse-to-fine weights, as the CPU engine sets them.
+        self.model.set_progress(spec.progress);
+        self.field
+            .set_level_scale(&self.gpu, &self.model.field.level_weights);
+        let cameras = self.camera_steps(data)?;
         let clock = step_clock::start(Stage::Marching);
         let StepRays {
             cut,
@@ -417,7 +516,8 @@ impl Engine for GpuEngine {
             footprints,
             targets,
             backgrounds,
-        } = self.march_step(data, spec)?;
+            frame,
+        } = self.march_step(data, spec, &cameras)?;
         let (rays, n) = (cut.rays, cut.samples);
         let gpu = &self.gpu;
         gpu.stage_done(clock);
@@ -483,7 +583,7 @@ impl Engine for GpuEngine {
         gpu.stage_done(clock);
         check_device(gpu, &check, "loss.backward", "d_sigma", &d_sigma, n)?;
         check_device(gpu, &check, "loss.backward", "d_rgb", &d_rgb, n * 3)?;
-        self.field.backward(
+        let inputs = self.field.backward(
             gpu,
             &self.state.values,
             &self.state.grads,
@@ -492,6 +592,9 @@ impl Engine for GpuEngine {
             &d_sigma,
             &d_rgb,
         );
+        if let Some(frame) = &frame {
+            self.add_camera_gradients(&cameras, &acts, &inputs, &samples, &dirs, frame)?;
+        }
         check_device(
             gpu,
             &check,
@@ -506,11 +609,19 @@ impl Engine for GpuEngine {
         }
         let scale = mean_scale(rays);
         let rule = self.model.update_rule();
+        // A frozen field is a learning rate of zero, as on the CPU engine.
+        let field_lr = if spec.frozen_field { 0.0 } else { spec.lr };
         let clock = step_clock::start(Stage::Adam);
         // The per-ray errors summed in ray order in f64: the CPU engine's loss to rounding.
-        let sse = self
-            .state
-            .finish_step(gpu, step, &sse, rays, spec.lr, scale as f32, rule)?;
+        let sse = self.state.finish_step(
+            gpu,
+            step,
+            &sse,
+            rays,
+            (field_lr, spec.camera_lr),
+            scale as f32,
+            rule,
+        )?;
         let loss = (sse * scale) as f32;
         gpu.stage_done(clock);
         check_device(
@@ -524,7 +635,9 @@ impl Engine for GpuEngine {
         if let Some(e) = check.take(step + 1) {
             return Err(e);
         }
-        self.refresh_occupancy(step + 1, spec.sampling.seed);
+        if !spec.frozen_field {
+            self.refresh_occupancy(step + 1, spec.sampling.seed);
+        }
         Ok(StepStats {
             step: step + 1,
             loss,

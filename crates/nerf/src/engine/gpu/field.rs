@@ -31,6 +31,15 @@ fn to_unit(positions: &[f32], unit: &mut [f32], bound: f32) {
     }
 }
 
+/// Each level's two features (`values`: `levels x 2` per sample) times the level's weight.
+#[cube(launch_unchecked)]
+fn scale_levels(values: &mut [f32], scale: &[f32], levels: u32) {
+    let i = ABSOLUTE_POS;
+    if i < values.len() {
+        values[i] *= scale[(i / 2) % levels as usize];
+    }
+}
+
 /// `sigma = exp(min(o_0, LOG_SIGMA_MAX))` from the density network's first output.
 #[cube(launch_unchecked)]
 fn density_head(geo: &[f32], sigma: &mut [f32], g: u32, log_max: f32) {
@@ -135,6 +144,13 @@ pub struct Activations {
     level_weights: Option<Handle>,
 }
 
+impl Activations {
+    /// The samples' positions in the hash grid's unit cube (`n x 3`).
+    pub fn unit(&self) -> &Handle {
+        &self.unit
+    }
+}
+
 /// The fast field's shapes and kernels on one device.
 pub struct GpuFastField {
     grid: GpuHashGrid,
@@ -151,6 +167,20 @@ pub struct GpuFastField {
     codes: Option<GpuCodes>,
     /// The level weighting of an anti-aliased field.
     antialias: Option<LevelWeights>,
+    /// Each hash-grid level's weight (camera refinement's coarse-to-fine schedule, as the
+    /// CPU field's `level_weights`), or `None` where every level weighs 1.
+    level_scale: Option<Handle>,
+}
+
+/// What the field's backward leaves besides the parameters' gradients: the gradients of
+/// the hash-grid features (`n x levels x 2`, before any level weighting) and of the colour
+/// network's input (`n x` its width), which camera refinement carries on to the samples'
+/// positions and view directions (`pose_grad`).
+pub struct InputGradients {
+    pub d_enc: Handle,
+    pub d_colour_in: Handle,
+    /// The colour network's input width.
+    pub colour_columns: usize,
 }
 
 impl GpuFastField {
@@ -208,6 +238,42 @@ impl GpuFastField {
                 reference: aa.reference_footprint,
                 bound: c.bound,
             }),
+            level_scale: None,
+        }
+    }
+
+    /// Sets each hash-grid level's weight (empty, or all 1: none), as `set_progress` sets
+    /// the CPU field's `level_weights`; while any is not 1, rendering runs layer by layer
+    /// (the fused kernel has no weights).
+    pub fn set_level_scale(&mut self, gpu: &Gpu, weights: &[f32]) {
+        self.level_scale = weights
+            .iter()
+            .any(|&w| w != 1.0)
+            .then(|| gpu.upload(weights));
+    }
+
+    /// The hash grid on the device.
+    pub fn hash_grid(&self) -> &GpuHashGrid {
+        &self.grid
+    }
+
+    /// `values` (`n` samples of the features' layout) times each level's weight, if any.
+    fn apply_level_scale(&self, gpu: &Gpu, values: &Handle, n: usize) {
+        let Some(scale) = &self.level_scale else {
+            return;
+        };
+        let len = n * self.enc_dims;
+        let (count, dim) = Self::launch(len);
+        // SAFETY: `values` holds `n` rows of `enc_dims` floats, `scale` one per level.
+        unsafe {
+            scale_levels::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(values.clone(), len),
+                BufferArg::from_raw_parts(scale.clone(), self.grid.n_levels),
+                self.grid.n_levels as u32,
+            );
         }
     }
 
@@ -230,7 +296,7 @@ impl GpuFastField {
     /// Densities (`n`) and colours (`n x 3`) for rendering, with no activations kept: the
     /// fused kernel where it runs, else [`forward`](Self::forward).
     pub fn infer(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> (Handle, Handle) {
-        match &self.fused {
+        match self.fused.as_ref().filter(|_| self.level_scale.is_none()) {
             Some(f) => f.infer(
                 gpu,
                 &self.grid,
@@ -255,7 +321,7 @@ impl GpuFastField {
         positions: &Handle,
         n: usize,
     ) -> Handle {
-        match &self.fused {
+        match self.fused.as_ref().filter(|_| self.level_scale.is_none()) {
             Some(f) => {
                 f.infer(gpu, &self.grid, params, self.n_params, positions, None, n)
                     .0
@@ -323,6 +389,7 @@ impl GpuFastField {
             acts.level_weights = Some(aa.forward(gpu, &self.grid, footprints, &acts.enc, n));
             gpu.stage_done(clock);
         }
+        self.apply_level_scale(gpu, &acts.enc, n);
         let clock = step_clock::start(Stage::Networks);
         d0.forward(gpu, params, np, &acts.enc, &acts.h, n);
         d1.forward(gpu, params, np, &acts.h, &acts.geo, n);
@@ -407,7 +474,8 @@ impl GpuFastField {
     }
 
     /// Backward of [`forward`](Self::forward) (with the same `codes`): from `d_sigma`
-    /// (`n`) and `d_rgb` (`n x 3`), adds every parameter's gradient into `grads`.
+    /// (`n`) and `d_rgb` (`n x 3`), adds every parameter's gradient into `grads`; returns
+    /// the inputs' gradients it made on the way.
     #[allow(clippy::too_many_arguments)]
     pub fn backward(
         &self,
@@ -418,13 +486,17 @@ impl GpuFastField {
         codes: &SampleCodes,
         d_sigma: &Handle,
         d_rgb: &Handle,
-    ) {
+    ) -> InputGradients {
         let n = acts.n;
+        let [d0, d1, c0, c1, c2] = &self.layers;
         if n == 0 {
-            return;
+            return InputGradients {
+                d_enc: gpu.floats(1),
+                d_colour_in: gpu.floats(1),
+                colour_columns: c0.inputs,
+            };
         }
         let np = self.n_params;
-        let [d0, d1, c0, c1, c2] = &self.layers;
         let networks = step_clock::start(Stage::NetworksBackward);
         let d_logit = gpu.floats(n * 3);
         // SAFETY: as in `density`.
@@ -531,6 +603,7 @@ impl GpuFastField {
             LevelWeights::backward(gpu, weights, &d_enc, n, self.grid.n_levels);
             gpu.stage_done(clock);
         }
+        self.apply_level_scale(gpu, &d_enc, n);
         let clock = step_clock::start(Stage::EncodingBackward);
         self.grid.encode_bwd(
             gpu,
@@ -542,6 +615,11 @@ impl GpuFastField {
             gpu.grid_run,
         );
         gpu.stage_done(clock);
+        InputGradients {
+            d_enc,
+            d_colour_in,
+            colour_columns: c0.inputs,
+        }
     }
 }
 

@@ -25,6 +25,19 @@ fn fill_zero(v: &mut [u32]) {
     }
 }
 
+/// `dst[start + i] += src[i]` for `i < n` (`add`), or `dst[i] = src[start + i]` (not).
+#[cube(launch_unchecked)]
+fn range_copy(src: &[f32], dst: &mut [f32], start: u32, n: u32, #[comptime] add: bool) {
+    let i = ABSOLUTE_POS;
+    if i < n as usize {
+        if add {
+            dst[start as usize + i] += src[i];
+        } else {
+            dst[i] = src[start as usize + i];
+        }
+    }
+}
+
 /// A one-dimensional launch of at least `threads` threads in workgroups of `group`.
 /// `ABSOLUTE_POS` counts threads linearly across both axes; kernels bounds-check it, since
 /// the last workgroup (and, past 32768 workgroups, the last row) runs over.
@@ -104,6 +117,53 @@ impl Gpu {
         let values = f32::from_bytes(values);
         let count = u32::from_bytes(count).first().copied().unwrap_or(u32::MAX);
         Ok((values[..n.min(values.len())].to_vec(), count))
+    }
+
+    /// Floats `start..start + n` of `h` (which holds at least `start + n`), read back.
+    pub fn read_range(&self, h: &Handle, start: usize, n: usize) -> Result<Vec<f32>> {
+        if n == 0 {
+            return Ok(Vec::new());
+        }
+        let part = self.floats(n);
+        let (count, dim) = grid(n, FILL_GROUP);
+        // SAFETY: `h` holds `start + n` floats (the caller's promise), `part` `n`; the
+        // kernel bounds-checks `i < n`.
+        unsafe {
+            range_copy::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(h.clone(), start + n),
+                BufferArg::from_raw_parts(part.clone(), n),
+                start as u32,
+                n as u32,
+                false,
+            );
+        }
+        self.read(&part, n)
+    }
+
+    /// Adds `values` into floats `start..start + values.len()` of `h` (which holds them).
+    pub fn add_range(&self, h: &Handle, start: usize, values: &[f32]) {
+        let n = values.len();
+        if n == 0 {
+            return;
+        }
+        let src = self.upload(values);
+        let (count, dim) = grid(n, FILL_GROUP);
+        // SAFETY: as in `read_range`.
+        unsafe {
+            range_copy::launch_unchecked(
+                &self.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(src.clone(), n),
+                BufferArg::from_raw_parts(h.clone(), start + n),
+                start as u32,
+                n as u32,
+                true,
+            );
+        }
     }
 
     /// The first `n` `u32`s of `h`, read back.

@@ -153,19 +153,21 @@ mod tests {
         );
     }
 
-    /// A feature the GPU engine does not run (camera refinement, so far) is refused by name
-    /// when the GPU is asked for,
-    /// with the way out, and `auto` takes the CPU engine for it.
+    /// A feature the GPU engine does not run (the moving field, so far) is refused by name
+    /// when the GPU is asked for, with the way out, and `auto` takes the CPU engine for it.
     #[test]
     fn what_the_gpu_does_not_run_is_refused_by_name() {
         let config = FastModelConfig {
-            refine_cameras: Some(crate::model::camera_refine::CameraRefinement::new(3)),
+            field: crate::field::FastFieldConfig {
+                motion: Some(crate::encoding::space_time_grid::SpaceTimeConfig::default()),
+                ..crate::field::FastFieldConfig::default()
+            },
             ..FastModelConfig::default()
         };
         let model = ModelConfig::Fast(config);
         let missing = caps::EngineKind::Gpu.missing(&model);
         if missing.is_empty() {
-            eprintln!("skipping: the GPU engine runs camera refinement");
+            eprintln!("skipping: the GPU engine runs the moving field");
             return;
         }
         let options = || EngineOptions {
@@ -179,11 +181,11 @@ mod tests {
             return;
         }
         let Err(e) = open(Device::Wgpu, &model, options(), 0) else {
-            panic!("the GPU engine took appearance codes");
+            panic!("the GPU engine took the moving field");
         };
         let text = e.to_string();
         assert!(
-            text.contains("--refine-cameras") && text.contains("--device cpu"),
+            text.contains("--dynamic") && text.contains("--device cpu"),
             "{text}"
         );
     }

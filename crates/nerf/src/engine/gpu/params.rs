@@ -44,7 +44,8 @@ impl DeviceParams {
     /// an error or a gradient is not finite. The update is queued behind the device's count
     /// of non-finite values, and the errors and the count come back in one read after it,
     /// so the device runs the check and the update without waiting for the host. Returns
-    /// the summed squared error, added in ray order in `f64`.
+    /// the summed squared error, added in ray order in `f64`. The rule's group (camera
+    /// corrections) learns at `group_lr`.
     #[allow(clippy::too_many_arguments)]
     pub fn finish_step(
         &mut self,
@@ -52,7 +53,7 @@ impl DeviceParams {
         step: u64,
         errors: &Handle,
         rays: usize,
-        lr: f32,
+        (lr, group_lr): (f32, f32),
         scale: f32,
         rule: UpdateRule,
     ) -> Result<f64> {
@@ -65,11 +66,12 @@ impl DeviceParams {
             gpu,
             &self.adam.config,
             update,
+            self.adam.step_at(group_lr),
             DirtyStep {
                 scale,
                 lazy_end: rule.lazy_end,
                 weight_decay: rule.weight_decay,
-                group: None,
+                group: rule.group_start.map(|at| (at, group_lr)),
             },
             self.n,
             &self.values,

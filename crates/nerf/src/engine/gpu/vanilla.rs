@@ -368,8 +368,15 @@ impl Engine for GpuVanillaEngine {
         let rule = self.model.update_rule();
         // The loss, summed on the host already, is the one error the update checks.
         let errors = self.gpu.upload(&[sse as f32]);
-        self.state
-            .finish_step(&self.gpu, step, &errors, 1, spec.lr, scale as f32, rule)?;
+        self.state.finish_step(
+            &self.gpu,
+            step,
+            &errors,
+            1,
+            (spec.lr, spec.lr),
+            scale as f32,
+            rule,
+        )?;
         let check = FiniteCheck::new(self.check_finite);
         check_device(
             &self.gpu,
