@@ -138,6 +138,14 @@ fn fifty_gpu_steps_track_fifty_cpu_steps() {
     );
 }
 
+/// The training split of `c`'s scene.
+fn training_split(c: &TrainConfig) -> nerf::data::Dataset {
+    c.open_scene(1)
+        .expect("scene")
+        .load(Split::Train, 1)
+        .expect("load")
+}
+
 /// `steps` training steps of `c` on `device` from fresh weights: the losses, and the
 /// trainer to look at or render with.
 fn train_steps(
@@ -163,11 +171,7 @@ fn a_nan_step_on_the_gpu_leaves_the_weights_and_adam_alone() {
     let data = dir.path().join("chair");
     small_scene(&data, 16);
     let c = config(&data, 4);
-    let train = c
-        .open_scene(1)
-        .expect("scene")
-        .load(Split::Train, 1)
-        .expect("load");
+    let train = training_split(&c);
     let mut poisoned = train.clone();
     for v in &mut poisoned.views {
         v.image.data.iter_mut().for_each(|x| *x = f32::NAN);
@@ -224,11 +228,7 @@ fn the_distortion_loss_trains_alike_on_both_engines() {
     if let nerf::model::ModelConfig::Fast(m) = &mut with.model {
         m.distortion = 1.0;
     }
-    let train = plain
-        .open_scene(1)
-        .expect("scene")
-        .load(Split::Train, 1)
-        .expect("load");
+    let train = training_split(&plain);
     let (cpu, _) = train_steps(Device::Cpu, &with, &train, 10);
     let (gpu, _) = train_steps(Device::Wgpu, &with, &train, 10);
     let (without, _) = train_steps(Device::Cpu, &plain, &train, 10);
@@ -257,11 +257,7 @@ fn few_view_training_trains_alike_on_both_engines() {
     let data = dir.path().join("chair");
     small_scene(&data, 24);
     let plain = config(&data, 20);
-    let train = plain
-        .open_scene(1)
-        .expect("scene")
-        .load(Split::Train, 1)
-        .expect("load");
+    let train = training_split(&plain);
     let few = FewView {
         photos: train.views.len(),
     };
@@ -367,11 +363,7 @@ fn appearance_codes_train_alike_on_both_engines() {
     let data = dir.path().join("chair");
     small_scene(&data, 24);
     let mut c = config(&data, 10);
-    let train = c
-        .open_scene(1)
-        .expect("scene")
-        .load(Split::Train, 1)
-        .expect("load");
+    let train = training_split(&c);
     let images = train.views.len();
     if let nerf::model::ModelConfig::Fast(m) = &mut c.model {
         m.field.appearance_dims = 4;
@@ -446,11 +438,7 @@ fn camera_refinement_trains_alike_on_both_engines() {
     small_scene(&data, 24);
     for straight_through in [false, true] {
         let mut c = config(&data, 10);
-        let train = c
-            .open_scene(1)
-            .expect("scene")
-            .load(Split::Train, 1)
-            .expect("load");
+        let train = training_split(&c);
         if let nerf::model::ModelConfig::Fast(m) = &mut c.model {
             let refinement = nerf::model::camera_refine::CameraRefinement {
                 pose_gradient_only: straight_through,

@@ -385,7 +385,7 @@ impl GpuHashGrid {
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::encoding::hash_grid::HashGridConfig;
     use crate::engine::gpu::device::{test_gpu, worst};
@@ -398,7 +398,7 @@ mod tests {
 
     /// A small grid with dense coarse levels and hashed fine ones (table of 2^10), random
     /// tables and points, some outside the unit cube (clamped).
-    fn setup() -> (HashGrid, Vec<f32>, Vec<f32>) {
+    pub(in crate::engine::gpu) fn setup() -> (HashGrid, Vec<f32>, Vec<f32>) {
         let mut layout = ParamLayout::default();
         layout.push("before", &[7]);
         let grid = HashGrid::new(

@@ -125,21 +125,7 @@ impl Gpu {
             return Ok(Vec::new());
         }
         let part = self.floats(n);
-        let (count, dim) = grid(n, FILL_GROUP);
-        // SAFETY: `h` holds `start + n` floats (the caller's promise), `part` `n`; the
-        // kernel bounds-checks `i < n`.
-        unsafe {
-            range_copy::launch_unchecked(
-                &self.client,
-                count,
-                dim,
-                BufferArg::from_raw_parts(h.clone(), start + n),
-                BufferArg::from_raw_parts(part.clone(), n),
-                start as u32,
-                n as u32,
-                false,
-            );
-        }
+        self.range_copy((h, start + n), (&part, n), start, n, false);
         self.read(&part, n)
     }
 
@@ -150,18 +136,31 @@ impl Gpu {
             return;
         }
         let src = self.upload(values);
+        self.range_copy((&src, n), (h, start + n), start, n, true);
+    }
+
+    /// [`range_copy`]'s launch over `n` values, `src` and `dst` with their lengths.
+    fn range_copy(
+        &self,
+        (src, src_len): (&Handle, usize),
+        (dst, dst_len): (&Handle, usize),
+        start: usize,
+        n: usize,
+        add: bool,
+    ) {
         let (count, dim) = grid(n, FILL_GROUP);
-        // SAFETY: as in `read_range`.
+        // SAFETY: the callers give each buffer's length (the range's end at least), and
+        // the kernel bounds-checks `i < n`.
         unsafe {
             range_copy::launch_unchecked(
                 &self.client,
                 count,
                 dim,
-                BufferArg::from_raw_parts(src.clone(), n),
-                BufferArg::from_raw_parts(h.clone(), start + n),
+                BufferArg::from_raw_parts(src.clone(), src_len),
+                BufferArg::from_raw_parts(dst.clone(), dst_len),
                 start as u32,
                 n as u32,
-                true,
+                add,
             );
         }
     }
@@ -201,5 +200,25 @@ impl PendingRead<'_> {
             .ok_or_else(|| NerfError::Device("a read returned no buffer".into()))?;
         let all = u32::from_bytes(bytes);
         Ok(all[..self.n.min(all.len())].to_vec())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::engine::gpu::device::test_gpu;
+
+    /// A range read back is that range; a range added to changes that range alone.
+    #[test]
+    fn ranges_read_and_add_in_place() {
+        let Some(gpu) = test_gpu() else { return };
+        let values: Vec<f32> = (0..10).map(|i| i as f32).collect();
+        let h = gpu.upload(&values);
+        assert_eq!(gpu.read_range(&h, 3, 4).expect("read"), [3.0, 4.0, 5.0, 6.0]);
+        assert!(gpu.read_range(&h, 9, 0).expect("read").is_empty());
+        gpu.add_range(&h, 8, &[0.5, -1.0]);
+        let mut want = values;
+        want[8] += 0.5;
+        want[9] -= 1.0;
+        assert_eq!(gpu.read(&h, 10).expect("read"), want);
     }
 }

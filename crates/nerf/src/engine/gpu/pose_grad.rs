@@ -351,35 +351,20 @@ pub fn ray_gradients(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::encoding::hash_grid::{HashGrid, HashGridConfig};
     use crate::encoding::spherical_harmonics::sh4_bwd;
     use crate::engine::gpu::device::{test_gpu, worst};
-    use crate::nn::ParamLayout;
     use crate::render::contraction::contract_bwd;
     use crate::rng::Rng;
 
-    /// The kernel against `HashGrid::encode_input_bwd` on random tables, points (some
-    /// outside the unit cube, clamped) and feature gradients, each level scaled, some
-    /// samples' gradients zero: within 1e-5 relative.
+    /// The kernel against `HashGrid::encode_input_bwd` on the hash grid tests' random
+    /// tables and points (some outside the unit cube, clamped), random feature gradients,
+    /// each level scaled, some samples' gradients zero: within 1e-5 relative.
     #[test]
     fn position_gradients_match_the_cpu() {
         let Some(gpu) = test_gpu() else { return };
-        let mut layout = ParamLayout::default();
-        layout.push("before", &[5]);
-        let grid = HashGrid::new(
-            HashGridConfig {
-                levels: 6,
-                log2_table_size: 10,
-                base_resolution: 4,
-                max_resolution: 128,
-            },
-            "grid.",
-            &mut layout,
-        );
+        let (grid, params, points) = crate::engine::gpu::hash_grid::tests::setup();
+        let n = points.len() / 3;
         let mut rng = Rng::new(11);
-        let params: Vec<f32> = (0..layout.total).map(|_| rng.range(-1.0, 1.0)).collect();
-        let n = 700;
-        let points: Vec<f32> = (0..n * 3).map(|_| rng.range(-0.05, 1.05)).collect();
         let d = grid.dims();
         let mut d_enc: Vec<f32> = (0..n * d).map(|_| rng.range(-1.0, 1.0)).collect();
         d_enc[..3 * d].fill(0.0);
@@ -403,7 +388,7 @@ mod tests {
             &gpu,
             &GpuHashGrid::new(&gpu, &grid),
             &gpu.upload(&params),
-            layout.total,
+            params.len(),
             &gpu.upload(&points),
             &gpu.upload(&d_enc),
             &scale,
