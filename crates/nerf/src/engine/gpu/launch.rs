@@ -213,7 +213,10 @@ mod tests {
         let Some(gpu) = test_gpu() else { return };
         let values: Vec<f32> = (0..10).map(|i| i as f32).collect();
         let h = gpu.upload(&values);
-        assert_eq!(gpu.read_range(&h, 3, 4).expect("read"), [3.0, 4.0, 5.0, 6.0]);
+        assert_eq!(
+            gpu.read_range(&h, 3, 4).expect("read"),
+            [3.0, 4.0, 5.0, 6.0]
+        );
         assert!(gpu.read_range(&h, 9, 0).expect("read").is_empty());
         gpu.add_range(&h, 8, &[0.5, -1.0]);
         let mut want = values;

@@ -61,6 +61,7 @@ pub mod params;
 pub mod pose_grad;
 pub mod rays;
 pub mod render;
+pub mod space_time_grid;
 pub mod vanilla;
 pub mod vanilla_net;
 pub mod volume;
