@@ -140,7 +140,7 @@ pub const SMOOTH_STRIDE: usize = 4;
 
 /// A moment in [0, 1) drawn from a unit-cube point's coordinates: the same point, the same
 /// moment; points a jitter apart, unrelated ones.
-fn moment_of_point(u: &[f32]) -> f32 {
+pub(crate) fn moment_of_point(u: &[f32]) -> f32 {
     let bits = u[0].to_bits() ^ u[1].to_bits().rotate_left(11) ^ u[2].to_bits().rotate_left(22);
     let h = bits.wrapping_mul(0x9e37_79b1) ^ (bits >> 15);
     (h.wrapping_mul(0x85eb_ca6b) >> 8) as f32 / (1u32 << 24) as f32

@@ -137,6 +137,128 @@ fn encode_bwd<S: ScatterAdd>(
     }
 }
 
+/// When the samples of a call are: each its own moment (`times`, one per sample), all the
+/// one moment `times[0]`, or any (a moment drawn from each point's coordinates, so that
+/// the occupancy grid's refreshes see every moment), as the CPU field's `Moments`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Moments {
+    Each,
+    At,
+    Any,
+}
+
+/// `field::fast::moment_of_point` of the unit-cube point `(x, y, z)`.
+#[cube]
+fn moment_of_point(x: f32, y: f32, z: f32) -> f32 {
+    let bx = u32::reinterpret(x);
+    let by = u32::reinterpret(y);
+    let bz = u32::reinterpret(z);
+    let bits = bx ^ ((by << 11) | (by >> 21)) ^ ((bz << 22) | (bz >> 10));
+    let h = (bits * 0x9e37_79b1u32) ^ (bits >> 15);
+    f32::cast_from((h * 0x85eb_ca6bu32) >> 8) / 16_777_216.0f32
+}
+
+/// Each sample's point of space and time (`out`: `n x 4`) from its unit-cube position
+/// (`unit`: `n x 3`) and `moments` (0: each its own from `times`, 1: `times[0]`, 2: any).
+#[cube(launch_unchecked)]
+fn space_time_points(unit: &[f32], times: &[f32], out: &mut [f32], n: u32, moments: u32) {
+    let s = ABSOLUTE_POS;
+    if s < n as usize {
+        let x = unit[3 * s];
+        let y = unit[3 * s + 1];
+        let z = unit[3 * s + 2];
+        let mut t = 0.0f32;
+        if moments == 0 {
+            t = times[s];
+        } else if moments == 1 {
+            t = times[0];
+        } else {
+            t = moment_of_point(x, y, z);
+        }
+        out[4 * s] = x;
+        out[4 * s + 1] = y;
+        out[4 * s + 2] = z;
+        out[4 * s + 3] = t;
+    }
+}
+
+/// Each ray's value (`per_ray`) copied to its samples (`offsets`: CSR, `rays + 1`).
+#[cube(launch_unchecked)]
+fn spread_to_samples(per_ray: &[f32], offsets: &[u32], out: &mut [f32], rays: u32) {
+    let r = ABSOLUTE_POS;
+    if r < rays as usize {
+        let v = per_ray[r];
+        for s in offsets[r] as usize..offsets[r + 1] as usize {
+            out[s] = v;
+        }
+    }
+}
+
+/// The points of space and time of `n` samples at unit-cube positions `unit` (`n x 3`):
+/// `times` holds one moment per sample (`Moments::Each`), or one for all (`At`), or is
+/// not read (`Any`).
+pub fn points_in_time(
+    gpu: &Gpu,
+    unit: &Handle,
+    (times, moments): (&Handle, Moments),
+    n: usize,
+) -> Handle {
+    let out = gpu.floats(4 * n.max(1));
+    if n == 0 {
+        return out;
+    }
+    let (count, dim) = grid(n, GROUP);
+    let times_len = match moments {
+        Moments::Each => n,
+        Moments::At | Moments::Any => 1,
+    };
+    // SAFETY: `unit` holds 3 floats a sample, `out` 4, `times` what `moments` reads; the
+    // kernel bounds-checks its sample.
+    unsafe {
+        space_time_points::launch_unchecked(
+            &gpu.client,
+            count,
+            dim,
+            BufferArg::from_raw_parts(unit.clone(), 3 * n),
+            BufferArg::from_raw_parts(times.clone(), times_len),
+            BufferArg::from_raw_parts(out.clone(), 4 * n),
+            n as u32,
+            moments as u32,
+        );
+    }
+    out
+}
+
+/// Each of `rays` rays' value in `per_ray` given to each of its samples (`offsets`: CSR,
+/// `rays + 1` slots ending at `samples`).
+pub fn per_sample(
+    gpu: &Gpu,
+    per_ray: &Handle,
+    offsets: &Handle,
+    rays: usize,
+    samples: usize,
+) -> Handle {
+    let out = gpu.floats(samples.max(1));
+    if rays == 0 {
+        return out;
+    }
+    let (count, dim) = grid(rays, GROUP);
+    // SAFETY: `per_ray` holds `rays` floats, `offsets` `rays + 1` ending at `samples`, the
+    // length of `out`; the kernel bounds-checks its ray.
+    unsafe {
+        spread_to_samples::launch_unchecked(
+            &gpu.client,
+            count,
+            dim,
+            BufferArg::from_raw_parts(per_ray.clone(), rays),
+            BufferArg::from_raw_parts(offsets.clone(), rays + 1),
+            BufferArg::from_raw_parts(out.clone(), samples.max(1)),
+            rays as u32,
+        );
+    }
+    out
+}
+
 /// A space-time grid's level table on the device.
 pub struct GpuSpaceTimeGrid {
     levels: Handle,
@@ -254,6 +376,7 @@ mod tests {
     use super::*;
     use crate::encoding::space_time_grid::SpaceTimeConfig;
     use crate::engine::gpu::device::{test_gpu, worst};
+    use crate::field::fast::moment_of_point as cpu_moment;
     use crate::nn::{GradBuffer, ParamLayout};
     use crate::rng::Rng;
 
@@ -334,5 +457,56 @@ mod tests {
             let e = worst(&got, &want.values);
             assert!(e < 1e-4, "{scatter:?}: largest difference {e}");
         }
+    }
+
+    /// The points of space and time in each of the three ways against the CPU's: each
+    /// sample's moment, one moment, and the moment drawn from the point (to the bit).
+    #[test]
+    fn points_in_time_match_the_cpu() {
+        let Some(gpu) = test_gpu() else { return };
+        let mut rng = Rng::new(23);
+        let n = 500;
+        let unit: Vec<f32> = (0..n * 3).map(|_| rng.range(-0.1, 1.1)).collect();
+        let times: Vec<f32> = (0..n).map(|_| rng.uniform()).collect();
+        let u = gpu.upload(&unit);
+        for moments in [Moments::Each, Moments::At, Moments::Any] {
+            let got = points_in_time(&gpu, &u, (&gpu.upload(&times), moments), n);
+            let got = gpu.read(&got, 4 * n).expect("read");
+            for (s, p) in got.chunks_exact(4).enumerate() {
+                let xyz = &unit[3 * s..][..3];
+                let t = match moments {
+                    Moments::Each => times[s],
+                    Moments::At => times[0],
+                    Moments::Any => cpu_moment(xyz),
+                };
+                assert_eq!(p, [xyz[0], xyz[1], xyz[2], t], "{moments:?}, sample {s}");
+            }
+        }
+    }
+
+    /// Each ray's value reaches its samples and no others; a ray without samples is
+    /// skipped.
+    #[test]
+    fn rays_values_reach_their_samples() {
+        let Some(gpu) = test_gpu() else { return };
+        let counts = [3usize, 0, 1, 5, 2];
+        let mut offsets = vec![0u32];
+        for c in counts {
+            offsets.push(offsets.last().copied().unwrap_or(0) + c as u32);
+        }
+        let values = [0.5f32, 9.0, 0.25, 0.75, 1.0];
+        let got = per_sample(
+            &gpu,
+            &gpu.upload(&values),
+            &gpu.upload_u32(&offsets),
+            counts.len(),
+            11,
+        );
+        let want: Vec<f32> = counts
+            .iter()
+            .zip(values)
+            .flat_map(|(&c, v)| std::iter::repeat_n(v, c))
+            .collect();
+        assert_eq!(gpu.read(&got, 11).expect("read"), want);
     }
 }
