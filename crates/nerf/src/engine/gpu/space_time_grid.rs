@@ -147,8 +147,10 @@ pub enum Moments {
     Any,
 }
 
-/// `field::fast::moment_of_point` of the unit-cube point `(x, y, z)`.
+/// `field::fast::moment_of_point` of the unit-cube point `(x, y, z)` (rotations written
+/// out: cube code has no `rotate_left`).
 #[cube]
+#[allow(clippy::manual_rotate)]
 fn moment_of_point(x: f32, y: f32, z: f32) -> f32 {
     let bx = u32::reinterpret(x);
     let by = u32::reinterpret(y);
@@ -161,6 +163,7 @@ fn moment_of_point(x: f32, y: f32, z: f32) -> f32 {
 /// Each sample's point of space and time (`out`: `n x 4`) from its unit-cube position
 /// (`unit`: `n x 3`) and `moments` (0: each its own from `times`, 1: `times[0]`, 2: any).
 #[cube(launch_unchecked)]
+#[allow(unused_assignments)]
 fn space_time_points(unit: &[f32], times: &[f32], out: &mut [f32], n: u32, moments: u32) {
     let s = ABSOLUTE_POS;
     if s < n as usize {
