@@ -88,10 +88,9 @@ pub struct TrainOptions {
     /// Fast: learn a correction of every training camera's pose with the field (after
     /// BARF), for poses that are a little off. With 16 appearance codes per photo, the
     /// default for real captures (instant-ngp / nerfstudio transforms.json, COLMAP, LLFF
-    /// with --spherify) trained on the CPU engine: without codes, the poses soak up the
-    /// photos' changes of exposure. Not for Blender scenes or forward-facing (NDC) scenes
-    /// unless asked for; the GPU engine does not refine cameras yet (--device wgpu refuses
-    /// it, and --device auto trains such a run on the CPU, saying so).
+    /// with --spherify), on either engine: without codes, the poses soak up the photos'
+    /// changes of exposure. Not for Blender scenes or forward-facing (NDC) scenes unless
+    /// asked for.
     /// A camera stuck far from where its photo fits is found and searched for, and left
     /// out of training if no pose explains its photo (the log names it).
     /// `nerf eval` then fits each test camera to the model first, as BARF evaluates.
