@@ -336,6 +336,12 @@ impl FastField {
         }
     }
 
+    /// Where the space-time features' first-layer weights (`motion dims x hidden`) start
+    /// in the parameter vector (moving fields).
+    pub fn motion_weight_offset(&self) -> Option<usize> {
+        self.motion_weight
+    }
+
     /// Where the appearance codes (`images x dims`) start in the parameter vector.
     pub fn codes_offset(&self) -> Option<usize> {
         self.codes

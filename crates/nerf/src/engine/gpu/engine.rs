@@ -19,7 +19,7 @@ use rayon::prelude::*;
 
 use super::codes::SampleCodes;
 use super::device::Gpu;
-use super::field::{Activations, DeviceInput, GpuFastField, InputGradients};
+use super::field::{Activations, DeviceInput, DeviceMoments, GpuFastField, InputGradients};
 use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
 use super::params::{
@@ -206,13 +206,15 @@ impl GpuEngine {
         }
     }
 
-    /// Densities of `positions` (`n x 3`, at most `DENSITY_CHUNK` points) into `out`.
-    fn density_chunk(&self, positions: &[f32], out: &mut [f32]) -> Result<()> {
+    /// Densities of `positions` (`n x 3`, at most `DENSITY_CHUNK` points) at moment `time`
+    /// (a moving field; `None`: any, as the CPU field) into `out`.
+    fn density_chunk(&self, positions: &[f32], time: Option<f32>, out: &mut [f32]) -> Result<()> {
         let n = out.len();
         let sigma = self.field.infer_density(
             &self.gpu,
             &self.state.values,
             &self.gpu.upload(positions),
+            time.map_or(DeviceMoments::Any, DeviceMoments::At),
             n,
         );
         out.copy_from_slice(&self.gpu.read(&sigma, n)?);
@@ -443,7 +445,9 @@ impl GpuEngine {
         }
         let dt = self.model.config.step_length();
         let (gpu, field, params) = (&self.gpu, &self.field, &self.state.values);
-        let density = |points: &Handle, n: usize| field.infer_density(gpu, params, points, n);
+        let density = |points: &Handle, n: usize| {
+            field.infer_density(gpu, params, points, DeviceMoments::Any, n)
+        };
         self.occupancy
             .update(gpu, &config, steps_done, seed, dt, &density);
     }
@@ -528,6 +532,8 @@ impl Engine for GpuEngine {
             dirs: &dirs,
             codes: &codes,
             footprints: footprints.as_ref(),
+            // Moving fields do not train on this engine yet (`engine::caps`).
+            moments: DeviceMoments::At(0.0),
             n,
         };
         let acts = self.field.forward(gpu, &self.state.values, &input);
@@ -756,9 +762,9 @@ impl Engine for GpuEngine {
     }
 
     /// Moving scenes do not run on this engine (`engine::caps`): `time` has no use here.
-    fn density(&self, positions: &[f32], _time: Option<f32>, out: &mut [f32]) {
+    fn density(&self, positions: &[f32], time: Option<f32>, out: &mut [f32]) {
         density_in_chunks(positions, out, DENSITY_CHUNK, |p, o| {
-            self.density_chunk(p, o)
+            self.density_chunk(p, time, o)
         });
     }
 

@@ -15,6 +15,7 @@ use super::harmonics::sh4_at;
 use super::hash_grid::{GpuHashGrid, Scatter};
 use super::launch::grid;
 use super::mlp::Dense;
+use super::space_time_grid::{points_in_time, GpuSpaceTimeGrid, Moments};
 use crate::encoding::spherical_harmonics::SH_DIMS;
 use crate::field::fast::LOG_SIGMA_MAX;
 use crate::field::FastField;
@@ -28,6 +29,16 @@ fn to_unit(positions: &[f32], unit: &mut [f32], bound: f32) {
     let i = ABSOLUTE_POS;
     if i < unit.len() {
         unit[i] = (positions[i] + bound) * (0.5 / bound);
+    }
+}
+
+/// `h = max(h + m, 0)`: the density network's first layer, its still and moving parts
+/// summed before the ReLU.
+#[cube(launch_unchecked)]
+fn add_relu(h: &mut [f32], m: &[f32]) {
+    let i = ABSOLUTE_POS;
+    if i < h.len() {
+        h[i] = f32::max(h[i] + m[i], 0.0);
     }
 }
 
@@ -123,7 +134,20 @@ pub struct DeviceInput<'a> {
     pub dirs: &'a Handle,
     pub codes: &'a SampleCodes,
     pub footprints: Option<&'a Handle>,
+    /// When the samples are, for a moving field (others ignore it).
+    pub moments: DeviceMoments<'a>,
     pub n: usize,
+}
+
+/// When a batch's samples are, for a moving field: as the CPU field's `Moments`.
+#[derive(Clone, Copy)]
+pub enum DeviceMoments<'a> {
+    /// Each its own (`n` floats).
+    Each(&'a Handle),
+    /// All at one moment.
+    At(f32),
+    /// Any: a moment drawn from each point (the occupancy grid's refreshes).
+    Any,
 }
 
 /// The field's activations for one batch, kept by the forward for the backward.
@@ -142,6 +166,8 @@ pub struct Activations {
     pub rgb: Handle,
     /// Each sample's level weights (anti-aliased fields).
     level_weights: Option<Handle>,
+    /// A moving field's points of space and time (`n x 4`) and their encoding.
+    motion: Option<(Handle, Handle)>,
 }
 
 impl Activations {
@@ -170,6 +196,17 @@ pub struct GpuFastField {
     /// Each hash-grid level's weight (camera refinement's coarse-to-fine schedule, as the
     /// CPU field's `level_weights`), or `None` where every level weighs 1.
     level_scale: Option<Handle>,
+    /// A moving field's space-time encoding and its first-layer weights.
+    motion: Option<GpuMotion>,
+}
+
+/// The moving part of a field of space and time (`field::fast`'s `motion`): its encoding,
+/// whose features join the density network's first layer through their own weights.
+struct GpuMotion {
+    grid: GpuSpaceTimeGrid,
+    /// `features x hidden`, no bias, no ReLU (summed before the first layer's).
+    layer: Dense,
+    features: usize,
 }
 
 /// What the field's backward leaves besides the parameters' gradients: the gradients of
@@ -201,7 +238,7 @@ impl GpuFastField {
             bound: c.bound,
         };
         // The fused kernel's colour input is the harmonics and the geometry features alone.
-        let plain = ci == SH_DIMS + g - 1 && c.antialias.is_none();
+        let plain = ci == SH_DIMS + g - 1 && c.antialias.is_none() && field.motion.is_none();
         let fused = (gpu.fused_field && plain && shape.fits(gpu)).then_some(shape);
         let layer = |k: usize, inputs, outputs, relu| Dense {
             inputs,
@@ -239,6 +276,19 @@ impl GpuFastField {
                 bound: c.bound,
             }),
             level_scale: None,
+            motion: field.motion.as_ref().zip(field.motion_weight_offset()).map(
+                |(grid, weight)| GpuMotion {
+                    grid: GpuSpaceTimeGrid::new(gpu, grid),
+                    layer: Dense {
+                        inputs: grid.dims(),
+                        outputs: w,
+                        weight,
+                        bias: None,
+                        relu: false,
+                    },
+                    features: grid.dims(),
+                },
+            ),
         }
     }
 
@@ -319,6 +369,7 @@ impl GpuFastField {
         gpu: &Gpu,
         params: &Handle,
         positions: &Handle,
+        moments: DeviceMoments,
         n: usize,
     ) -> Handle {
         match self.fused.as_ref().filter(|_| self.level_scale.is_none()) {
@@ -326,8 +377,13 @@ impl GpuFastField {
                 f.infer(gpu, &self.grid, params, self.n_params, positions, None, n)
                     .0
             }
-            None => self.density(gpu, params, positions, None, n).sigma,
+            None => self.density(gpu, params, positions, None, moments, n).sigma,
         }
+    }
+
+    /// Whether the field moves in time (reads its samples' moments).
+    pub fn is_moving(&self) -> bool {
+        self.motion.is_some()
     }
 
     pub fn num_params(&self) -> usize {
@@ -347,6 +403,7 @@ impl GpuFastField {
         params: &Handle,
         positions: &Handle,
         footprints: Option<&Handle>,
+        moments: DeviceMoments,
         n: usize,
     ) -> Activations {
         let [d0, d1, ..] = &self.layers;
@@ -362,6 +419,7 @@ impl GpuFastField {
             c2: gpu.floats(0),
             rgb: gpu.floats(0),
             level_weights: None,
+            motion: None,
         };
         if n == 0 {
             return acts;
@@ -390,8 +448,44 @@ impl GpuFastField {
             gpu.stage_done(clock);
         }
         self.apply_level_scale(gpu, &acts.enc, n);
+        match &self.motion {
+            None => {
+                let clock = step_clock::start(Stage::Networks);
+                d0.forward(gpu, params, np, &acts.enc, &acts.h, n);
+                gpu.stage_done(clock);
+            }
+            Some(m) => {
+                let clock = step_clock::start(Stage::Encoding);
+                let (times, kind) = match moments {
+                    DeviceMoments::Each(t) => (t.clone(), Moments::Each),
+                    DeviceMoments::At(t) => (gpu.upload(&[t]), Moments::At),
+                    DeviceMoments::Any => (gpu.floats(1), Moments::Any),
+                };
+                let points = points_in_time(gpu, &acts.unit, (&times, kind), n);
+                let enc = gpu.floats(n * m.features);
+                m.grid.encode(gpu, (params, np), &points, n, &enc);
+                gpu.stage_done(clock);
+                let clock = step_clock::start(Stage::Networks);
+                let still = Dense { relu: false, ..*d0 };
+                still.forward(gpu, params, np, &acts.enc, &acts.h, n);
+                let moving = gpu.floats(n * d0.outputs);
+                m.layer.forward(gpu, params, np, &enc, &moving, n);
+                let (count, dim) = Self::launch(n * d0.outputs);
+                // SAFETY: both buffers hold `n x hidden` floats; the kernel bounds-checks.
+                unsafe {
+                    add_relu::launch_unchecked(
+                        &gpu.client,
+                        count,
+                        dim,
+                        BufferArg::from_raw_parts(acts.h.clone(), n * d0.outputs),
+                        BufferArg::from_raw_parts(moving.clone(), n * d0.outputs),
+                    );
+                }
+                gpu.stage_done(clock);
+                acts.motion = Some((points, enc));
+            }
+        }
         let clock = step_clock::start(Stage::Networks);
-        d0.forward(gpu, params, np, &acts.enc, &acts.h, n);
         d1.forward(gpu, params, np, &acts.h, &acts.geo, n);
         // SAFETY: as above.
         unsafe {
@@ -417,9 +511,10 @@ impl GpuFastField {
             dirs,
             codes,
             footprints,
+            moments,
             n,
         } = *input;
-        let mut acts = self.density(gpu, params, positions, footprints, n);
+        let mut acts = self.density(gpu, params, positions, footprints, moments, n);
         let [_, _, c0, c1, c2] = &self.layers;
         acts.colour_in = gpu.floats(n * c0.inputs);
         acts.c1 = gpu.floats(n * c0.outputs);
@@ -597,6 +692,21 @@ impl GpuFastField {
             Some((&d_enc, false)),
             n,
         );
+        if let (Some(m), Some((points, enc))) = (&self.motion, &acts.motion) {
+            let d_motion = gpu.floats(n * m.features);
+            m.layer.backward(
+                gpu,
+                params,
+                grads,
+                np,
+                enc,
+                &d_h,
+                Some((&d_motion, false)),
+                n,
+            );
+            m.grid
+                .encode_bwd(gpu, self.scatter, points, &d_motion, n, (grads, np));
+        }
         gpu.stage_done(networks);
         if let Some(weights) = &acts.level_weights {
             let clock = step_clock::start(Stage::LevelWeights);
@@ -656,7 +766,25 @@ pub(super) mod tests {
     /// 1e-4 relative to (1 + |value|) (sums of 700 terms in another order).
     #[test]
     fn the_field_matches_the_cpu_forward_and_backward() {
-        matches_the_cpu(&small_field(), None, false);
+        matches_the_cpu(&small_field(), None, false, false);
+    }
+
+    /// A moving field (a space-time grid of 3 levels beside the still one): each sample at
+    /// its own moment, forward and backward, and the density pass at one moment.
+    #[test]
+    fn the_moving_field_matches_the_cpu() {
+        let field = FastField::new(FastFieldConfig {
+            motion: Some(crate::encoding::space_time_grid::SpaceTimeConfig {
+                levels: 3,
+                log2_table_size: 8,
+                base_resolution: 4,
+                max_resolution: 24,
+                base_time_resolution: 2,
+                max_time_resolution: 8,
+            }),
+            ..small_field().config
+        });
+        matches_the_cpu(&field, None, false, true);
     }
 
     /// An anti-aliased field: each sample's footprint (from well under a fine cell to
@@ -670,8 +798,8 @@ pub(super) mod tests {
             }),
             ..small_field().config
         });
-        matches_the_cpu(&field, None, true);
-        matches_the_cpu(&field, None, false);
+        matches_the_cpu(&field, None, true, false);
+        matches_the_cpu(&field, None, false, false);
     }
 
     /// The same with per-photo appearance codes (3 values for 5 photos): each sample its
@@ -691,18 +819,25 @@ pub(super) mod tests {
                 i => i,
             })
             .collect();
-        matches_the_cpu(&field, Some(per_sample), false);
-        matches_the_cpu(&field, Some(vec![2; 700]), false);
+        matches_the_cpu(&field, Some(per_sample), false, false);
+        matches_the_cpu(&field, Some(vec![2; 700]), false, false);
         matches_the_cpu(
             &field,
             Some(vec![crate::stage::MEAN_APPEARANCE; 700]),
+            false,
             false,
         );
     }
 
     /// `field` on the device against the CPU, with each sample's code index
-    /// (`appearance`) where the field has codes, and random footprints with `footprints`.
-    fn matches_the_cpu(field: &FastField, appearance: Option<Vec<u32>>, footprints: bool) {
+    /// (`appearance`) where the field has codes, random footprints with `footprints`, and
+    /// random moments with `moving` (else none: moment 0 on both).
+    fn matches_the_cpu(
+        field: &FastField,
+        appearance: Option<Vec<u32>>,
+        footprints: bool,
+        moving: bool,
+    ) {
         let Some(gpu) = super::super::device::test_gpu() else {
             return;
         };
@@ -715,6 +850,11 @@ pub(super) mod tests {
         let dirs = rng.unit_directions(n);
         let d_sigma: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
         let d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+        let times: Vec<f32> = if moving {
+            (0..n).map(|_| rng.uniform()).collect()
+        } else {
+            Vec::new()
+        };
         let indices = appearance.clone().unwrap_or_default();
         let fp: Vec<f32> = if footprints {
             (0..n).map(|_| 10f32.powf(rng.range(-3.5, -0.5))).collect()
@@ -739,7 +879,7 @@ pub(super) mod tests {
             appearance: &indices,
             footprints: &fp,
             variances: &[],
-            times: &[],
+            times: &times,
         };
         let out = field.forward(&params, input, &mut ws);
         let (want_sigma, want_rgb) = (out.sigma.to_vec(), out.rgb.to_vec());
@@ -756,16 +896,23 @@ pub(super) mod tests {
                 ..gpu.clone()
             };
             let gf = GpuFastField::new(&gpu, field);
+            assert_eq!(gf.is_moving(), moving);
             let p = gpu.upload(&params);
             let g = gpu.zeros(field.num_params());
             let codes = codes(&gpu);
             let (pos_h, dirs_h) = (gpu.upload(&pos), gpu.upload(&dirs));
             let fp_h = footprints.then(|| gpu.upload(&fp));
+            let times_h = gpu.upload(&times);
+            let moments = match moving {
+                true => DeviceMoments::Each(&times_h),
+                false => DeviceMoments::At(0.0),
+            };
             let input = DeviceInput {
                 positions: &pos_h,
                 dirs: &dirs_h,
                 codes: &codes,
                 footprints: fp_h.as_ref(),
+                moments,
                 n,
             };
             let acts = gf.forward(&gpu, &p, &input);
@@ -796,8 +943,16 @@ pub(super) mod tests {
                 assert!(e < 1e-4, "gradient of {}: {e}", t.name);
             }
             // The density-only pass gives the same densities.
-            let alone = gf.density(&gpu, &p, &pos_h, fp_h.as_ref(), n);
+            let alone = gf.density(&gpu, &p, &pos_h, fp_h.as_ref(), moments, n);
             assert_eq!(gpu.read(&alone.sigma, n).expect("read"), sigma);
+            if moving {
+                // At one moment, as the CPU field's density query.
+                let mut want = vec![0.0; n];
+                field.density_at(&params, &pos, Some(0.3), &mut ws, &mut want);
+                let at = gf.density(&gpu, &p, &pos_h, None, DeviceMoments::At(0.3), n);
+                let e = worst(&gpu.read(&at.sigma, n).expect("read"), &want);
+                assert!(e < 1e-4, "density at a moment: {e}");
+            }
         }
     }
 }

@@ -293,6 +293,7 @@ mod tests {
             dirs: &dirs_h,
             codes: &codes,
             footprints: None,
+            moments: crate::engine::gpu::field::DeviceMoments::Any,
             n,
         };
         let (sigma, rgb) = device_field.infer(gpu, &p, &input);
@@ -308,7 +309,8 @@ mod tests {
             .iter()
             .fold((f32::MAX, 0.0f32), |(lo, hi), &s| (lo.min(s), hi.max(s)));
         assert!(hi > 100.0 * lo, "densities from {lo} to {hi} only");
-        let alone = device_field.infer_density(gpu, &p, &gpu.upload(&pos), n);
+        let any = crate::engine::gpu::field::DeviceMoments::Any;
+        let alone = device_field.infer_density(gpu, &p, &gpu.upload(&pos), any, n);
         assert_eq!(gpu.read(&alone, n).expect("read"), sigma);
     }
 

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use super::antialias::sample_footprints;
 use super::codes::SampleCodes;
 use super::device::Gpu;
-use super::field::DeviceInput;
+use super::field::{DeviceInput, DeviceMoments};
 use super::launch::grid;
 use super::march::{Counted, Cut, GpuMarcher, GpuRays, PendingCut, RoundState, STATE_WORDS};
 use crate::error::Result;
@@ -439,6 +439,8 @@ impl<'a> Rounds<'a> {
             dirs: &dirs,
             codes: round_codes.as_ref().unwrap_or(&lane.all_codes),
             footprints: footprints.as_ref(),
+            // Moving fields do not render on this engine yet (`engine::caps`).
+            moments: DeviceMoments::At(0.0),
             n: s,
         });
         // SAFETY: `offsets` holds `k + 1` slots ending at `s`, the length of every sample
