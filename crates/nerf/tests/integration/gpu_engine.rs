@@ -424,6 +424,24 @@ fn appearance_codes_train_alike_on_both_engines() {
     assert!(differ, "a photo's look renders as the mean one");
 }
 
+/// The largest camera correction the first trainer learned, and how far the second's are
+/// from its at most.
+fn corrections_apart(a: &Trainer, b: &Trainer) -> (f32, f32) {
+    let corrections = |t: &Trainer| {
+        let params = t.engine.state().params;
+        nerf::model::camera_refine::corrections(t.engine.param_layout(), &params)
+            .expect("corrections")
+            .to_vec()
+    };
+    let (a, b) = (corrections(a), corrections(b));
+    let largest = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let apart = a
+        .iter()
+        .zip(&b)
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+    (largest, apart)
+}
+
 /// Camera refinement on both engines, with BARF's schedule (the field's levels weighted
 /// in) and with the straight-through one (only the pose gradient's): ten steps from the
 /// same weights on the same rays give the same losses to rounding, and the corrections
@@ -448,19 +466,8 @@ fn camera_refinement_trains_alike_on_both_engines() {
         }
         let (cpu, cpu_trainer) = train_steps(Device::Cpu, &c, &train, 10);
         let (gpu, gpu_trainer) = train_steps(Device::Wgpu, &c, &train, 10);
-        let corrections = |t: &Trainer| {
-            let params = t.engine.state().params;
-            nerf::model::camera_refine::corrections(t.engine.param_layout(), &params)
-                .expect("corrections")
-                .to_vec()
-        };
-        let (a, b) = (corrections(&cpu_trainer), corrections(&gpu_trainer));
         let worst = relative_apart(&cpu, &gpu);
-        let largest = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let apart = a
-            .iter()
-            .zip(&b)
-            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        let (largest, apart) = corrections_apart(&cpu_trainer, &gpu_trainer);
         eprintln!(
             "straight-through {straight_through}: worst relative loss difference \
              {worst:.1e}; corrections up to {largest:.2e}, engines apart by at most {apart:.2e}"
@@ -472,6 +479,58 @@ fn camera_refinement_trains_alike_on_both_engines() {
             "corrections apart by {apart} of {largest}"
         );
     }
+}
+
+/// Every quality feature of the fast model at once (anti-aliasing, appearance codes,
+/// camera refinement on BARF's schedule, the distortion loss), a dozen steps on each
+/// engine from the same weights on the same rays: the same losses to rounding, the
+/// corrections alike, and a checkpoint of the GPU's run renders on the CPU as on the GPU.
+#[test]
+fn every_fast_feature_at_once_trains_alike_on_both_engines() {
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    small_scene(&data, 24);
+    let mut c = config(&data, 12);
+    let train = training_split(&c);
+    let scene = c.open_scene(1).expect("scene");
+    if let nerf::model::ModelConfig::Fast(m) = &mut c.model {
+        m.antialias_for(&scene.cameras(Split::Train), &scene.space);
+        m.field.appearance_dims = 4;
+        m.field.appearance_images = train.views.len();
+        m.distortion = 1e-2;
+        let refinement = nerf::model::camera_refine::CameraRefinement::new(train.views.len());
+        m.refine_cameras = Some(refinement.with_learning_rate(1e-2));
+    }
+    let (cpu, cpu_trainer) = train_steps(Device::Cpu, &c, &train, 12);
+    let (gpu, mut gpu_trainer) = train_steps(Device::Wgpu, &c, &train, 12);
+    let worst = relative_apart(&cpu, &gpu);
+    let (largest, apart) = corrections_apart(&cpu_trainer, &gpu_trainer);
+    eprintln!(
+        "worst relative loss difference {worst:.1e}; corrections up to {largest:.2e}, \
+         engines apart by at most {apart:.2e}"
+    );
+    assert!(worst < 1e-3, "cpu {cpu:?}, gpu {gpu:?}");
+    assert!(largest > 1e-3, "the corrections did not learn");
+    assert!(
+        apart < 0.1 * largest,
+        "corrections apart by {apart} of {largest}"
+    );
+    // The GPU's state on the CPU (and back) renders alike.
+    let state = gpu_trainer.engine.state();
+    let mut cpu_trainer = cpu_trainer;
+    cpu_trainer.engine.set_state(state.clone()).expect("state");
+    gpu_trainer.engine.set_state(state).expect("state");
+    let batch = test_view_rays(&scene);
+    let (x, y) = (
+        render(cpu_trainer.engine.as_ref(), &batch),
+        render(gpu_trainer.engine.as_ref(), &batch),
+    );
+    let apart = rgb_apart(&x, &y);
+    eprintln!("renders apart by {apart:.1e}");
+    assert!(apart < 1e-3, "renders apart by {apart}");
 }
 
 /// A run trained on the GPU resumes on the CPU and back, through the same checkpoint
