@@ -338,15 +338,22 @@ impl GpuFastField {
         self.codes.is_some()
     }
 
-    /// Whether [`infer`](Self::infer) runs the one-kernel path.
+    /// Whether [`infer`](Self::infer) runs the one-kernel path now: where the adapter and
+    /// the switch allow it and no level weight is below 1 (the kernel has none). The
+    /// renderer sizes its rounds by this, so a round never outgrows the layer path.
     pub fn is_fused(&self) -> bool {
-        self.fused.is_some()
+        self.fused_now().is_some()
+    }
+
+    /// The fused kernel's shapes, where [`infer`](Self::infer) runs it now.
+    fn fused_now(&self) -> Option<&FusedShape> {
+        self.fused.as_ref().filter(|_| self.level_scale.is_none())
     }
 
     /// Densities (`n`) and colours (`n x 3`) for rendering, with no activations kept: the
     /// fused kernel where it runs, else [`forward`](Self::forward).
     pub fn infer(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> (Handle, Handle) {
-        match self.fused.as_ref().filter(|_| self.level_scale.is_none()) {
+        match self.fused_now() {
             Some(f) => f.infer(
                 gpu,
                 &self.grid,
@@ -372,7 +379,7 @@ impl GpuFastField {
         moments: DeviceMoments,
         n: usize,
     ) -> Handle {
-        match self.fused.as_ref().filter(|_| self.level_scale.is_none()) {
+        match self.fused_now() {
             Some(f) => {
                 f.infer(gpu, &self.grid, params, self.n_params, positions, None, n)
                     .0
