@@ -77,6 +77,18 @@ pub(super) fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, 
     )
 }
 
+/// Level `l`'s words in the table `levels`: resolution, entries, dense (0/1), and the
+/// offset of its table in the parameter vector.
+#[cube]
+pub(super) fn level_words(levels: &[u32], l: usize) -> (u32, u32, u32, usize) {
+    (
+        levels[4 * l],
+        levels[4 * l + 1],
+        levels[4 * l + 2],
+        levels[4 * l + 3] as usize,
+    )
+}
+
 /// Trilinear weight of corner `k` (bit 0: +x, bit 1: +y, bit 2: +z).
 #[cube]
 fn weight(k: u32, fx: f32, fy: f32, fz: f32) -> f32 {
@@ -97,10 +109,7 @@ pub(super) fn encode_level(
     y: f32,
     z: f32,
 ) -> (f32, f32) {
-    let res = levels[4 * l];
-    let entries = levels[4 * l + 1];
-    let dense = levels[4 * l + 2];
-    let offset = levels[4 * l + 3] as usize;
+    let (res, entries, dense, offset) = level_words(levels, l);
     let (cx, cy, cz, fx, fy, fz) = cell_at(x, y, z, res);
     let mut f0 = 0.0f32;
     let mut f1 = 0.0f32;
@@ -206,10 +215,7 @@ fn encode_bwd<S: ScatterAdd>(
     let l = ABSOLUTE_POS % nl;
     if first < samples as usize {
         let last = usize::min(first + run as usize, samples as usize);
-        let res = levels[4 * l];
-        let entries = levels[4 * l + 1];
-        let dense = levels[4 * l + 2];
-        let offset = levels[4 * l + 3] as usize;
+        let (res, entries, dense, offset) = level_words(levels, l);
         let mut acc = Array::<f32>::new(16usize);
         #[unroll]
         for k in 0..16usize {

@@ -11,7 +11,7 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::device::Gpu;
-use super::hash_grid::{cell_at, corner, GpuHashGrid, LEVEL_WORDS};
+use super::hash_grid::{cell_at, corner, level_words, GpuHashGrid, LEVEL_WORDS};
 use super::launch::grid;
 use super::volume::GpuSamples;
 use crate::encoding::hash_grid::FEATURES;
@@ -50,10 +50,7 @@ fn position_bwd(
         for l in 0..nl {
             let g0 = d_enc[(s * nl + l) * 2] * level_scale[l];
             let g1 = d_enc[(s * nl + l) * 2 + 1] * level_scale[l];
-            let res = levels[LEVEL_WORDS * l];
-            let entries = levels[LEVEL_WORDS * l + 1];
-            let dense = levels[LEVEL_WORDS * l + 2];
-            let offset = levels[LEVEL_WORDS * l + 3] as usize;
+            let (res, entries, dense, offset) = level_words(levels, l);
             let (cx, cy, cz, fx, fy, fz) = cell_at(x, y, z, res);
             let rf = f32::cast_from(res);
             let ix = select(x >= 0.0 && x <= 1.0, rf, 0.0);

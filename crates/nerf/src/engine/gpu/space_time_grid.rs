@@ -74,17 +74,26 @@ fn corner_weight(cell: &Cell, k: u32) -> f32 {
     w
 }
 
+/// Level `l`'s words in the table `levels` ([`LEVEL_WORDS`] each): resolution, time
+/// resolution, entries, dense (0/1), and the offset of its table in the parameter vector.
+#[cube]
+fn level_words(levels: &[u32], l: usize) -> (u32, u32, u32, u32, usize) {
+    (
+        levels[5 * l],
+        levels[5 * l + 1],
+        levels[5 * l + 2],
+        levels[5 * l + 3],
+        levels[5 * l + 4] as usize,
+    )
+}
+
 #[cube(launch_unchecked)]
 fn encode_fwd(params: &[f32], levels: &[u32], points: &[f32], out: &mut [f32], n_levels: u32) {
     let nl = n_levels as usize;
     let s = ABSOLUTE_POS / nl;
     let l = ABSOLUTE_POS % nl;
     if s * 4 < points.len() {
-        let res = levels[5 * l];
-        let time_res = levels[5 * l + 1];
-        let entries = levels[5 * l + 2];
-        let dense = levels[5 * l + 3];
-        let offset = levels[5 * l + 4] as usize;
+        let (res, time_res, entries, dense, offset) = level_words(levels, l);
         let cell = cell_of(points, s, res, time_res);
         let mut f0 = 0.0f32;
         let mut f1 = 0.0f32;
@@ -118,11 +127,7 @@ fn encode_bwd<S: ScatterAdd>(
         let g0 = d_out[(s * nl + l) * 2];
         let g1 = d_out[(s * nl + l) * 2 + 1];
         if g0 != 0.0 || g1 != 0.0 {
-            let res = levels[5 * l];
-            let time_res = levels[5 * l + 1];
-            let entries = levels[5 * l + 2];
-            let dense = levels[5 * l + 3];
-            let offset = levels[5 * l + 4] as usize;
+            let (res, time_res, entries, dense, offset) = level_words(levels, l);
             let cell = cell_of(points, s, res, time_res);
             #[unroll]
             for k in 0..16u32 {
