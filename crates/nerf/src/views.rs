@@ -218,6 +218,7 @@ pub fn render_pixels(
             far: settings.far,
             background: settings.background,
             appearance: settings.appearance,
+            time: settings.time,
         };
         if engine.render_pixels(&pixels, part) {
             on_progress(first + part.len());

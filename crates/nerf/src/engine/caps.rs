@@ -31,27 +31,30 @@ pub enum Feature {
     Mip,
     /// Few-view training: the space too few photos see kept empty (`--few-view`).
     FewView,
-    /// A field of space and time for a moving scene (`--dynamic`).
+    /// The fast model's field of space and time for a moving scene (`--dynamic`).
     Dynamic,
+    /// D-NeRF's deformation network before the paper's field (`--preset dnerf`).
+    DNerf,
     /// FreeNeRF's frequency mask and occlusion penalty (`--preset freenerf`).
     FreeNerf,
 }
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
-const TABLE: [(Feature, bool, bool); 8] = [
+const TABLE: [(Feature, bool, bool); 9] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, true),
     (Feature::Distortion, true, true),
     (Feature::Mip, true, true),
     (Feature::FewView, true, true),
-    (Feature::Dynamic, true, false),
+    (Feature::Dynamic, true, true),
+    (Feature::DNerf, true, false),
     (Feature::FreeNerf, true, true),
 ];
 
 impl Feature {
     /// Every feature, in the table's order.
-    pub const ALL: [Feature; 8] = [
+    pub const ALL: [Feature; 9] = [
         Feature::Antialias,
         Feature::Appearance,
         Feature::CameraRefinement,
@@ -59,6 +62,7 @@ impl Feature {
         Feature::Mip,
         Feature::FewView,
         Feature::Dynamic,
+        Feature::DNerf,
         Feature::FreeNerf,
     ];
 
@@ -78,9 +82,10 @@ impl Feature {
             Feature::Mip => "mip-NeRF's frustums and shared network (--preset mip)",
             Feature::FewView => "few-view training (--few-view; turned off by --no-few-view)",
             Feature::Dynamic => {
-                "the moving scene's field of space and time (--dynamic or --preset dnerf; \
-                 --no-dynamic trains a still fast field)"
+                "the moving scene's field of space and time (--dynamic; --no-dynamic trains a \
+                 still one)"
             }
+            Feature::DNerf => "D-NeRF's deformation network (--preset dnerf)",
             Feature::FreeNerf => {
                 "FreeNeRF's frequency mask and occlusion penalty (--preset freenerf)"
             }
@@ -97,7 +102,8 @@ impl Feature {
                 (Feature::CameraRefinement, ModelConfig::Fast(c)) => c.refine_cameras.is_some(),
                 (Feature::Distortion, ModelConfig::Fast(c)) => c.distortion > 0.0,
                 (Feature::FewView, ModelConfig::Fast(c)) => c.few_view.is_some(),
-                (Feature::Dynamic, _) => model.is_dynamic(),
+                (Feature::Dynamic, ModelConfig::Fast(c)) => c.field.motion.is_some(),
+                (Feature::DNerf, ModelConfig::Vanilla(c)) => c.net.deformation.is_some(),
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
                 (Feature::FreeNerf, ModelConfig::Vanilla(c)) => c.free_nerf.is_some(),
                 _ => false,
@@ -207,7 +213,7 @@ mod tests {
         assert_eq!(Feature::used_by(&preset("mip")), [Feature::Mip]);
         assert_eq!(Feature::used_by(&preset("freenerf")), [Feature::FreeNerf]);
         assert_eq!(refusal(EngineKind::Gpu, &preset("freenerf")), None);
-        assert_eq!(Feature::used_by(&preset("dnerf")), [Feature::Dynamic]);
+        assert_eq!(Feature::used_by(&preset("dnerf")), [Feature::DNerf]);
         assert!(refusal(EngineKind::Gpu, &preset("dnerf"))
             .is_some_and(|why| why.contains("--preset dnerf")));
         assert_eq!(Feature::used_by(&preset("paper")), []);

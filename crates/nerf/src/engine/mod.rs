@@ -138,6 +138,8 @@ pub struct PixelRays<'a> {
     pub far: f32,
     pub background: [f32; 3],
     pub appearance: Appearance,
+    /// The moment a moving field is seen at (`None`: moment 0, as `RayBatch::times`).
+    pub time: Option<f32>,
 }
 
 /// A model behind an engine.

@@ -352,6 +352,107 @@ fn anti_aliasing_trains_and_renders_alike_on_both_engines() {
     assert!(worst_px < 1e-3, "renders apart by {worst_px}");
 }
 
+/// A moving scene on both engines (the chair turning, each photo at its own moment): ten
+/// steps of the field of space and time, with the prior of smooth change, give the same
+/// losses to rounding and other losses than a still field; the CPU's state then renders
+/// alike on the GPU at one moment (host rays and rays cast on the device), at a moment per
+/// ray, and its densities at a moment agree, while two moments render apart.
+#[test]
+fn a_moving_scene_trains_and_renders_alike_on_both_engines() {
+    use nerf::data::synth::{self, SceneKind, SynthOptions};
+    use nerf::views::{render_view, RenderSettings};
+    if !gpu_available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("turning");
+    let opts = SynthOptions {
+        scene: SceneKind::Chair,
+        size: 24,
+        train_views: 24,
+        val_views: 1,
+        test_views: 2,
+        supersample: 1,
+        seed: 3,
+        animate: true,
+    };
+    synth::generate(&opts, &data, &mut |_, _| {}).expect("synth");
+    let still = config(&data, 10);
+    let scene = still.open_scene(1).expect("scene");
+    assert!(scene.is_dynamic());
+    let train = scene.load(Split::Train, 1).expect("load");
+    let mut moving = still.clone();
+    if let nerf::model::ModelConfig::Fast(m) = &mut moving.model {
+        m.field.motion = Some(nerf::encoding::space_time_grid::SpaceTimeConfig {
+            log2_table_size: 12,
+            ..Default::default()
+        });
+        m.time_smoothness = 0.01;
+    }
+    let (cpu, cpu_trainer) = train_steps(Device::Cpu, &moving, &train, 10);
+    let (gpu, mut gpu_trainer) = train_steps(Device::Wgpu, &moving, &train, 10);
+    let (blurred, _) = train_steps(Device::Cpu, &still, &train, 10);
+    let (worst, moved) = (relative_apart(&cpu, &gpu), relative_apart(&cpu, &blurred));
+    eprintln!(
+        "worst relative loss difference cpu/gpu {worst:.1e}; against a still field {moved:.1e}"
+    );
+    assert!(worst < 1e-3, "cpu {cpu:?}, gpu {gpu:?}");
+    assert!(moved > 1e-4, "the moving field trained as a still one");
+
+    gpu_trainer
+        .engine
+        .set_state(cpu_trainer.engine.state())
+        .expect("state");
+    let (a, b) = (cpu_trainer.engine.as_ref(), gpu_trainer.engine.as_ref());
+    let mut batch = test_view_rays(&scene);
+    let n = batch.len();
+    let at = |batch: &mut nerf::stage::RayBatch, t: f32| batch.times = vec![t; n];
+    at(&mut batch, 0.7);
+    let late = render(b, &batch);
+    let apart = rgb_apart(&render(a, &batch), &late);
+    at(&mut batch, 0.1);
+    let early = render(b, &batch);
+    let moments_apart = rgb_apart(&early, &late);
+    batch.times = (0..n).map(|r| if r % 3 == 0 { 0.1 } else { 0.7 }).collect();
+    let each_apart = rgb_apart(&render(a, &batch), &render(b, &batch));
+    let mut settings = RenderSettings::of_scene(&scene, [1.0; 3]);
+    settings.time = Some(0.7);
+    let camera = scene.cameras(Split::Test)[0].clone();
+    let (x, y) = (
+        render_view(a, &camera, &settings, &|_| {}),
+        render_view(b, &camera, &settings, &|_| {}),
+    );
+    let cast_apart = x
+        .rgb
+        .iter()
+        .zip(&y.rgb)
+        .fold(0.0f32, |m, (p, q)| m.max((p - q).abs()));
+    let points: Vec<f32> = (0..300)
+        .map(|k| ((k * 37) % 101) as f32 / 50.0 - 1.0)
+        .collect();
+    let (mut da, mut db) = (vec![0.0; 100], vec![0.0; 100]);
+    a.density(&points, Some(0.3), &mut da);
+    b.density(&points, Some(0.3), &mut db);
+    let densities_apart = da
+        .iter()
+        .zip(&db)
+        .fold(0.0f32, |m, (p, q)| m.max((p - q).abs() / p.abs().max(1.0)));
+    eprintln!(
+        "renders apart by {apart:.1e} at one moment, {each_apart:.1e} at a moment per ray, \
+         {cast_apart:.1e} cast on the device; densities by {densities_apart:.1e}; moments 0.1 \
+         and 0.7 apart by {moments_apart:.1e}"
+    );
+    for (what, e) in [
+        ("one moment", apart),
+        ("a moment per ray", each_apart),
+        ("rays cast on the device", cast_apart),
+        ("densities", densities_apart),
+    ] {
+        assert!(e < 1e-3, "{what}: apart by {e}");
+    }
+    assert!(moments_apart > 1e-4, "two moments render alike");
+}
+
 /// Per-photo appearance codes on both engines: ten steps on the same samples give the
 /// same losses to rounding, and the codes (which start at zero) learn alike.
 #[test]

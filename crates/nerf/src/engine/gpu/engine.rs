@@ -26,6 +26,7 @@ use super::params::{
     check_device, density_in_chunks, fail_rays, report_device_failure, DeviceParams,
 };
 use super::rays::GpuViews;
+use super::space_time_grid::per_sample;
 use super::{antialias, distortion, loss, pose_grad, rays, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
@@ -144,6 +145,22 @@ struct StepRays {
     backgrounds: Handle,
     /// The rays' world origins and unit directions, where cameras are refined.
     frame: Option<(Handle, Handle)>,
+    /// Each sample's moment, for a moving field.
+    times: Option<Handle>,
+}
+
+/// A step's rays on the device before marching (`GpuEngine::draw_rays`), with what the
+/// field reads of each besides its samples.
+struct DrawnRays {
+    rays: GpuRays,
+    /// The index of each one's view (its appearance code), for a field with codes.
+    of_view: Option<Handle>,
+    /// Cone radii, for an anti-aliased field.
+    radii: Option<Handle>,
+    /// Each one's moment, for a moving field.
+    times: Option<Handle>,
+    targets: Handle,
+    backgrounds: Handle,
 }
 
 /// The fast model on one GPU.
@@ -183,6 +200,7 @@ impl GpuEngine {
         render::FieldNeeds {
             codes: self.field.has_codes(),
             footprints: self.model.config.field.antialias.is_some(),
+            moments: self.field.is_moving(),
         }
     }
 
@@ -239,8 +257,14 @@ impl GpuEngine {
             self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
         }
         loop {
-            let (on_device, views, radii, targets, backgrounds) =
-                self.draw_rays(data, spec, &marcher, want, cameras);
+            let DrawnRays {
+                rays: on_device,
+                of_view,
+                radii,
+                times,
+                targets,
+                backgrounds,
+            } = self.draw_rays(data, spec, &marcher, want, cameras);
             let counted = self.marcher.count(&self.gpu, &on_device);
             let cut = self
                 .marcher
@@ -249,10 +273,10 @@ impl GpuEngine {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
                     self.marcher.write(&self.gpu, &on_device, &counted, cut);
-                let codes = match &views {
-                    Some(views) => SampleCodes::of_rays(
+                let codes = match &of_view {
+                    Some(of_view) => SampleCodes::of_rays(
                         &self.gpu,
-                        views,
+                        of_view,
                         &samples.offsets,
                         cut.rays,
                         cut.samples,
@@ -273,6 +297,9 @@ impl GpuEngine {
                 });
                 let frame = (!cameras.is_empty())
                     .then(|| (on_device.origins.clone(), on_device.dirs.clone()));
+                let times = times.map(|per_ray| {
+                    per_sample(&self.gpu, &per_ray, &samples.offsets, cut.rays, cut.samples)
+                });
                 return Ok(StepRays {
                     cut,
                     samples,
@@ -283,19 +310,18 @@ impl GpuEngine {
                     targets,
                     backgrounds,
                     frame,
+                    times,
                 });
             }
             want = (want * 2).min(max_rays);
         }
     }
 
-    /// Rays `0..want` of the step on the device, with the index of each one's view (its
-    /// appearance code, for a field with codes), their cone radii (for an anti-aliased
-    /// field), targets and backgrounds: made there from the pixels the host picks (`rays`),
-    /// or drawn whole on the host where the views are not on the device or the cameras
-    /// are refined (each ray corrected by its camera's step in `cameras`, as the CPU
-    /// engine corrects it).
-    #[allow(clippy::type_complexity)]
+    /// Rays `0..want` of the step on the device, with what the field reads of each, their
+    /// targets and backgrounds: made there from the pixels the host picks (`rays`), or
+    /// drawn whole on the host where the views are not on the device or the cameras are
+    /// refined (each ray corrected by its camera's step in `cameras`, as the CPU engine
+    /// corrects it).
     fn draw_rays(
         &mut self,
         data: &Dataset,
@@ -303,9 +329,10 @@ impl GpuEngine {
         marcher: &Marcher,
         want: usize,
         cameras: &[CameraStep],
-    ) -> (GpuRays, Option<Handle>, Option<Handle>, Handle, Handle) {
+    ) -> DrawnRays {
         let footprints = self.model.config.field.antialias.is_some();
         let codes = self.field.has_codes();
+        let moving = self.field.is_moving();
         let gpu = &self.gpu;
         if let (Some((_, Some(views))), true) = (&self.views, cameras.is_empty()) {
             let mut choices: Vec<PixelChoice> = (0..want as u64)
@@ -335,9 +362,24 @@ impl GpuEngine {
                     .collect();
                 gpu.upload(&radii)
             });
+            // A moving scene's photos each have a moment (`Scene::is_dynamic`).
+            let times = moving.then(|| {
+                let times: Vec<f32> = choices
+                    .iter()
+                    .map(|c| data.views[c.view].time.unwrap_or(0.0))
+                    .collect();
+                gpu.upload(&times)
+            });
             let (rays, targets, backgrounds) =
                 views.generate(gpu, &data.space, marcher, bound, &choices, &jitter);
-            return (rays, of_view, radii, targets, backgrounds);
+            return DrawnRays {
+                rays,
+                of_view,
+                radii,
+                times,
+                targets,
+                backgrounds,
+            };
         }
         let rays = &mut self.rays;
         rays.draw_parallel(data, &spec.sampling, 0..want as u64);
@@ -351,7 +393,19 @@ impl GpuEngine {
             gpu.upload_u32(&of_view)
         });
         let radii = footprints.then(|| gpu.upload(&rays.rays.radii));
-        (on_device, of_view, radii, targets, backgrounds)
+        // Rays carry moments where their views have them, as on the CPU; none is moment 0.
+        let times = moving.then(|| match rays.rays.times.len() {
+            0 => gpu.upload(&vec![0.0; rays.rays.len()]),
+            _ => gpu.upload(&rays.rays.times),
+        });
+        DrawnRays {
+            rays: on_device,
+            of_view,
+            radii,
+            times,
+            targets,
+            backgrounds,
+        }
     }
 
     /// This step's correction of every training camera, from the corrections on the device
@@ -521,6 +575,7 @@ impl Engine for GpuEngine {
             targets,
             backgrounds,
             frame,
+            times,
         } = self.march_step(data, spec, &cameras)?;
         let (rays, n) = (cut.rays, cut.samples);
         let gpu = &self.gpu;
@@ -532,8 +587,10 @@ impl Engine for GpuEngine {
             dirs: &dirs,
             codes: &codes,
             footprints: footprints.as_ref(),
-            // Moving fields do not train on this engine yet (`engine::caps`).
-            moments: DeviceMoments::At(0.0),
+            // A still field reads no moment.
+            moments: times
+                .as_ref()
+                .map_or(DeviceMoments::At(0.0), DeviceMoments::Each),
             n,
         };
         let acts = self.field.forward(gpu, &self.state.values, &input);
@@ -600,6 +657,14 @@ impl Engine for GpuEngine {
         );
         if let Some(frame) = &frame {
             self.add_camera_gradients(&cameras, &acts, &inputs, &samples, &dirs, frame)?;
+        }
+        if config.time_smoothness > 0.0 {
+            // The step's gradient is scaled by 1 / (3 rays) (see `render::loss`): 3 times
+            // the weight makes the prior the weight times its mean over the step's rays, as
+            // on the CPU engine.
+            let state = (&self.state.values, &self.state.grads);
+            let weight = 3.0 * config.time_smoothness;
+            self.field.time_smoothness_bwd(gpu, state, &acts, weight);
         }
         check_device(
             gpu,
@@ -715,6 +780,7 @@ impl Engine for GpuEngine {
                 radii: Some(cast.radii),
                 cylinders: pixels.space.cylinders(),
                 codes: render::RayCodes::All(code),
+                times: render::RayTimes::At(pixels.time.unwrap_or(0.0)),
             });
         }
         let (gpu, params) = (&self.gpu, &self.state.values);

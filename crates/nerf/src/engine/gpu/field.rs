@@ -16,6 +16,7 @@ use super::hash_grid::{GpuHashGrid, Scatter};
 use super::launch::grid;
 use super::mlp::Dense;
 use super::space_time_grid::{points_in_time, GpuSpaceTimeGrid, Moments};
+use super::time_smoothness::{add_time_smoothness, MotionForward};
 use crate::encoding::spherical_harmonics::SH_DIMS;
 use crate::field::fast::LOG_SIGMA_MAX;
 use crate::field::FastField;
@@ -207,6 +208,8 @@ struct GpuMotion {
     /// `features x hidden`, no bias, no ReLU (summed before the first layer's).
     layer: Dense,
     features: usize,
+    /// One cell of the finest time level: the time-smoothness prior's step.
+    dt: f32,
 }
 
 /// What the field's backward leaves besides the parameters' gradients: the gradients of
@@ -287,6 +290,7 @@ impl GpuFastField {
                         relu: false,
                     },
                     features: grid.dims(),
+                    dt: 1.0 / grid.config.max_time_resolution.max(1) as f32,
                 },
             ),
         }
@@ -391,6 +395,31 @@ impl GpuFastField {
     /// Whether the field moves in time (reads its samples' moments).
     pub fn is_moving(&self) -> bool {
         self.motion.is_some()
+    }
+
+    /// Moving fields: adds into `grads` the gradient of `weight` times the prior that the
+    /// scene changes smoothly in time, over the samples of the forward that made `acts`
+    /// (`time_smoothness`); nothing for still fields.
+    pub fn time_smoothness_bwd(
+        &self,
+        gpu: &Gpu,
+        (params, grads): (&Handle, &Handle),
+        acts: &Activations,
+        weight: f32,
+    ) {
+        let (Some(m), Some((points, enc))) = (&self.motion, &acts.motion) else {
+            return;
+        };
+        let forward = MotionForward {
+            grid: &m.grid,
+            scatter: self.scatter,
+            points,
+            enc,
+            features: m.features,
+            n: acts.n,
+            dt: m.dt,
+        };
+        add_time_smoothness(gpu, &forward, (params, grads, self.n_params), weight);
     }
 
     pub fn num_params(&self) -> usize {

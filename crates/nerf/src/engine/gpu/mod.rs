@@ -19,7 +19,10 @@
 //!   [`fused`]: the same field's inference in one kernel per batch, for rendering and
 //!   density queries (`NERF_GPU_FIELD=fused`); [`codes`]: per-photo appearance codes;
 //!   [`antialias`]: sample footprints and the hash grid's level weights; [`harmonics`]: the
-//!   view direction's spherical harmonics;
+//!   view direction's spherical harmonics; [`space_time_grid`]: a moving field's encoding
+//!   of space and time, and [`time_smoothness`]: its prior of smooth change in time;
+//!   [`pose_grad`]: the samples' gradients carried back to their rays, for camera
+//!   refinement;
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient; [`distortion`]: the distortion
@@ -62,6 +65,7 @@ pub mod pose_grad;
 pub mod rays;
 pub mod render;
 pub mod space_time_grid;
+pub mod time_smoothness;
 pub mod vanilla;
 pub mod vanilla_net;
 pub mod volume;
@@ -154,21 +158,15 @@ mod tests {
         );
     }
 
-    /// A feature the GPU engine does not run (the moving field, so far) is refused by name
-    /// when the GPU is asked for, with the way out, and `auto` takes the CPU engine for it.
+    /// A feature the GPU engine does not run (D-NeRF's deformation network, so far) is
+    /// refused by name when the GPU is asked for, with the way out, and `auto` takes the
+    /// CPU engine for it.
     #[test]
     fn what_the_gpu_does_not_run_is_refused_by_name() {
-        let config = FastModelConfig {
-            field: crate::field::FastFieldConfig {
-                motion: Some(crate::encoding::space_time_grid::SpaceTimeConfig::default()),
-                ..crate::field::FastFieldConfig::default()
-            },
-            ..FastModelConfig::default()
-        };
-        let model = ModelConfig::Fast(config);
+        let model = ModelConfig::Vanilla(crate::presets::build("dnerf").expect("dnerf").0);
         let missing = caps::EngineKind::Gpu.missing(&model);
         if missing.is_empty() {
-            eprintln!("skipping: the GPU engine runs the moving field");
+            eprintln!("skipping: the GPU engine runs --preset dnerf");
             return;
         }
         let options = || EngineOptions {
@@ -182,11 +180,11 @@ mod tests {
             return;
         }
         let Err(e) = open(Device::Wgpu, &model, options(), 0) else {
-            panic!("the GPU engine took the moving field");
+            panic!("the GPU engine took --preset dnerf");
         };
         let text = e.to_string();
         assert!(
-            text.contains("--dynamic") && text.contains("--device cpu"),
+            text.contains("--preset dnerf") && text.contains("--device cpu"),
             "{text}"
         );
     }

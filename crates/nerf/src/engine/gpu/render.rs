@@ -18,6 +18,7 @@ use super::device::Gpu;
 use super::field::{DeviceInput, DeviceMoments};
 use super::launch::grid;
 use super::march::{Counted, Cut, GpuMarcher, GpuRays, PendingCut, RoundState, STATE_WORDS};
+use super::space_time_grid::per_sample;
 use crate::error::Result;
 use crate::math::length;
 use crate::render::march::Marcher;
@@ -79,6 +80,8 @@ pub struct FieldNeeds {
     pub codes: bool,
     /// Each sample's footprint (from the batch's cone radii; else the reference one).
     pub footprints: bool,
+    /// Each sample's moment (a moving field: the batch's `RayTimes`).
+    pub moments: bool,
 }
 
 /// Each ray's appearance code on the device.
@@ -87,6 +90,26 @@ pub enum RayCodes {
     All(u32),
     /// A code per ray.
     PerRay(Handle),
+}
+
+/// The moments a batch's rays see, for a moving field.
+pub enum RayTimes {
+    /// One moment for every ray (a view at its time; moment 0 where none is given, as on
+    /// the CPU).
+    At(f32),
+    /// A moment per ray.
+    PerRay(Handle),
+}
+
+impl RayTimes {
+    /// The moments of a host batch's rays (`RayBatch::times`: one per ray, or none).
+    pub fn of(gpu: &Gpu, times: &[f32]) -> Self {
+        match times.first() {
+            None => RayTimes::At(0.0),
+            Some(&t) if times.iter().all(|&u| u == t) => RayTimes::At(t),
+            Some(_) => RayTimes::PerRay(gpu.upload(times)),
+        }
+    }
 }
 
 /// Rays on the device to render, with what a field may read besides them. Rendering
@@ -102,6 +125,7 @@ pub struct DeviceBatch {
     /// Footprints constant along rays (`RayBatch::cylinders`).
     pub cylinders: bool,
     pub codes: RayCodes,
+    pub times: RayTimes,
 }
 
 impl DeviceBatch {
@@ -125,6 +149,7 @@ impl DeviceBatch {
             radii: (!rays.radii.is_empty()).then(|| gpu.upload(&rays.radii)),
             cylinders: rays.cylinders,
             codes,
+            times: RayTimes::of(gpu, &rays.times),
         }
     }
 }
@@ -421,6 +446,17 @@ impl<'a> Rounds<'a> {
         let round_codes = lane
             .ray_codes
             .map(|per_ray| SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s));
+        let times = match (&lane.batch.times, self.needs.moments) {
+            (RayTimes::PerRay(per_ray), true) => {
+                Some(per_sample(gpu, per_ray, &samples.offsets, k, s))
+            }
+            _ => None,
+        };
+        let moments = match (&times, &lane.batch.times) {
+            (Some(each), _) => DeviceMoments::Each(each),
+            (None, RayTimes::At(t)) => DeviceMoments::At(*t),
+            (None, RayTimes::PerRay(_)) => DeviceMoments::At(0.0),
+        };
         let footprints = lane.radii.map(|radii| {
             let csr = (&samples.offsets, &samples.t);
             sample_footprints(
@@ -439,8 +475,7 @@ impl<'a> Rounds<'a> {
             dirs: &dirs,
             codes: round_codes.as_ref().unwrap_or(&lane.all_codes),
             footprints: footprints.as_ref(),
-            // Moving fields do not render on this engine yet (`engine::caps`).
-            moments: DeviceMoments::At(0.0),
+            moments,
             n: s,
         });
         // SAFETY: `offsets` holds `k + 1` slots ending at `s`, the length of every sample
