@@ -809,7 +809,12 @@ pub(super) mod tests {
     /// its own moment, forward and backward, and the density pass at one moment.
     #[test]
     fn the_moving_field_matches_the_cpu() {
-        let field = FastField::new(FastFieldConfig {
+        matches_the_cpu(&small_moving_field(), None, false, true);
+    }
+
+    /// [`small_field`] with a small space-time grid beside its hash grid.
+    pub fn small_moving_field() -> FastField {
+        FastField::new(FastFieldConfig {
             motion: Some(crate::encoding::space_time_grid::SpaceTimeConfig {
                 levels: 3,
                 log2_table_size: 8,
@@ -819,8 +824,7 @@ pub(super) mod tests {
                 max_time_resolution: 8,
             }),
             ..small_field().config
-        });
-        matches_the_cpu(&field, None, false, true);
+        })
     }
 
     /// An anti-aliased field: each sample's footprint (from well under a fine cell to

@@ -151,13 +151,11 @@ pub fn add_time_smoothness(
 
 #[cfg(test)]
 mod tests {
-    use crate::encoding::space_time_grid::SpaceTimeConfig;
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst};
-    use crate::engine::gpu::field::tests::small_field;
+    use crate::engine::gpu::field::tests::small_moving_field;
     use crate::engine::gpu::field::{DeviceInput, DeviceMoments, GpuFastField};
     use crate::field::fast::FastWorkspace;
-    use crate::field::{FastField, FastFieldConfig};
     use crate::nn::GradBuffer;
     use crate::rng::Rng;
     use crate::stage::{Field, FieldInput};
@@ -167,17 +165,7 @@ mod tests {
     #[test]
     fn the_prior_matches_the_cpu() {
         let Some(gpu) = test_gpu() else { return };
-        let field = FastField::new(FastFieldConfig {
-            motion: Some(SpaceTimeConfig {
-                levels: 3,
-                log2_table_size: 8,
-                base_resolution: 4,
-                max_resolution: 24,
-                base_time_resolution: 2,
-                max_time_resolution: 8,
-            }),
-            ..small_field().config
-        });
+        let field = small_moving_field();
         let mut rng = Rng::new(5);
         let params: Vec<f32> = (0..field.num_params())
             .map(|_| rng.range(-0.5, 0.5))
