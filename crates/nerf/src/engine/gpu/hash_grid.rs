@@ -81,11 +81,12 @@ pub(super) fn cell_at(x: f32, y: f32, z: f32, res: u32) -> (u32, u32, u32, f32, 
 /// offset of its table in the parameter vector.
 #[cube]
 pub(super) fn level_words(levels: &[u32], l: usize) -> (u32, u32, u32, usize) {
+    let at = LEVEL_WORDS * l;
     (
-        levels[4 * l],
-        levels[4 * l + 1],
-        levels[4 * l + 2],
-        levels[4 * l + 3] as usize,
+        levels[at],
+        levels[at + 1],
+        levels[at + 2],
+        levels[at + 3] as usize,
     )
 }
 

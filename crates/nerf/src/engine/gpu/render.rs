@@ -446,16 +446,15 @@ impl<'a> Rounds<'a> {
         let round_codes = lane
             .ray_codes
             .map(|per_ray| SampleCodes::of_rays(gpu, per_ray, &samples.offsets, k, s));
-        let times = match (&lane.batch.times, self.needs.moments) {
+        // A still field reads no moment: its rays' own are not spread to their samples.
+        let each;
+        let moments = match (&lane.batch.times, self.needs.moments) {
             (RayTimes::PerRay(per_ray), true) => {
-                Some(per_sample(gpu, per_ray, &samples.offsets, k, s))
+                each = per_sample(gpu, per_ray, &samples.offsets, k, s);
+                DeviceMoments::Each(&each)
             }
-            _ => None,
-        };
-        let moments = match (&times, &lane.batch.times) {
-            (Some(each), _) => DeviceMoments::Each(each),
-            (None, RayTimes::At(t)) => DeviceMoments::At(*t),
-            (None, RayTimes::PerRay(_)) => DeviceMoments::At(0.0),
+            (RayTimes::PerRay(_), false) => DeviceMoments::At(0.0),
+            (RayTimes::At(t), _) => DeviceMoments::At(*t),
         };
         let footprints = lane.radii.map(|radii| {
             let csr = (&samples.offsets, &samples.t);

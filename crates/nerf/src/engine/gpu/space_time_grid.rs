@@ -78,12 +78,13 @@ fn corner_weight(cell: &Cell, k: u32) -> f32 {
 /// resolution, entries, dense (0/1), and the offset of its table in the parameter vector.
 #[cube]
 fn level_words(levels: &[u32], l: usize) -> (u32, u32, u32, u32, usize) {
+    let at = LEVEL_WORDS * l;
     (
-        levels[5 * l],
-        levels[5 * l + 1],
-        levels[5 * l + 2],
-        levels[5 * l + 3],
-        levels[5 * l + 4] as usize,
+        levels[at],
+        levels[at + 1],
+        levels[at + 2],
+        levels[at + 3],
+        levels[at + 4] as usize,
     )
 }
 
