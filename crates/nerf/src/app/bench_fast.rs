@@ -147,6 +147,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         distortion: opts.distortion.map_or(Choice::Default, Choice::On),
         few_view: Choice::Default,
         dynamic: Choice::Default,
+        depth_smoothness: Choice::Default,
     };
     let facts = defaults::SceneFacts {
         blender,

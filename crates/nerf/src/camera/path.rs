@@ -145,6 +145,23 @@ fn slerp(a: [f32; 4], mut b: [f32; 4], t: f32) -> [f32; 4] {
     q.map(|v| v / l)
 }
 
+/// The pose a fraction `t` of the way from `a` to `b`: rotations by slerp, positions
+/// along the straight line between them, or, with `orbit`, at the interpolated distance
+/// from the world origin along the interpolated direction (cameras around an object: the
+/// straight line would cut inside their sphere, closer than any photo was taken).
+pub fn pose_between(a: &Pose, b: &Pose, t: f32, orbit: bool) -> Pose {
+    let (pa, pb) = (column(a, 3), column(b, 3));
+    let line = add(scale(pa, 1.0 - t), scale(pb, t));
+    let pos = if orbit {
+        let radius = (1.0 - t) * crate::math::length(pa) + t * crate::math::length(pb);
+        scale(normalize_or_zero(line), radius)
+    } else {
+        line
+    };
+    let [x, y, z] = rotation(slerp(quaternion(a), quaternion(b), t));
+    from_columns(x, y, z, pos)
+}
+
 /// A closed, smooth path through `keys` training cameras (taken evenly from `poses` and
 /// ordered by azimuth around the up axis so the loop does not zigzag): positions by
 /// Catmull-Rom splines, which pass through every key, rotations by slerp.
@@ -389,6 +406,32 @@ mod tests {
         }
         assert_eq!(path_parameter(6, 7, 4, false), (2, 1.0));
         assert_eq!(path_parameter(3, 8, 4, true), (1, 0.5));
+    }
+
+    #[test]
+    fn poses_between_two_cameras_run_from_one_to_the_other() {
+        let a = look_at([4.0, 0.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]);
+        let b = look_at([0.0, 4.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]);
+        let close = |p: &Pose, q: &Pose| {
+            p.iter()
+                .flatten()
+                .zip(q.iter().flatten())
+                .all(|(x, y)| (x - y).abs() < 1e-5)
+        };
+        for orbit in [false, true] {
+            assert!(close(&pose_between(&a, &b, 0.0, orbit), &a));
+            assert!(close(&pose_between(&a, &b, 1.0, orbit), &b));
+        }
+        // Halfway around the orbit: as far out as both, and still facing the centre.
+        let half = pose_between(&a, &b, 0.5, true);
+        let radius = crate::math::length(column(&a, 3));
+        assert!((crate::math::length(column(&half, 3)) - radius).abs() < 1e-4);
+        let towards = normalize_or_zero(scale(column(&half, 3), -1.0));
+        let looking = scale(column(&half, 2), -1.0);
+        assert!(crate::math::dot(towards, looking) > 0.99);
+        // On the straight line it is inside the orbit.
+        let line = pose_between(&a, &b, 0.5, false);
+        assert!(crate::math::length(column(&line, 3)) < radius - 0.5);
     }
 
     #[test]

@@ -37,10 +37,12 @@ pub enum Feature {
     DNerf,
     /// FreeNeRF's frequency mask and occlusion penalty (`--preset freenerf`).
     FreeNerf,
+    /// RegNeRF's depth smoothness on patches from unseen poses (`--depth-smoothness`).
+    DepthSmoothness,
 }
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
-const TABLE: [(Feature, bool, bool); 9] = [
+const TABLE: [(Feature, bool, bool); 10] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, true),
@@ -50,11 +52,12 @@ const TABLE: [(Feature, bool, bool); 9] = [
     (Feature::Dynamic, true, true),
     (Feature::DNerf, true, false),
     (Feature::FreeNerf, true, true),
+    (Feature::DepthSmoothness, true, false),
 ];
 
 impl Feature {
     /// Every feature, in the table's order.
-    pub const ALL: [Feature; 9] = [
+    pub const ALL: [Feature; 10] = [
         Feature::Antialias,
         Feature::Appearance,
         Feature::CameraRefinement,
@@ -64,6 +67,7 @@ impl Feature {
         Feature::Dynamic,
         Feature::DNerf,
         Feature::FreeNerf,
+        Feature::DepthSmoothness,
     ];
 
     /// Its name and the flags that ask for it and turn it off, for messages.
@@ -89,6 +93,9 @@ impl Feature {
             Feature::FreeNerf => {
                 "FreeNeRF's frequency mask and occlusion penalty (--preset freenerf)"
             }
+            Feature::DepthSmoothness => {
+                "RegNeRF's depth smoothness on patches from unseen poses (--depth-smoothness)"
+            }
         }
     }
 
@@ -102,6 +109,7 @@ impl Feature {
                 (Feature::CameraRefinement, ModelConfig::Fast(c)) => c.refine_cameras.is_some(),
                 (Feature::Distortion, ModelConfig::Fast(c)) => c.distortion > 0.0,
                 (Feature::FewView, ModelConfig::Fast(c)) => c.few_view.is_some(),
+                (Feature::DepthSmoothness, ModelConfig::Fast(c)) => c.depth_smoothness.is_some(),
                 (Feature::Dynamic, ModelConfig::Fast(c)) => c.field.motion.is_some(),
                 (Feature::DNerf, ModelConfig::Vanilla(c)) => c.net.deformation.is_some(),
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,

@@ -6,24 +6,29 @@
 //!    the step) and marched, in waves of blocks run in parallel (first as many blocks as the
 //!    previous step used, then 4, 8, ... 64 more) until the rays marched so far hold
 //!    `samples_per_step` samples. The step's rays are those up to the first ray at which the
-//!    running sample count reaches the budget, whatever the waves were.
+//!    running sample count reaches the budget, whatever the waves were. With RegNeRF's
+//!    depth smoothness (`depth_smoothness`), the photo rays are instead the whole blocks
+//!    up to that one, and the step's patches from unseen poses follow, one block each.
 //! 2. The kept rays are shared among the `W` workers in contiguous runs holding about as
 //!    many samples each; a worker runs forward, loss and backward over its run in chunks of
-//!    about `batch_samples` samples, into its own gradient buffer. Squared errors are kept
-//!    per ray and summed in ray order, so losses are the same for any thread count;
-//!    gradients differ only by the order in which they are summed.
+//!    about `batch_samples` samples (never splitting a patch), into its own gradient
+//!    buffer. Squared errors are kept per ray and summed in ray order, so losses are the
+//!    same for any thread count; gradients differ only by the order in which they are
+//!    summed.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera_refine::{self, CameraRefinement, CameraStep};
 use super::few_view::FewView;
+use super::unseen_patches::{self, DepthSmoothness, PatchDraw};
 use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
 use crate::camera::ray_space::RaySpace;
 use crate::data::pixels::{PixelSampling, TrainingRays};
 use crate::data::Dataset;
 use crate::field::{FastField, FastFieldConfig, FastWorkspace as FieldContext};
 use crate::nn::{GradBuffer, ParamLayout};
+use crate::render::depth_smoothness::{PatchBackward, PATCH_RAYS};
 use crate::render::loss::{squared_error, LossBackward};
 use crate::render::march::{render_marched, MarchWorkspace, Marcher};
 use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
@@ -34,6 +39,8 @@ use crate::step_clock::{self, Stage};
 
 /// Rays per marching block of a training step.
 pub const BLOCK_RAYS: usize = 16;
+// A block of patch rays is one patch (see `StepRays::patch_from`).
+const _: () = assert!(BLOCK_RAYS == PATCH_RAYS);
 
 /// Name of the occupancy grid in checkpoints.
 const OCCUPANCY: &str = "occupancy.thickness";
@@ -73,6 +80,10 @@ pub struct FastModelConfig {
     /// features; 0: none.
     #[serde(default, skip_serializing_if = "is_zero")]
     pub time_smoothness: f32,
+    /// RegNeRF's depth smoothness on patches from poses between the training cameras
+    /// (see `unseen_patches`, `render::depth_smoothness`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_smoothness: Option<DepthSmoothness>,
 }
 
 fn is_zero(x: &f32) -> bool {
@@ -94,6 +105,7 @@ impl Default for FastModelConfig {
             distortion: 0.0,
             few_view: None,
             time_smoothness: 0.0,
+            depth_smoothness: None,
         }
     }
 }
@@ -141,6 +153,10 @@ struct ChunkInput<'a> {
     check: &'a FiniteCheck,
     /// The training cameras' corrections this step (empty: cameras are not refined).
     cameras: &'a [CameraStep],
+    /// The step's rays from here on are patches from unseen poses (no photo's pixels),
+    /// a whole block each, and their loss's gradient scale.
+    patch_from: usize,
+    patch_scale: f32,
 }
 
 impl FastModel {
@@ -235,6 +251,7 @@ pub struct FastWorkspace {
     /// `dL/d sample position` and `dL/d view direction` (camera refinement).
     d_positions: Vec<f32>,
     d_dirs: Vec<f32>,
+    patch: PatchBackward,
 }
 
 /// Buffers a whole step shares: the marched blocks.
@@ -262,11 +279,44 @@ impl FastModel {
             first..first + BLOCK_RAYS as u64,
         );
         camera_refine::correct_drawn_rays(&mut block.rays.rays, input.cameras);
+        self.pack_block(marcher, block);
+    }
+
+    /// Marches a block's drawn rays into its samples.
+    fn pack_block(&self, marcher: &Marcher, block: &mut MarchedBlock) {
         block.samples.clear();
         for r in 0..block.rays.len() {
             let jitter = block.rays.rngs[r].uniform();
             marcher.pack_ray(&self.grid, &block.rays.rays, r, jitter, &mut block.samples);
         }
+    }
+
+    /// Draws and marches the step's patches from unseen poses into `blocks[from..]`, one
+    /// block each.
+    fn march_patches(
+        &self,
+        input: &MarchInput,
+        smoothness: &DepthSmoothness,
+        blocks: &mut Vec<MarchedBlock>,
+        from: usize,
+    ) {
+        let marcher = self.marcher(input.data.near, input.data.far);
+        let end = from + smoothness.patches;
+        if blocks.len() < end {
+            blocks.resize_with(end, MarchedBlock::default);
+        }
+        blocks[from..end]
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(k, block)| {
+                let draw = PatchDraw {
+                    seed: input.sampling.seed,
+                    step: input.sampling.step,
+                    k: k as u64,
+                };
+                unseen_patches::draw_patch(input.data, draw, smoothness.stride, &mut block.rays);
+                self.pack_block(&marcher, block);
+            });
     }
 
     /// Phase 1 of a step: marches blocks until the budget is reached. Returns the number of
@@ -330,6 +380,8 @@ impl FastModel {
             blocks,
             check,
             cameras,
+            patch_from,
+            patch_scale,
         } = *input;
         let first_ray = rays.start;
         ws.samples.clear();
@@ -383,6 +435,14 @@ impl FastModel {
             &mut ws.outputs,
         );
         check_outputs(check, &ws.weights, &ws.outputs);
+        // A patch ray has no photo: compared with what it renders, it adds no colour loss.
+        let first_patch = patch_from.saturating_sub(first_ray).min(r);
+        for (target, out) in ws.targets[first_patch..]
+            .iter_mut()
+            .zip(&ws.outputs[first_patch..])
+        {
+            *target = out.rgb;
+        }
         ws.loss.run(
             &ws.samples,
             field,
@@ -399,6 +459,9 @@ impl FastModel {
                 self.config.distortion,
             );
         }
+        if first_patch < r {
+            self.add_depth_smoothness(first_patch, patch_scale, ws);
+        }
         clock.stop();
         check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
         check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
@@ -412,7 +475,13 @@ impl FastModel {
                 &mut ws.d_positions,
                 &mut ws.d_dirs,
             );
-            self.camera_gradients(blocks, first_ray, cameras, ws, grads);
+            self.camera_gradients(
+                blocks,
+                first_ray..first_ray + first_patch,
+                cameras,
+                ws,
+                grads,
+            );
         } else if n > 0 {
             self.field.backward(
                 params,
@@ -444,14 +513,40 @@ impl FastModel {
 }
 
 impl FastModel {
-    /// Carries the chunk's position gradients (in `ws.d_positions`, for the rays from
-    /// `first_ray` on, packed in `ws.samples`) back through contraction to each ray's
-    /// origin and direction, and from there (through the NDC warp for forward-facing
-    /// scenes) into its camera's correction in `grads`.
+    /// RegNeRF's depth smoothness of the chunk's patches (its rays from `first` on, in
+    /// whole patches), its gradient times `scale` into the loss's density gradient.
+    fn add_depth_smoothness(&self, first: usize, scale: f32, ws: &mut FastWorkspace) {
+        let FastWorkspace {
+            samples,
+            weights,
+            loss,
+            patch,
+            ..
+        } = ws;
+        let unit = self.config.box_diagonal();
+        loss.add_penalty(|d_sigma| {
+            for p in (first..samples.rays()).step_by(PATCH_RAYS) {
+                let rays: Vec<_> = (p..p + PATCH_RAYS).map(|r| samples.ray(r)).collect();
+                patch.add(
+                    &rays,
+                    (&samples.t, &samples.dt, weights),
+                    unit,
+                    scale,
+                    d_sigma,
+                );
+            }
+        });
+    }
+
+    /// Carries the position gradients of the chunk's photo rays `photo_rays` (step
+    /// indices; in `ws.d_positions`, packed in `ws.samples` from the chunk's first ray)
+    /// back through contraction to each ray's origin and direction, and from there
+    /// (through the NDC warp for forward-facing scenes) into its camera's correction in
+    /// `grads`.
     fn camera_gradients(
         &self,
         blocks: &[MarchedBlock],
-        first_ray: usize,
+        photo_rays: std::ops::Range<usize>,
         cameras: &[CameraStep],
         ws: &FastWorkspace,
         grads: &mut GradBuffer,
@@ -464,7 +559,8 @@ impl FastModel {
         let per = camera_refine::PER_CAMERA;
         let mut touched = (usize::MAX, 0);
         let values = &mut grads.values;
-        for i in 0..ws.samples.rays() {
+        let first_ray = photo_rays.start;
+        for i in 0..photo_rays.len() {
             let g = first_ray + i;
             let block = &blocks[g / BLOCK_RAYS];
             let r = g % BLOCK_RAYS;
@@ -545,9 +641,26 @@ impl Model for FastModel {
         };
         let clock = step_clock::start(Stage::Marching);
         let (used, last_rays) = self.march_step(&march, shared);
+        // With patches from unseen poses, the photo rays end with their last whole block
+        // and each patch is a block of its own after them.
+        let (photo_rays, patches) = match &self.config.depth_smoothness {
+            Some(smoothness) => {
+                self.march_patches(&march, smoothness, &mut shared.blocks, used);
+                (used * BLOCK_RAYS, smoothness.patches)
+            }
+            None => ((used - 1) * BLOCK_RAYS + last_rays, 0),
+        };
         clock.stop();
-        let blocks = &shared.blocks[..used];
-        let n_rays = (used - 1) * BLOCK_RAYS + last_rays;
+        let blocks = &shared.blocks[..used + patches];
+        let n_rays = photo_rays + patches * PATCH_RAYS;
+        // Where a worker's share or a chunk may end: never inside a patch.
+        let can_end_after =
+            |g: usize| g < photo_rays || (g + 1 - photo_rays).is_multiple_of(PATCH_RAYS);
+        // The step's gradient is scaled by 1 / (3 photo rays) (see `render::loss`): this
+        // makes the loss the weight times its mean over the step's patches.
+        let patch_scale = self.config.depth_smoothness.map_or(0.0, |d| {
+            d.weight * (3 * photo_rays) as f32 / d.patches.max(1) as f32
+        });
         let samples_of = |g: usize| blocks[g / BLOCK_RAYS].samples.ray(g % BLOCK_RAYS).len();
         // Each worker takes a contiguous share of the rays holding about as many samples as
         // the others' (the threads finish together), in chunks of `batch_samples`.
@@ -558,7 +671,10 @@ impl Model for FastModel {
         let mut held = 0;
         for g in 0..n_rays {
             held += samples_of(g);
-            while shares.len() < n_workers && held * n_workers >= total * shares.len() {
+            while shares.len() < n_workers
+                && held * n_workers >= total * shares.len()
+                && can_end_after(g)
+            {
                 shares.push(g + 1);
             }
         }
@@ -594,12 +710,14 @@ impl Model for FastModel {
                     .pre_encode(input.params, &positions, &mut worker.ws.field);
                 for g in first..shares[w + 1] {
                     held += samples_of(g);
-                    if held >= batch || g + 1 == shares[w + 1] {
+                    if (held >= batch && can_end_after(g)) || g + 1 == shares[w + 1] {
                         let chunk = ChunkInput {
                             params: input.params,
                             blocks,
                             check: input.check,
                             cameras: &cameras,
+                            patch_from: photo_rays,
+                            patch_scale,
                         };
                         self.train_chunk(
                             &chunk,
@@ -621,7 +739,7 @@ impl Model for FastModel {
         PassTotals {
             sse,
             final_sse: sse,
-            rays: n_rays,
+            rays: photo_rays,
             samples: total,
         }
     }
@@ -814,6 +932,8 @@ mod tests {
             blocks: std::slice::from_ref(&block),
             check: &FiniteCheck::default(),
             cameras: &[],
+            patch_from: n,
+            patch_scale: 0.0,
         };
         model.train_chunk(&input, 0..n, &mut ws, &mut grads, &mut per_ray);
         let sse: f64 = per_ray.iter().sum();

@@ -10,6 +10,7 @@ pub mod camera_refine;
 pub mod fast;
 pub mod few_view;
 pub mod free_nerf;
+pub mod unseen_patches;
 pub mod vanilla;
 
 use serde::{Deserialize, Serialize};
@@ -142,8 +143,18 @@ impl ModelConfig {
                         t.max_time_resolution
                     )
                 });
+                let patches = m.depth_smoothness.map_or(String::new(), |d| {
+                    format!(
+                        ", depth smoothness x {} on {} patches of {side}x{side} rays {} px apart \
+                         from unseen poses per step",
+                        d.weight,
+                        d.patches,
+                        d.stride,
+                        side = crate::render::depth_smoothness::PATCH_SIDE
+                    )
+                });
                 format!(
-                    "hash grid {} levels x 2^{} entries ({}..{} cells){motion}, {}-wide MLPs, {}^3 occupancy grid, {} samples/step",
+                    "hash grid {} levels x 2^{} entries ({}..{} cells){motion}, {}-wide MLPs, {}^3 occupancy grid, {} samples/step{patches}",
                     g.levels,
                     g.log2_table_size,
                     g.base_resolution,

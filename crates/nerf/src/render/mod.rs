@@ -3,10 +3,11 @@
 //! samplers; [`march`] with [`occupancy`]: Instant-NGP's occupancy-grid marcher, with
 //! [`contraction`] for unbounded scenes), how samples combine into a colour ([`volume`]:
 //! compositing and its backward, the volume renderer), and what the colour is compared
-//! with ([`loss`]). Nothing here knows a model: each model's pass (`model::*`) strings
+//! with ([`loss`]; the [`distortion`] and [`depth_smoothness`] regularisers). Nothing here knows a model: each model's pass (`model::*`) strings
 //! these stages together.
 
 pub mod contraction;
+pub mod depth_smoothness;
 pub mod distortion;
 pub mod loss;
 pub mod march;

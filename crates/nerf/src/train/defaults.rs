@@ -72,6 +72,8 @@ pub struct Flags {
     pub distortion: Choice<f32>,
     pub few_view: Choice,
     pub dynamic: Choice,
+    /// With the loss's weight.
+    pub depth_smoothness: Choice<f32>,
 }
 
 /// What a scene is, as far as the defaults care.
@@ -141,6 +143,7 @@ pub fn engine_for(
                 (flags.refine_cameras.asked(), Feature::CameraRefinement),
                 (flags.distortion.asked(), Feature::Distortion),
                 (flags.few_view.asked(), Feature::FewView),
+                (flags.depth_smoothness.asked(), Feature::DepthSmoothness),
                 (
                     flags.dynamic.asked() || (scene.dynamic && flags.dynamic == Choice::Default),
                     Feature::Dynamic,
@@ -419,6 +422,7 @@ mod tests {
             distortion: Choice::On(0.01),
             few_view: Choice::On(()),
             dynamic: Choice::On(()),
+            depth_smoothness: Choice::On(0.1),
         };
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
         assert!(d.dynamic);
@@ -431,6 +435,7 @@ mod tests {
             distortion: Choice::Off,
             few_view: Choice::Off,
             dynamic: Choice::Off,
+            depth_smoothness: Choice::Off,
         };
         let few = SceneFacts {
             train_views: 3,
@@ -528,6 +533,15 @@ mod tests {
             engine_for(Device::Auto, true, &moving, &still_field).0,
             EngineKind::Gpu
         );
+        // A feature only the CPU engine runs, asked for: the CPU, and the note says why.
+        let depth = Flags {
+            depth_smoothness: Choice::On(0.1),
+            ..Flags::default()
+        };
+        let (kind, note) = engine_for(Device::Auto, true, &still, &depth);
+        assert_eq!(kind, EngineKind::Cpu);
+        let note = note.unwrap_or_default();
+        assert!(note.contains("--depth-smoothness"), "{note}");
         let asks = Flags {
             antialias: Choice::On(()),
             ..Flags::default()

@@ -170,6 +170,14 @@ pub struct TrainOptions {
     /// over time (per ray; default 0, as it measured no better: docs/benchmarks.md).
     #[arg(long, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub time_smoothness: Option<f32>,
+    /// Fast, CPU engine: weight of RegNeRF's depth smoothness, on 16 patches of 4x4 rays
+    /// per step rendered from poses between the training cameras, against geometry that
+    /// only looks right from where the photos were taken (few views; 0.1 measured best).
+    /// Off by default: on 8-view lego and chair it gained 0.05-0.19 dB, and larger
+    /// weights blur the field (docs/benchmarks.md, "Few views").
+    #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive,
+          allow_negative_numbers = true)]
+    pub depth_smoothness: Option<f32>,
     /// Area-average downscale factor of the images (default 1).
     #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=64))]
     pub downscale: Option<usize>,
@@ -245,6 +253,7 @@ impl TrainOptions {
             },
             few_view: Choice::from_flags(self.few_view, self.no_few_view),
             dynamic: Choice::from_flags(self.dynamic, self.no_dynamic),
+            depth_smoothness: self.depth_smoothness.map_or(Choice::Default, Choice::On),
         }
     }
 
@@ -421,6 +430,18 @@ impl TrainOptions {
                 if d.few_view {
                     m.few_view = Some(crate::model::few_view::FewView { photos });
                 }
+                if let Some(weight) = self.depth_smoothness {
+                    use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
+                    let width = scene
+                        .cameras(crate::data::Split::Train)
+                        .first()
+                        .map_or(0, |c| c.width);
+                    m.depth_smoothness = Some(DepthSmoothness {
+                        weight,
+                        patches: PATCHES,
+                        stride: stride_for(width),
+                    });
+                }
                 if let Some(dims) = d.appearance {
                     m.field.appearance_dims = dims as usize;
                     m.field.appearance_images = scene.train.len();
@@ -483,6 +504,13 @@ impl TrainOptions {
                 return refuse(
                     "--few-view applies to --model fast only; for the paper's model on few \
                      views use --preset freenerf"
+                        .into(),
+                );
+            }
+            ModelConfig::Vanilla(_) if self.depth_smoothness.is_some() => {
+                return refuse(
+                    "--depth-smoothness applies to --model fast only; for the paper's model on \
+                     few views use --preset freenerf"
                         .into(),
                 );
             }
@@ -693,13 +721,14 @@ impl TrainOptions {
             || self.dynamic
             || self.no_dynamic
             || self.time_smoothness.is_some()
+            || self.depth_smoothness.is_some()
         {
             out.push(
                 "--paper-pe / --no-contract / --appearance / --no-appearance / \
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
                  --antialias / --no-antialias / --distortion / --no-distortion / --few-view / \
-                 --no-few-view / --dynamic / --no-dynamic / --time-smoothness (set when the run \
-                 was made)"
+                 --no-few-view / --dynamic / --no-dynamic / --time-smoothness / \
+                 --depth-smoothness (set when the run was made)"
                     .into(),
             );
         }
@@ -837,6 +866,41 @@ mod tests {
             Some((1e-3, true))
         );
         config(&["--camera-lr", "1e-3", "--no-refine-cameras"], dir.path()).expect_err("both");
+    }
+
+    /// `--depth-smoothness` reaches the fast model with the patches' spacing for the
+    /// photos' width; it is off unless asked for, and refused where it cannot apply.
+    #[test]
+    fn depth_smoothness_is_set_and_checked() {
+        use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
+        let dir = tiny_scene(8);
+        let smoothness = |c: &TrainConfig| match &c.model {
+            ModelConfig::Fast(m) => m.depth_smoothness,
+            ModelConfig::Vanilla(_) => None,
+        };
+        let c = config(&[], dir.path()).expect("default");
+        assert_eq!(smoothness(&c), None);
+        let c = config(&["--depth-smoothness", "0.1"], dir.path()).expect("given");
+        let width = c
+            .open_scene(1)
+            .expect("scene")
+            .cameras(crate::data::Split::Train)[0]
+            .width;
+        assert_eq!(
+            smoothness(&c),
+            Some(DepthSmoothness {
+                weight: 0.1,
+                patches: PATCHES,
+                stride: stride_for(width),
+            })
+        );
+        config(&["--depth-smoothness", "0"], dir.path()).expect_err("zero");
+        let err = config(
+            &["--depth-smoothness", "0.1", "--preset", "demo"],
+            dir.path(),
+        )
+        .expect_err("vanilla");
+        assert!(err.to_string().contains("--depth-smoothness"), "{err}");
     }
 
     /// `--distortion` reaches the fast model, and is refused where it cannot apply: a
