@@ -258,6 +258,8 @@ pub struct FastWorkspace {
 #[derive(Default, Debug)]
 pub struct StepBlocks {
     blocks: Vec<MarchedBlock>,
+    /// The step's patches from unseen poses, marched before the photo rays.
+    patches: Vec<MarchedBlock>,
     /// Blocks the previous step used: the size of the first wave. Wave sizes decide only
     /// how many rays are marched past the cut, never which rays are kept.
     last_used: usize,
@@ -291,32 +293,25 @@ impl FastModel {
         }
     }
 
-    /// Draws and marches the step's patches from unseen poses into `blocks[from..]`, one
-    /// block each.
+    /// Draws and marches the step's patches from unseen poses into `patches`, one block
+    /// each.
     fn march_patches(
         &self,
         input: &MarchInput,
         smoothness: &DepthSmoothness,
-        blocks: &mut Vec<MarchedBlock>,
-        from: usize,
+        patches: &mut Vec<MarchedBlock>,
     ) {
         let marcher = self.marcher(input.data.near, input.data.far);
-        let end = from + smoothness.patches;
-        if blocks.len() < end {
-            blocks.resize_with(end, MarchedBlock::default);
-        }
-        blocks[from..end]
-            .par_iter_mut()
-            .enumerate()
-            .for_each(|(k, block)| {
-                let draw = PatchDraw {
-                    seed: input.sampling.seed,
-                    step: input.sampling.step,
-                    k: k as u64,
-                };
-                unseen_patches::draw_patch(input.data, draw, smoothness.stride, &mut block.rays);
-                self.pack_block(&marcher, block);
-            });
+        patches.resize_with(smoothness.patches, MarchedBlock::default);
+        patches.par_iter_mut().enumerate().for_each(|(k, block)| {
+            let draw = PatchDraw {
+                seed: input.sampling.seed,
+                step: input.sampling.step,
+                k: k as u64,
+            };
+            unseen_patches::draw_patch(input.data, draw, smoothness.stride, &mut block.rays);
+            self.pack_block(&marcher, block);
+        });
     }
 
     /// Phase 1 of a step: marches blocks until the budget is reached. Returns the number of
@@ -640,12 +635,23 @@ impl Model for FastModel {
             cameras: &cameras,
         };
         let clock = step_clock::start(Stage::Marching);
+        // Patches from unseen poses come on top of the photo rays' budget: taking their
+        // samples out of it measured worse at equal time (docs/benchmarks.md).
+        if let Some(smoothness) = &self.config.depth_smoothness {
+            self.march_patches(&march, smoothness, &mut shared.patches);
+        }
         let (used, last_rays) = self.march_step(&march, shared);
-        // With patches from unseen poses, the photo rays end with their last whole block
-        // and each patch is a block of its own after them.
+        // With patches, the photo rays end with their last whole block and each patch is
+        // a block of its own after them.
         let (photo_rays, patches) = match &self.config.depth_smoothness {
             Some(smoothness) => {
-                self.march_patches(&march, smoothness, &mut shared.blocks, used);
+                let end = used + smoothness.patches;
+                if shared.blocks.len() < end {
+                    shared.blocks.resize_with(end, MarchedBlock::default);
+                }
+                for (block, patch) in shared.blocks[used..end].iter_mut().zip(&mut shared.patches) {
+                    std::mem::swap(block, patch);
+                }
                 (used * BLOCK_RAYS, smoothness.patches)
             }
             None => ((used - 1) * BLOCK_RAYS + last_rays, 0),

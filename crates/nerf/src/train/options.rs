@@ -172,12 +172,15 @@ pub struct TrainOptions {
     pub time_smoothness: Option<f32>,
     /// Fast, CPU engine: weight of RegNeRF's depth smoothness, on 16 patches of 4x4 rays
     /// per step rendered from poses between the training cameras, against geometry that
-    /// only looks right from where the photos were taken (few views; 0.1 measured best).
-    /// Off by default: on 8-view lego and chair it gained 0.05-0.19 dB, and larger
-    /// weights blur the field (docs/benchmarks.md, "Few views").
+    /// only looks right from where the photos were taken. Default: 0.1 for forward-facing
+    /// (NDC) runs on at most 16 photos (+2.4 dB on the rug from 3); none for others (on
+    /// 8-view lego and chair it gained 0.05-0.19 dB; docs/benchmarks.md, "Few views").
     #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive,
-          allow_negative_numbers = true)]
+          allow_negative_numbers = true, conflicts_with = "no_depth_smoothness")]
     pub depth_smoothness: Option<f32>,
+    /// Fast: no depth smoothness (the default but for forward-facing runs on few photos).
+    #[arg(long)]
+    pub no_depth_smoothness: bool,
     /// Area-average downscale factor of the images (default 1).
     #[arg(long, value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..=64))]
     pub downscale: Option<usize>,
@@ -253,7 +256,11 @@ impl TrainOptions {
             },
             few_view: Choice::from_flags(self.few_view, self.no_few_view),
             dynamic: Choice::from_flags(self.dynamic, self.no_dynamic),
-            depth_smoothness: self.depth_smoothness.map_or(Choice::Default, Choice::On),
+            depth_smoothness: match (self.depth_smoothness, self.no_depth_smoothness) {
+                (Some(w), _) => Choice::On(w),
+                (None, true) => Choice::Off,
+                (None, false) => Choice::Default,
+            },
         }
     }
 
@@ -430,7 +437,8 @@ impl TrainOptions {
                 if d.few_view {
                     m.few_view = Some(crate::model::few_view::FewView { photos });
                 }
-                if let Some(weight) = self.depth_smoothness {
+                if d.depth_smoothness > 0.0 {
+                    let weight = d.depth_smoothness;
                     use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
                     let width = scene
                         .cameras(crate::data::Split::Train)
@@ -722,13 +730,14 @@ impl TrainOptions {
             || self.no_dynamic
             || self.time_smoothness.is_some()
             || self.depth_smoothness.is_some()
+            || self.no_depth_smoothness
         {
             out.push(
                 "--paper-pe / --no-contract / --appearance / --no-appearance / \
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
                  --antialias / --no-antialias / --distortion / --no-distortion / --few-view / \
                  --no-few-view / --dynamic / --no-dynamic / --time-smoothness / \
-                 --depth-smoothness (set when the run was made)"
+                 --depth-smoothness / --no-depth-smoothness (set when the run was made)"
                     .into(),
             );
         }
@@ -869,7 +878,8 @@ mod tests {
     }
 
     /// `--depth-smoothness` reaches the fast model with the patches' spacing for the
-    /// photos' width; it is off unless asked for, and refused where it cannot apply.
+    /// photos' width; unasked, it is on for forward-facing runs on few photos only;
+    /// `--no-depth-smoothness` turns it off; it is refused where it cannot apply.
     #[test]
     fn depth_smoothness_is_set_and_checked() {
         use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
@@ -895,6 +905,20 @@ mod tests {
             })
         );
         config(&["--depth-smoothness", "0"], dir.path()).expect_err("zero");
+        // Forward-facing on few photos (4 here): on by default on the CPU engine.
+        let llff = tiny_llff();
+        let c = config(&["--device", "cpu"], llff.path()).expect("llff");
+        assert_eq!(
+            smoothness(&c).map(|d| d.weight),
+            Some(defaults::FEW_VIEW_DEPTH_SMOOTHNESS)
+        );
+        let c = config(&["--no-depth-smoothness"], llff.path()).expect("off");
+        assert_eq!(smoothness(&c), None);
+        config(
+            &["--depth-smoothness", "1", "--no-depth-smoothness"],
+            llff.path(),
+        )
+        .expect_err("both");
         let err = config(
             &["--depth-smoothness", "0.1", "--preset", "demo"],
             dir.path(),

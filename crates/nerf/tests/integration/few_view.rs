@@ -1,6 +1,7 @@
 //! Few-view training: the built-in chair from 8 photos, with and without keeping the
-//! space that fewer than half of them see empty, and with and without RegNeRF's depth
-//! smoothness; from 3 photos, the paper's model with and without FreeNeRF's regularisers.
+//! space that fewer than half of them see empty; the forward-facing rug from 3 photos,
+//! with and without RegNeRF's depth smoothness; from 3 photos, the paper's model with and
+//! without FreeNeRF's regularisers.
 
 use nerf::model::few_view::FewView;
 use nerf::model::ModelConfig;
@@ -60,23 +61,27 @@ fn few_view_training_keeps_space_few_photos_see_empty_and_scores_better() {
     assert!(few_occ < plain_occ, "{few_occ} against {plain_occ}");
 }
 
-/// RegNeRF's depth smoothness from 8 photos: trained with it, the field's depth seen from
-/// poses between the cameras (patches it never trained on) is smoother than without (a
-/// third less rough at this weight, which is strong: its held-out views lose 0.6 dB, so
-/// the bound on them is loose).
+/// RegNeRF's depth smoothness on the forward-facing rug from 3 photos (RegNeRF's LLFF
+/// protocol, where it is on by default): trained with it, the field's depth seen from
+/// poses between the cameras (patches it never trained on) is smoother than without, and
+/// its held-out views score better.
 #[test]
 fn depth_smoothness_smooths_the_depth_seen_from_between_the_cameras() {
+    use nerf::data::synth::{self, SceneKind};
     use nerf::model::unseen_patches::{draw_patch, DepthSmoothness, PatchDraw, PATCHES};
     use nerf::render::depth_smoothness::{patch_loss, PATCH_RAYS};
     let dir = tempfile::tempdir().expect("tempdir");
-    let data = dir.path().join("chair");
-    chair_scene(&data, 64, PHOTOS, 8, 3);
-    let train = |name: &str, weight: Option<f32>| {
-        let mut config = fast_config(&data, 300);
+    let data = dir.path().join("rug");
+    let cameras = synth::llff::forward_facing_cameras(128, 96, 5, 6);
+    let world = nerf::data::poses::Similarity::IDENTITY;
+    synth::llff::write(SceneKind::Rug, &cameras, 1, &world, &data, &mut |_, _| {})
+        .expect("write llff");
+    let train = |name: &str, smooth: bool| {
+        let mut config = fast_config(&data, STEPS);
+        config.train_views = Some(nerf::data::TrainViews::Spread { spread: 3 });
         if let ModelConfig::Fast(m) = &mut config.model {
-            m.few_view = Some(FewView { photos: PHOTOS });
-            m.depth_smoothness = weight.map(|weight| DepthSmoothness {
-                weight,
+            m.depth_smoothness = smooth.then_some(DepthSmoothness {
+                weight: nerf::train::defaults::FEW_VIEW_DEPTH_SMOOTHNESS,
                 patches: PATCHES,
                 stride: 1,
             });
@@ -84,8 +89,9 @@ fn depth_smoothness_smooths_the_depth_seen_from_between_the_cameras() {
         let (run, _, psnr) = train_and_score(&dir.path().join(name), config);
         (run, psnr)
     };
-    let (plain, plain_psnr) = train("plain", None);
-    let (smooth, smooth_psnr) = train("smooth", Some(1.0));
+    const STEPS: u64 = 600;
+    let (plain, plain_psnr) = train("plain", false);
+    let (smooth, smooth_psnr) = train("smooth", true);
     let photos = plain
         .config
         .open_scene(1)
@@ -114,15 +120,15 @@ fn depth_smoothness_smooths_the_depth_seen_from_between_the_cameras() {
     };
     let (plain_rough, smooth_rough) = (roughness(&plain), roughness(&smooth));
     eprintln!(
-        "8 photos: roughness {plain_rough:.5} plain, {smooth_rough:.5} with depth smoothness; \
-         held-out {plain_psnr:.2} / {smooth_psnr:.2} dB"
+        "rug from 3 photos: roughness {plain_rough:.6} plain, {smooth_rough:.6} with depth \
+         smoothness; held-out {plain_psnr:.2} / {smooth_psnr:.2} dB"
     );
     assert!(
         smooth_rough < 0.8 * plain_rough,
         "roughness {smooth_rough} against {plain_rough}"
     );
     assert!(
-        smooth_psnr > plain_psnr - 1.0,
+        smooth_psnr > plain_psnr + 0.5,
         "{smooth_psnr:.2} dB against {plain_psnr:.2} dB"
     );
 }
