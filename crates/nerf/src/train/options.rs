@@ -452,12 +452,11 @@ impl TrainOptions {
                 }
                 if let Some(dims) = d.appearance {
                     m.field.appearance_dims = dims as usize;
-                    m.field.appearance_images = scene.train.len();
+                    m.field.appearance_images = photos;
                 }
                 let asked = d.refine_asked;
                 if d.refine_cameras {
-                    let mut r =
-                        crate::model::camera_refine::CameraRefinement::new(scene.train.len());
+                    let mut r = crate::model::camera_refine::CameraRefinement::new(photos);
                     r.frame = crate::model::camera_refine::Frame::for_space(scene.space);
                     if let Some(lr) = self.camera_lr {
                         if !(lr.is_finite() && lr > 0.0) {
@@ -1021,6 +1020,10 @@ mod tests {
         assert_eq!(codes(&eight).0, 8);
         let ms = config(&["--device", "cpu", "--multiscale", "2"], real.path()).expect("ms");
         assert!(refinement(&ms).is_none() && codes(&ms).0 == 0);
+        // On some of the photos: a code and a correction for each photo it trains on.
+        let few = config(&["--device", "cpu", "--train-views", "3"], real.path()).expect("3");
+        assert_eq!(codes(&few).1, 3);
+        assert_eq!(refinement(&few).map(|r| r.cameras), Some(3));
     }
 
     /// `--multiscale` and `--antialias` reach the config (anti-aliasing with the
