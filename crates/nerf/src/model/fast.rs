@@ -39,7 +39,7 @@ use crate::step_clock::{self, Stage};
 
 /// Rays per marching block of a training step.
 pub const BLOCK_RAYS: usize = 16;
-// A block of patch rays is one patch (see `StepRays::patch_from`).
+// A block of patch rays is one patch (see `ChunkInput::patch_from`).
 const _: () = assert!(BLOCK_RAYS == PATCH_RAYS);
 
 /// Name of the occupancy grid in checkpoints.
@@ -521,7 +521,7 @@ impl FastModel {
         let unit = self.config.box_diagonal();
         loss.add_penalty(|d_sigma| {
             for p in (first..samples.rays()).step_by(PATCH_RAYS) {
-                let rays: Vec<_> = (p..p + PATCH_RAYS).map(|r| samples.ray(r)).collect();
+                let rays: [_; PATCH_RAYS] = std::array::from_fn(|i| samples.ray(p + i));
                 patch.add(
                     &rays,
                     (&samples.t, &samples.dt, weights),

@@ -50,14 +50,10 @@ pub struct PatchDraw {
 /// nearest neighbours (the photos training rays are drawn from), and its random stream.
 fn camera_between(data: &Dataset, draw: PatchDraw) -> (usize, Camera, Rng) {
     let mut rng = Rng::for_stream(draw.seed, draw.step, PATCH_STREAMS + draw.k);
-    let all: Vec<usize>;
-    let drawn = match &data.drawn_views {
-        Some(d) => d.as_slice(),
-        None => {
-            all = (0..data.views.len()).collect();
-            &all
-        }
-    };
+    let drawn = data
+        .drawn_views
+        .clone()
+        .unwrap_or_else(|| (0..data.views.len()).collect());
     let a = drawn[rng.below(drawn.len())];
     let centre = data.views[a].camera.origin();
     let mut others: Vec<(f32, usize)> = drawn

@@ -78,13 +78,12 @@ impl PatchBackward {
     /// gradient times `scale` into `d_sigma`. Returns the loss.
     pub fn add(
         &mut self,
-        rays: &[std::ops::Range<usize>],
+        rays: &[std::ops::Range<usize>; PATCH_RAYS],
         (t, dt, weights): (&[f32], &[f32], &[f32]),
         unit: f32,
         scale: f32,
         d_sigma: &mut [f32],
     ) -> f32 {
-        debug_assert_eq!(rays.len(), PATCH_RAYS);
         let (mut depth, mut opacity) = ([0.0f32; PATCH_RAYS], [0.0f32; PATCH_RAYS]);
         for (r, s) in rays.iter().enumerate() {
             let (a, d) = ray_depth(&t[s.clone()], &weights[s.clone()]);
@@ -180,9 +179,10 @@ mod tests {
             let p = patch(&mut rng);
             let (unit, scale) = (1.7, 0.6);
             let w = weights_of(&p, &p.sigma);
+            let rays: [_; PATCH_RAYS] = p.rays.clone().try_into().expect("a whole patch");
             let mut d_sigma = vec![0.0; p.sigma.len()];
             let loss =
-                PatchBackward::default().add(&p.rays, (&p.t, &p.dt, &w), unit, scale, &mut d_sigma);
+                PatchBackward::default().add(&rays, (&p.t, &p.dt, &w), unit, scale, &mut d_sigma);
             assert!((loss as f64 - loss_at(&p, &p.sigma, &p.sigma, unit)).abs() < 1e-6);
             assert!(loss > 0.0);
             let h = 1e-2f32;

@@ -64,8 +64,30 @@ impl Choice {
 }
 
 impl<T> Choice<T> {
+    /// From a flag with a value and its `--no-x` (clap keeps them apart).
+    pub fn from_value(value: Option<T>, off: bool) -> Choice<T> {
+        match (value, off) {
+            (Some(v), _) => Choice::On(v),
+            (None, true) => Choice::Off,
+            (None, false) => Choice::Default,
+        }
+    }
+
     fn asked(&self) -> bool {
         matches!(self, Choice::On(_))
+    }
+}
+
+impl Choice<f32> {
+    /// A loss's weight: the one asked for, none when turned off, else `default` where
+    /// `on_by_default` says so and none where not.
+    fn weight(self, default: f32, on_by_default: impl FnOnce() -> bool) -> f32 {
+        match self {
+            Choice::On(w) => w,
+            Choice::Off => 0.0,
+            Choice::Default if on_by_default() => default,
+            Choice::Default => 0.0,
+        }
     }
 }
 
@@ -256,26 +278,16 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         Choice::Default => by_default(Feature::CameraRefinement, corrections_on, ""),
     };
 
-    let distortion = match flags.distortion {
-        Choice::On(w) => w,
-        Choice::Off => 0.0,
-        Choice::Default => {
-            let on = by_default(
-                Feature::Distortion,
-                scene.forward_facing(),
-                &format!(
-                    "distortion loss {FORWARD_FACING_DISTORTION} against fog (the default \
-                     for forward-facing scenes: views render 2-5x faster; --no-distortion \
-                     turns it off)"
-                ),
-            );
-            if on {
-                FORWARD_FACING_DISTORTION
-            } else {
-                0.0
-            }
-        }
-    };
+    let distortion = flags.distortion.weight(FORWARD_FACING_DISTORTION, || {
+        by_default(
+            Feature::Distortion,
+            scene.forward_facing(),
+            &format!(
+                "distortion loss {FORWARD_FACING_DISTORTION} against fog (the default for \
+                 forward-facing scenes: views render 2-5x faster; --no-distortion turns it off)"
+            ),
+        )
+    });
 
     let few = scene.train_views <= crate::model::few_view::FEW_VIEWS
         && crate::model::few_view::applies(scene.space, scene.contract);
@@ -295,28 +307,21 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         ),
     };
 
-    let depth_smoothness = match flags.depth_smoothness {
-        Choice::On(w) => w,
-        Choice::Off => 0.0,
-        Choice::Default => {
-            let on = by_default(
+    let depth_smoothness = flags
+        .depth_smoothness
+        .weight(FEW_VIEW_DEPTH_SMOOTHNESS, || {
+            by_default(
                 Feature::DepthSmoothness,
                 scene.forward_facing() && scene.train_views <= crate::model::few_view::FEW_VIEWS,
                 &format!(
-                    "depth smoothness {FEW_VIEW_DEPTH_SMOOTHNESS} on patches from poses \
-                     between the {} training photos (the default for forward-facing runs on at \
-                     most {} photos; --no-depth-smoothness turns it off)",
+                    "depth smoothness {FEW_VIEW_DEPTH_SMOOTHNESS} on patches from poses between \
+                 the {} training photos (the default for forward-facing runs on at most {} \
+                 photos; --no-depth-smoothness turns it off)",
                     scene.train_views,
                     crate::model::few_view::FEW_VIEWS
                 ),
-            );
-            if on {
-                FEW_VIEW_DEPTH_SMOOTHNESS
-            } else {
-                0.0
-            }
-        }
-    };
+            )
+        });
 
     let dynamic = match flags.dynamic {
         Choice::On(()) => true,

@@ -239,28 +239,16 @@ impl TrainOptions {
         use defaults::Choice;
         defaults::Flags {
             antialias: Choice::from_flags(self.antialias, self.no_antialias),
-            appearance: match (self.appearance, self.no_appearance) {
-                (Some(dims), _) => Choice::On(dims),
-                (None, true) => Choice::Off,
-                (None, false) => Choice::Default,
-            },
+            appearance: Choice::from_value(self.appearance, self.no_appearance),
             // A camera learning rate asks for refinement.
             refine_cameras: Choice::from_flags(
                 self.refine_cameras || self.camera_lr.is_some(),
                 self.no_refine_cameras,
             ),
-            distortion: match (self.distortion, self.no_distortion) {
-                (Some(w), _) => Choice::On(w as f32),
-                (None, true) => Choice::Off,
-                (None, false) => Choice::Default,
-            },
+            distortion: Choice::from_value(self.distortion.map(|w| w as f32), self.no_distortion),
             few_view: Choice::from_flags(self.few_view, self.no_few_view),
             dynamic: Choice::from_flags(self.dynamic, self.no_dynamic),
-            depth_smoothness: match (self.depth_smoothness, self.no_depth_smoothness) {
-                (Some(w), _) => Choice::On(w),
-                (None, true) => Choice::Off,
-                (None, false) => Choice::Default,
-            },
+            depth_smoothness: Choice::from_value(self.depth_smoothness, self.no_depth_smoothness),
         }
     }
 
@@ -438,14 +426,13 @@ impl TrainOptions {
                     m.few_view = Some(crate::model::few_view::FewView { photos });
                 }
                 if d.depth_smoothness > 0.0 {
-                    let weight = d.depth_smoothness;
                     use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
                     let width = scene
                         .cameras(crate::data::Split::Train)
                         .first()
                         .map_or(0, |c| c.width);
                     m.depth_smoothness = Some(DepthSmoothness {
-                        weight,
+                        weight: d.depth_smoothness,
                         patches: PATCHES,
                         stride: stride_for(width),
                     });
