@@ -31,6 +31,13 @@ pub const PATCHES: usize = 16;
 /// Random streams of patch rays start here, far from the photo rays' (`0, 1, ...`).
 const PATCH_STREAMS: u64 = 1 << 62;
 
+/// Patch `k`'s random stream `i`: 0 draws its camera and pixels, `1 + r` its ray `r`'s
+/// samples; no two patches share one.
+fn patch_stream(k: u64, i: usize) -> u64 {
+    debug_assert!(i <= PATCH_SIDE * PATCH_SIDE);
+    PATCH_STREAMS + (k << 8) + i as u64
+}
+
 /// The pixel step between a patch's rays for photos `width` pixels wide: a patch spans
 /// about 1/40 of the photo (RegNeRF's 8-pixel patches on LLFF's 378-pixel-high photos
 /// span 1/47), so it sees a piece of surface, not one pixel's noise, at any resolution.
@@ -49,7 +56,7 @@ pub struct PatchDraw {
 /// The camera of a patch: a training camera moved a random way towards one of its two
 /// nearest neighbours (the photos training rays are drawn from), and its random stream.
 fn camera_between(data: &Dataset, draw: PatchDraw) -> (usize, Camera, Rng) {
-    let mut rng = Rng::for_stream(draw.seed, draw.step, PATCH_STREAMS + draw.k);
+    let mut rng = Rng::for_stream(draw.seed, draw.step, patch_stream(draw.k, 0));
     let drawn = data
         .drawn_views
         .clone()
@@ -115,7 +122,7 @@ pub fn draw_patch(data: &Dataset, draw: PatchDraw, stride: usize, out: &mut Trai
         out.rngs.push(Rng::for_stream(
             draw.seed,
             draw.step,
-            PATCH_STREAMS + (draw.k << 8) + i as u64 + 1,
+            patch_stream(draw.k, i + 1),
         ));
     }
 }
@@ -161,6 +168,11 @@ mod tests {
             assert_eq!(py as u32 as usize, px + 2);
             assert_eq!(rays.rays.appearance, Appearance::Mean);
         }
+        // Every patch's camera and rays draw from streams of their own.
+        let streams: std::collections::HashSet<u64> = (0..64)
+            .flat_map(|k| (0..=PATCH_SIDE * PATCH_SIDE).map(move |i| patch_stream(k, i)))
+            .collect();
+        assert_eq!(streams.len(), 64 * (PATCH_SIDE * PATCH_SIDE + 1));
         assert_eq!(stride_for(400), 3);
         assert_eq!(stride_for(64), 1);
     }
