@@ -1,11 +1,12 @@
 //! Named configurations: the paper's model and the rows of its ablation table (NeRF,
-//! Table 2, Realistic Synthetic 360), mip-NeRF's, D-NeRF's and FreeNeRF's models, and a reduced model for
+//! Table 2, Realistic Synthetic 360), mip-NeRF's, D-NeRF's, FreeNeRF's and RegNeRF's models, and a reduced model for
 //! quick CPU demos.
 
 use crate::encoding::FrequencyEncoding;
 use crate::error::{NerfError, Result};
 use crate::field::{DeformationConfig, VanillaConfig};
 use crate::model::free_nerf::FreeNerf;
+use crate::model::reg_nerf::RegNerf;
 use crate::model::VanillaModelConfig;
 
 /// A named configuration of the model and the training views it sees.
@@ -81,6 +82,11 @@ pub const PRESETS: &[Preset] = &[
         paper_psnr: None,
     },
     Preset {
+        name: "regnerf",
+        help: "RegNeRF for few photos: the paper's model with depth smoothness on patches rendered from poses between the cameras and its samples' range widened over the first 256 steps; not in the NeRF paper",
+        paper_psnr: None,
+    },
+    Preset {
         name: "demo",
         help: "reduced model for minutes on a CPU (4x64 trunk, 32+32 samples); not in the paper",
         paper_psnr: None,
@@ -103,6 +109,7 @@ pub fn paper() -> VanillaModelConfig {
         integrated: false,
         shared_network: false,
         free_nerf: None,
+        reg_nerf: None,
     }
 }
 
@@ -159,6 +166,7 @@ pub fn build(name: &str) -> Result<(VanillaModelConfig, Option<usize>)> {
         }
         "dnerf" => m.net.deformation = Some(DeformationConfig::dnerf()),
         "freenerf" => m.free_nerf = Some(FreeNerf::default()),
+        "regnerf" => m.reg_nerf = Some(RegNerf::default()),
         "demo" => {
             m.net = VanillaConfig {
                 depth: 4,
@@ -208,6 +216,12 @@ mod tests {
                 ),
                 "freenerf" => assert!(
                     m.free_nerf == Some(FreeNerf::default())
+                        && m.net == paper().net
+                        && m.hierarchical()
+                ),
+                "regnerf" => assert!(
+                    m.reg_nerf == Some(RegNerf::default())
+                        && m.free_nerf.is_none()
                         && m.net == paper().net
                         && m.hierarchical()
                 ),

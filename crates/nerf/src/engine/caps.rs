@@ -39,10 +39,13 @@ pub enum Feature {
     FreeNerf,
     /// RegNeRF's depth smoothness on patches from unseen poses (`--depth-smoothness`).
     DepthSmoothness,
+    /// RegNeRF's depth smoothness and sample-space annealing for the paper's model
+    /// (`--preset regnerf`).
+    RegNerf,
 }
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
-const TABLE: [(Feature, bool, bool); 10] = [
+const TABLE: [(Feature, bool, bool); 11] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, true),
@@ -53,11 +56,12 @@ const TABLE: [(Feature, bool, bool); 10] = [
     (Feature::DNerf, true, false),
     (Feature::FreeNerf, true, true),
     (Feature::DepthSmoothness, true, false),
+    (Feature::RegNerf, true, false),
 ];
 
 impl Feature {
     /// Every feature, in the table's order.
-    pub const ALL: [Feature; 10] = [
+    pub const ALL: [Feature; 11] = [
         Feature::Antialias,
         Feature::Appearance,
         Feature::CameraRefinement,
@@ -68,6 +72,7 @@ impl Feature {
         Feature::DNerf,
         Feature::FreeNerf,
         Feature::DepthSmoothness,
+        Feature::RegNerf,
     ];
 
     /// Its name and the flags that ask for it and turn it off, for messages.
@@ -96,6 +101,10 @@ impl Feature {
             Feature::DepthSmoothness => {
                 "RegNeRF's depth smoothness on patches from unseen poses (--depth-smoothness)"
             }
+            Feature::RegNerf => {
+                "RegNeRF's depth smoothness and sample-space annealing for the paper's model \
+                 (--preset regnerf)"
+            }
         }
     }
 
@@ -114,6 +123,7 @@ impl Feature {
                 (Feature::DNerf, ModelConfig::Vanilla(c)) => c.net.deformation.is_some(),
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
                 (Feature::FreeNerf, ModelConfig::Vanilla(c)) => c.free_nerf.is_some(),
+                (Feature::RegNerf, ModelConfig::Vanilla(c)) => c.reg_nerf.is_some(),
                 _ => false,
             })
             .collect()
@@ -224,6 +234,9 @@ mod tests {
         assert_eq!(Feature::used_by(&preset("dnerf")), [Feature::DNerf]);
         assert!(refusal(EngineKind::Gpu, &preset("dnerf"))
             .is_some_and(|why| why.contains("--preset dnerf")));
+        assert_eq!(Feature::used_by(&preset("regnerf")), [Feature::RegNerf]);
+        assert!(refusal(EngineKind::Gpu, &preset("regnerf"))
+            .is_some_and(|why| why.contains("--preset regnerf")));
         assert_eq!(Feature::used_by(&preset("paper")), []);
     }
 

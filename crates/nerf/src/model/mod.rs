@@ -10,6 +10,7 @@ pub mod camera_refine;
 pub mod fast;
 pub mod few_view;
 pub mod free_nerf;
+pub mod reg_nerf;
 pub mod unseen_patches;
 pub mod vanilla;
 
@@ -107,7 +108,7 @@ impl ModelConfig {
     pub fn describe(&self) -> String {
         match self {
             ModelConfig::Vanilla(m) => format!(
-                "{}x{} MLP, PE L={}/{}, {} coarse + {} fine samples{}{}",
+                "{}x{} MLP, PE L={}/{}, {} coarse + {} fine samples{}{}{}",
                 m.net.depth,
                 m.net.width,
                 m.net.position_encoding.frequencies,
@@ -129,6 +130,20 @@ impl ModelConfig {
                     f.occlusion_samples,
                     f.occlusion_weight
                 )),
+                m.reg_nerf.map_or(String::new(), |r| {
+                    let weight = match r.smoothness_start == r.smoothness_end {
+                        true => format!("{}", r.smoothness_end),
+                        false => format!(
+                            "{} -> {} over {} steps",
+                            r.smoothness_start, r.smoothness_end, r.smoothness_steps
+                        ),
+                    };
+                    format!(
+                        ", RegNeRF (depth smoothness on patches from unseen poses, weight {weight}; sampled range widened from {:.0}% over {} steps)",
+                        100.0 * r.anneal_start,
+                        r.anneal_steps
+                    )
+                }),
             ),
             ModelConfig::Fast(m) => {
                 let g = &m.field.grid;

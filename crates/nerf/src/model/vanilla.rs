@@ -5,11 +5,14 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::free_nerf::FreeNerf;
+use super::reg_nerf::RegNerf;
+use super::unseen_patches::{self, PatchDraw};
 use super::{Model, PassTotals, StepInput, Worker};
 use crate::data::pixels::TrainingRays;
 use crate::field::{VanillaConfig, VanillaNet, VanillaWorkspace};
 use crate::math::{length, scale};
 use crate::nn::{GradBuffer, Grads, ParamLayout};
+use crate::render::depth_smoothness::{steps_for_backward, PatchBackward, PATCH_RAYS};
 use crate::render::loss::LossBackward;
 use crate::render::sampling::{merge_sorted, sample_pdf, stratified};
 use crate::render::volume::{composite_packed, depth_deltas};
@@ -38,6 +41,9 @@ pub struct VanillaModelConfig {
     /// FreeNeRF's few-view regularisers (`--preset freenerf`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub free_nerf: Option<FreeNerf>,
+    /// RegNeRF's few-view regularisers (`--preset regnerf`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reg_nerf: Option<RegNerf>,
 }
 
 impl VanillaModelConfig {
@@ -123,6 +129,19 @@ pub struct ChunkWorkspace {
     cdf: Vec<f32>,
     outputs: Vec<RayOutput>,
     loss: LossBackward,
+    patch: PatchBackward,
+    /// A patch's sample steps as its backward takes them (`steps_for_backward`).
+    patch_dt: Vec<f32>,
+}
+
+/// What a training chunk's rays are.
+#[derive(Clone, Copy, Debug)]
+enum ChunkRays {
+    /// Photo rays, matched to their pixels.
+    Photos,
+    /// Whole patches from poses no photo was taken from (RegNeRF): no colour to match,
+    /// their depths kept smooth, the gradient times `scale`, depths in units of `unit`.
+    Patches { scale: f32, unit: f32 },
 }
 
 /// Stratified depths of every ray (`r x n`, bin midpoints without random streams).
@@ -263,15 +282,16 @@ fn pass_forward(
 }
 
 /// Loss of the last pass against `targets`, its backward through compositing and the
-/// network (gradients of the summed squared error, and of FreeNeRF's occlusion penalty when
-/// given, into `grads`). Returns the pass's sum of squared errors.
+/// network (gradients of the summed squared error, of FreeNeRF's occlusion penalty when
+/// given, and of RegNeRF's depth smoothness for patches, into `grads`). Returns the pass's
+/// sum of squared errors.
 #[allow(clippy::too_many_arguments)]
 fn pass_backward(
     net: &VanillaNet,
     params: &[f32],
     rays: &RayBatch,
     targets: &[[f32; 3]],
-    occlusion: Option<&FreeNerf>,
+    (occlusion, rays_are): (Option<&FreeNerf>, ChunkRays),
     ws: &mut ChunkWorkspace,
     grads: &mut Grads,
     check: &FiniteCheck,
@@ -290,10 +310,45 @@ fn pass_backward(
             free.add_occlusion(field.sigma, spr, d_sigma);
         });
     }
+    if let ChunkRays::Patches { scale, unit } = rays_are {
+        add_patch_smoothness(ws, scale, unit);
+    }
     check.check("loss.backward", "d_sigma", ws.loss.field_grad().d_sigma);
     check.check("loss.backward", "d_rgb", ws.loss.field_grad().d_rgb);
     net.backward(params, &mut ws.net, ws.loss.field_grad(), grads);
     sse
+}
+
+/// Patches have no photo: each ray's target is what the last pass rendered, so they add
+/// no colour loss.
+fn keep_patch_colours(rays_are: ChunkRays, batch: &mut TrainingRays, ws: &ChunkWorkspace) {
+    if let ChunkRays::Patches { .. } = rays_are {
+        for (target, out) in batch.targets.iter_mut().zip(&ws.outputs) {
+            *target = out.rgb;
+        }
+    }
+}
+
+/// RegNeRF's depth smoothness of the last pass's rays (whole patches, in order), its
+/// gradient times `scale` into the loss's density gradient.
+fn add_patch_smoothness(ws: &mut ChunkWorkspace, scale: f32, unit: f32) {
+    let ChunkWorkspace {
+        samples,
+        weights,
+        loss,
+        patch,
+        patch_dt,
+        ..
+    } = ws;
+    let spr = samples.samples_per_dir;
+    steps_for_backward(&samples.dt, spr, patch_dt);
+    loss.add_penalty(|d_sigma| {
+        for first in (0..samples.len() / spr).step_by(PATCH_RAYS) {
+            let rays: [_; PATCH_RAYS] =
+                std::array::from_fn(|i| (first + i) * spr..(first + i + 1) * spr);
+            patch.add(&rays, (&samples.t, patch_dt, weights), unit, scale, d_sigma);
+        }
+    });
 }
 
 impl VanillaModel {
@@ -342,6 +397,15 @@ impl VanillaModel {
         &ws.samples
     }
 
+    /// RegNeRF's sample-space annealing: training rays at `step` sample a range shrunk
+    /// about the middle of `[near, far]`.
+    fn anneal(&self, rays: &mut TrainingRays, step: u64) {
+        if let Some(reg) = &self.config.reg_nerf {
+            (rays.rays.near, rays.rays.far) =
+                reg.sampled_range(rays.rays.near, rays.rays.far, step);
+        }
+    }
+
     fn coarse_range(&self) -> std::ops::Range<usize> {
         0..self.coarse.num_params()
     }
@@ -356,15 +420,27 @@ impl VanillaModel {
         }
     }
 
-    /// One training chunk (the rays in `ws.rays`): forward and backward of both passes,
-    /// gradients of the summed squared errors into `grads`. Returns the squared-error sums
-    /// of the coarse and the fine pass.
+    /// One training chunk of photo rays (the rays in `ws.rays`): forward and backward of
+    /// both passes, gradients of the summed squared errors into `grads`. Returns the
+    /// squared-error sums of the coarse and the fine pass.
     pub fn train_chunk(
         &self,
         params: &[f32],
         ws: &mut ChunkWorkspace,
         grads: &mut GradBuffer,
         check: &FiniteCheck,
+    ) -> (f64, f64) {
+        self.train_rays(params, ws, grads, check, ChunkRays::Photos)
+    }
+
+    /// [`train_chunk`](Self::train_chunk) for photo rays or patches.
+    fn train_rays(
+        &self,
+        params: &[f32],
+        ws: &mut ChunkWorkspace,
+        grads: &mut GradBuffer,
+        check: &FiniteCheck,
+        rays_are: ChunkRays,
     ) -> (f64, f64) {
         let (n_c, n_f) = (self.config.n_coarse, self.config.n_fine);
         let integrated = self.config.integrated;
@@ -383,12 +459,14 @@ impl VanillaModel {
             ws,
             check,
         );
+        let penalties = (self.config.free_nerf.as_ref(), rays_are);
+        keep_patch_colours(rays_are, &mut batch, ws);
         let coarse_sse = pass_backward(
             &self.coarse,
             p_coarse,
             &batch.rays,
             &batch.targets,
-            self.config.free_nerf.as_ref(),
+            penalties,
             ws,
             &mut grads.window(self.coarse_range()),
             check,
@@ -401,12 +479,13 @@ impl VanillaModel {
             let t = std::mem::take(&mut ws.t_fine);
             let spr = n_c + n_f;
             pass_forward(fine, p_fine, &batch.rays, &t, spr, integrated, ws, check);
+            keep_patch_colours(rays_are, &mut batch, ws);
             fine_sse = pass_backward(
                 fine,
                 p_fine,
                 &batch.rays,
                 &batch.targets,
-                self.config.free_nerf.as_ref(),
+                penalties,
                 ws,
                 &mut grads.window(range),
                 check,
@@ -455,6 +534,7 @@ impl Model for VanillaModel {
         let chunk = input.chunk_rays.min(batch).max(1);
         let n_chunks = batch.div_ceil(chunk);
         let n_workers = workers.len();
+        let step = input.sampling.step;
         let sums: Vec<(f64, f64)> = workers
             .par_iter_mut()
             .enumerate()
@@ -463,6 +543,7 @@ impl Model for VanillaModel {
                 for c in (w..n_chunks).step_by(n_workers) {
                     let rays = (c * chunk) as u64..((c + 1) * chunk).min(batch) as u64;
                     worker.ws.rays.draw(input.data, &input.sampling, rays);
+                    self.anneal(&mut worker.ws.rays, step);
                     let (a, b) = self.train_chunk(
                         input.params,
                         &mut worker.ws,
@@ -471,6 +552,30 @@ impl Model for VanillaModel {
                     );
                     coarse += a;
                     fine += b;
+                }
+                if let Some(reg) = &self.config.reg_nerf {
+                    let patches = reg.patches(batch);
+                    let rays_are = ChunkRays::Patches {
+                        scale: reg.smoothness_scale(step, batch, patches),
+                        unit: input.data.far - input.data.near,
+                    };
+                    let stride = unseen_patches::stride_for(input.data.views[0].camera.width);
+                    for k in (w..patches).step_by(n_workers) {
+                        let draw = PatchDraw {
+                            seed: input.sampling.seed,
+                            step,
+                            k: k as u64,
+                        };
+                        unseen_patches::draw_patch(input.data, draw, stride, &mut worker.ws.rays);
+                        self.anneal(&mut worker.ws.rays, step);
+                        self.train_rays(
+                            input.params,
+                            &mut worker.ws,
+                            &mut worker.grads,
+                            input.check,
+                            rays_are,
+                        );
+                    }
                 }
                 (coarse, fine)
             })
@@ -714,5 +819,32 @@ mod tests {
                 assert!((x.rgb[c] - y.rgb[c]).abs() < 1e-6);
             }
         }
+    }
+
+    /// A patch adds no colour loss: at weight 0 its gradient is zero, at a positive one it
+    /// is not (the depth smoothness's own gradient is tested in `render::depth_smoothness`).
+    #[test]
+    fn patches_add_depth_smoothness_alone() {
+        let model = tiny_model_of("regnerf");
+        let params = model.init_params(5);
+        let mut ws = ChunkWorkspace::default();
+        let mut grads = GradBuffer::new(params.len());
+        ws.rays = rays(PATCH_RAYS);
+        let check = FiniteCheck::default();
+        let zero = ChunkRays::Patches {
+            scale: 0.0,
+            unit: 4.0,
+        };
+        model.train_rays(&params, &mut ws, &mut grads, &check, zero);
+        let worst = |g: &GradBuffer| g.values.iter().fold(0.0f32, |m, g| m.max(g.abs()));
+        assert_eq!(worst(&grads), 0.0);
+        let mut grads = GradBuffer::new(params.len());
+        ws.rays = rays(PATCH_RAYS);
+        let smooth = ChunkRays::Patches {
+            scale: 1.0,
+            unit: 4.0,
+        };
+        model.train_rays(&params, &mut ws, &mut grads, &check, smooth);
+        assert!(worst(&grads) > 0.0);
     }
 }

@@ -66,6 +66,18 @@ fn depth_pulls(depth: &[f32; PATCH_RAYS], opacity: &[f32; PATCH_RAYS]) -> [f32; 
     pull
 }
 
+/// The steps to differentiate the weights by, for rays of `samples_per_ray` samples whose
+/// last step is the paper's "to infinity" (`volume::LAST_DELTA`): that sample's weight is
+/// all the light left whatever its density (where positive), so its step is 0 in the
+/// backward, which gives it no gradient and leaves every other sample's as it is.
+pub fn steps_for_backward(dt: &[f32], samples_per_ray: usize, out: &mut Vec<f32>) {
+    out.clear();
+    out.extend_from_slice(dt);
+    for steps in out.chunks_exact_mut(samples_per_ray) {
+        steps[samples_per_ray - 1] = 0.0;
+    }
+}
+
 /// Per-patch buffers of the backward.
 #[derive(Clone, Debug, Default)]
 pub struct PatchBackward {
@@ -126,12 +138,17 @@ mod tests {
         sigma: Vec<f32>,
     }
 
-    fn patch(rng: &mut Rng) -> Patch {
+    /// Random rays of 3 to 8 samples, one empty and one nearly transparent; `fixed`: every
+    /// ray of that many samples.
+    fn patch_of(rng: &mut Rng, fixed: Option<usize>) -> Patch {
         let (mut rays, mut t, mut dt, mut sigma) = (vec![], vec![], vec![], vec![]);
         for r in 0..PATCH_RAYS {
             let start = t.len();
-            // One ray empty (no samples) and one nearly transparent.
-            let n = if r == 5 { 0 } else { 3 + rng.below(6) };
+            let n = match fixed {
+                Some(n) => n,
+                None if r == 5 => 0,
+                None => 3 + rng.below(6),
+            };
             let mut at = 2.0 + rng.uniform();
             for _ in 0..n {
                 at += 0.05 + 0.1 * rng.uniform();
@@ -142,6 +159,10 @@ mod tests {
             rays.push(start..t.len());
         }
         Patch { rays, t, dt, sigma }
+    }
+
+    fn patch(rng: &mut Rng) -> Patch {
+        patch_of(rng, None)
     }
 
     fn weights_of(p: &Patch, sigma: &[f32]) -> Vec<f32> {
@@ -200,6 +221,41 @@ mod tests {
                 );
             }
         }
+    }
+
+    /// The paper model's rays end with a step "to infinity": differentiated with that step
+    /// zeroed, the gradient is still the loss's (the last sample's weight does not move
+    /// with its density).
+    #[test]
+    fn rays_ending_at_infinity_differentiate_with_their_last_step_zeroed() {
+        let mut rng = Rng::new(12);
+        let spr = 6;
+        let mut p = patch_of(&mut rng, Some(spr));
+        for steps in p.dt.chunks_exact_mut(spr) {
+            steps[spr - 1] = crate::render::volume::LAST_DELTA;
+        }
+        // Densities stay positive under the differences' steps (at 0 the last weight jumps).
+        let h = 1e-2f32;
+        p.sigma.iter_mut().for_each(|s| *s = s.max(3.0 * h));
+        let w = weights_of(&p, &p.sigma);
+        let mut steps = Vec::new();
+        steps_for_backward(&p.dt, spr, &mut steps);
+        let rays: [_; PATCH_RAYS] = p.rays.clone().try_into().expect("a whole patch");
+        let mut d_sigma = vec![0.0; p.sigma.len()];
+        PatchBackward::default().add(&rays, (&p.t, &steps, &w), 1.0, 1.0, &mut d_sigma);
+        for k in 0..p.sigma.len() {
+            let (mut plus, mut minus) = (p.sigma.clone(), p.sigma.clone());
+            plus[k] += h;
+            minus[k] -= h;
+            let fd = (loss_at(&p, &plus, &p.sigma, 1.0) - loss_at(&p, &minus, &p.sigma, 1.0))
+                / (2.0 * h as f64);
+            let got = d_sigma[k] as f64;
+            assert!(
+                (fd - got).abs() < 2e-3 * (1.0 + fd.abs()),
+                "sample {k}: finite differences {fd}, backward {got}"
+            );
+        }
+        assert!(d_sigma.iter().any(|&g| g != 0.0));
     }
 
     #[test]

@@ -153,7 +153,7 @@ pub struct TrainOptions {
     pub no_antialias: bool,
     /// Fast: few-view training (the space fewer than half of the training photos see is
     /// kept empty), the default for runs on at most 16 training views of a bounded scene.
-    /// The paper's model has `--preset freenerf` for few views.
+    /// The paper's model has `--preset freenerf` and `--preset regnerf` for few views.
     #[arg(long, conflicts_with = "no_few_view")]
     pub few_view: bool,
     /// Fast: train as on many views, however few there are.
@@ -497,14 +497,15 @@ impl TrainOptions {
             ModelConfig::Vanilla(_) if self.few_view => {
                 return refuse(
                     "--few-view applies to --model fast only; for the paper's model on few \
-                     views use --preset freenerf"
+                     views use --preset freenerf or --preset regnerf"
                         .into(),
                 );
             }
             ModelConfig::Vanilla(_) if self.depth_smoothness.is_some() => {
                 return refuse(
                     "--depth-smoothness applies to --model fast only; for the paper's model on \
-                     few views use --preset freenerf"
+                     few views use --preset regnerf (RegNeRF's depth smoothness) or --preset \
+                     freenerf"
                         .into(),
                 );
             }

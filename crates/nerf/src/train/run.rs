@@ -226,11 +226,12 @@ pub fn train(opts: &RunOptions, on_event: &mut dyn FnMut(Event)) -> Result<RunSu
     let (width, height) = data.image_size();
     let views = data.views.len();
     if let crate::model::ModelConfig::Vanilla(m) = &config.model {
-        if m.free_nerf.is_none() && views <= crate::model::few_view::FEW_VIEWS && !opts.resume {
+        let regularised = m.free_nerf.is_some() || m.reg_nerf.is_some();
+        if !regularised && views <= crate::model::few_view::FEW_VIEWS && !opts.resume {
             on_event(Event::Note(&format!(
                 "{views} training views: the paper's model overfits few photos (floaters, or \
                  nothing but the background from other views); --preset freenerf adds \
-                 FreeNeRF's regularisers"
+                 FreeNeRF's regularisers, --preset regnerf RegNeRF's"
             )));
         }
     }

@@ -1,7 +1,7 @@
 //! Few-view training: the built-in chair from 8 photos, with and without keeping the
 //! space that fewer than half of them see empty; the forward-facing rug from 3 photos,
 //! with and without RegNeRF's depth smoothness; from 3 photos, the paper's model with and
-//! without FreeNeRF's regularisers.
+//! without FreeNeRF's regularisers, and with and without RegNeRF's.
 
 use nerf::model::few_view::FewView;
 use nerf::model::ModelConfig;
@@ -133,18 +133,26 @@ fn depth_smoothness_smooths_the_depth_seen_from_between_the_cameras() {
     );
 }
 
-/// Trains the paper model's demo-sized networks (the full ones are hours of CPU) on the
-/// photos in `data` for `steps`, with FreeNeRF's regularisers or without; the losses of its
-/// steps and its held-out PSNR.
+/// The few-view regularisers of the paper's model.
+#[derive(Clone, Copy, PartialEq)]
+enum Regularisers {
+    None,
+    FreeNerf,
+    RegNerf,
+}
+
+/// Trains `config` (the paper model's demo-sized networks: the full ones are hours of CPU)
+/// into `out` with `regularisers`; the losses of its steps and its held-out PSNR.
 fn train_vanilla(
-    data: &std::path::Path,
+    mut config: TrainConfig,
     out: &std::path::Path,
-    free: bool,
-    steps: u64,
+    regularisers: Regularisers,
 ) -> (Vec<f32>, f64) {
-    let mut config = crate::common::demo_config(data, steps);
     if let ModelConfig::Vanilla(m) = &mut config.model {
-        m.free_nerf = free.then(nerf::model::free_nerf::FreeNerf::default);
+        m.free_nerf = (regularisers == Regularisers::FreeNerf)
+            .then(nerf::model::free_nerf::FreeNerf::default);
+        m.reg_nerf =
+            (regularisers == Regularisers::RegNerf).then(nerf::model::reg_nerf::RegNerf::default);
     }
     let (_, losses, psnr) = train_and_score(out, config);
     (losses, psnr)
@@ -159,9 +167,13 @@ fn free_nerf_beats_the_plain_model_from_three_photos() {
     // Seed 5: the plain model does not collapse to the background here (at seeds 3 and 4
     // it does, at about 11.5 dB, and FreeNeRF's lead is 7-9 dB).
     chair_scene(&data, 32, 3, 8, 5);
-    let steps = 300;
-    let (losses, free) = train_vanilla(&data, &dir.path().join("free"), true, steps);
-    let (_, plain) = train_vanilla(&data, &dir.path().join("plain"), false, steps);
+    let config = crate::common::demo_config(&data, 300);
+    let (losses, free) = train_vanilla(
+        config.clone(),
+        &dir.path().join("free"),
+        Regularisers::FreeNerf,
+    );
+    let (_, plain) = train_vanilla(config, &dir.path().join("plain"), Regularisers::None);
     eprintln!("3 photos, held-out views: {plain:.2} dB plain, {free:.2} dB FreeNeRF");
     let mean = |l: &[f32]| l.iter().sum::<f32>() / l.len() as f32;
     let (first, last) = (mean(&losses[..50]), mean(&losses[losses.len() - 50..]));
@@ -170,5 +182,38 @@ fn free_nerf_beats_the_plain_model_from_three_photos() {
     assert!(
         free >= plain + 0.6,
         "FreeNeRF {free:.2} dB against {plain:.2} dB"
+    );
+}
+
+/// RegNeRF on the forward-facing rug from 3 photos (its LLFF protocol): its loss falls,
+/// and on held-out views it scores better than the same networks trained without its
+/// regularisers for as many steps. (The chair from 3 photos, FreeNeRF's test, is a poor
+/// judge of it: the paper's networks at this size empty that scene at most seeds, with
+/// RegNeRF or without.)
+#[test]
+fn reg_nerf_beats_the_plain_model_from_three_photos() {
+    use nerf::data::synth::{self, SceneKind};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("rug");
+    let cameras = synth::llff::forward_facing_cameras(48, 36, 5, 6);
+    let world = nerf::data::poses::Similarity::IDENTITY;
+    synth::llff::write(SceneKind::Rug, &cameras, 1, &world, &data, &mut |_, _| {})
+        .expect("write llff");
+    let train = |name: &str, regularisers: Regularisers| {
+        let mut config = crate::common::demo_config(&data, 400);
+        config.train_views = Some(nerf::data::TrainViews::Spread { spread: 3 });
+        let (losses, psnr) = train_vanilla(config, &dir.path().join(name), regularisers);
+        (losses, psnr)
+    };
+    let (losses, reg) = train("reg", Regularisers::RegNerf);
+    let (_, plain) = train("plain", Regularisers::None);
+    eprintln!("rug from 3 photos, held-out views: {plain:.2} dB plain, {reg:.2} dB RegNeRF");
+    let mean = |l: &[f32]| l.iter().sum::<f32>() / l.len() as f32;
+    let (first, last) = (mean(&losses[..50]), mean(&losses[losses.len() - 50..]));
+    assert!(last < 0.5 * first, "loss {first} -> {last}");
+    // Measured: 21.40 against 20.24 dB.
+    assert!(
+        reg >= plain + 0.5,
+        "RegNeRF {reg:.2} dB against {plain:.2} dB"
     );
 }
