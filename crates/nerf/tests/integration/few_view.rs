@@ -61,21 +61,27 @@ fn few_view_training_keeps_space_few_photos_see_empty_and_scores_better() {
     assert!(few_occ < plain_occ, "{few_occ} against {plain_occ}");
 }
 
+/// The built-in rug as a forward-facing LLFF capture, `width x height` (26 training and 4
+/// held-out views).
+fn rug_scene(data: &std::path::Path, width: usize, height: usize) {
+    use nerf::data::synth::{self, SceneKind};
+    let cameras = synth::llff::forward_facing_cameras(width, height, 5, 6);
+    let world = nerf::data::poses::Similarity::IDENTITY;
+    synth::llff::write(SceneKind::Rug, &cameras, 1, &world, data, &mut |_, _| {})
+        .expect("write llff");
+}
+
 /// RegNeRF's depth smoothness on the forward-facing rug from 3 photos (RegNeRF's LLFF
 /// protocol, where it is on by default): trained with it, the field's depth seen from
 /// poses between the cameras (patches it never trained on) is smoother than without, and
 /// its held-out views score better.
 #[test]
 fn depth_smoothness_smooths_the_depth_seen_from_between_the_cameras() {
-    use nerf::data::synth::{self, SceneKind};
     use nerf::model::unseen_patches::{draw_patch, DepthSmoothness, PatchDraw, PATCHES};
     use nerf::render::depth_smoothness::{patch_loss, PATCH_RAYS};
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("rug");
-    let cameras = synth::llff::forward_facing_cameras(128, 96, 5, 6);
-    let world = nerf::data::poses::Similarity::IDENTITY;
-    synth::llff::write(SceneKind::Rug, &cameras, 1, &world, &data, &mut |_, _| {})
-        .expect("write llff");
+    rug_scene(&data, 128, 96);
     let train = |name: &str, smooth: bool| {
         let mut config = fast_config(&data, STEPS);
         config.train_views = Some(nerf::data::TrainViews::Spread { spread: 3 });
@@ -158,6 +164,13 @@ fn train_vanilla(
     (losses, psnr)
 }
 
+/// The mean loss of the last 50 steps is under half that of the first 50.
+fn assert_loss_halves(losses: &[f32]) {
+    let mean = |l: &[f32]| l.iter().sum::<f32>() / l.len() as f32;
+    let (first, last) = (mean(&losses[..50]), mean(&losses[losses.len() - 50..]));
+    assert!(last < 0.5 * first, "loss {first} -> {last}");
+}
+
 /// FreeNeRF from 3 photos: its loss falls, and on held-out views it scores better than the
 /// same networks trained without its regularisers for as many steps.
 #[test]
@@ -175,9 +188,7 @@ fn free_nerf_beats_the_plain_model_from_three_photos() {
     );
     let (_, plain) = train_vanilla(config, &dir.path().join("plain"), Regularisers::None);
     eprintln!("3 photos, held-out views: {plain:.2} dB plain, {free:.2} dB FreeNeRF");
-    let mean = |l: &[f32]| l.iter().sum::<f32>() / l.len() as f32;
-    let (first, last) = (mean(&losses[..50]), mean(&losses[losses.len() - 50..]));
-    assert!(last < 0.5 * first, "loss {first} -> {last}");
+    assert_loss_halves(&losses);
     // Measured: 18.82 against 17.63 dB.
     assert!(
         free >= plain + 0.6,
@@ -192,13 +203,9 @@ fn free_nerf_beats_the_plain_model_from_three_photos() {
 /// RegNeRF or without.)
 #[test]
 fn reg_nerf_beats_the_plain_model_from_three_photos() {
-    use nerf::data::synth::{self, SceneKind};
     let dir = tempfile::tempdir().expect("tempdir");
     let data = dir.path().join("rug");
-    let cameras = synth::llff::forward_facing_cameras(48, 36, 5, 6);
-    let world = nerf::data::poses::Similarity::IDENTITY;
-    synth::llff::write(SceneKind::Rug, &cameras, 1, &world, &data, &mut |_, _| {})
-        .expect("write llff");
+    rug_scene(&data, 48, 36);
     let train = |name: &str, regularisers: Regularisers| {
         let mut config = crate::common::demo_config(&data, 400);
         config.train_views = Some(nerf::data::TrainViews::Spread { spread: 3 });
@@ -208,9 +215,7 @@ fn reg_nerf_beats_the_plain_model_from_three_photos() {
     let (losses, reg) = train("reg", Regularisers::RegNerf);
     let (_, plain) = train("plain", Regularisers::None);
     eprintln!("rug from 3 photos, held-out views: {plain:.2} dB plain, {reg:.2} dB RegNeRF");
-    let mean = |l: &[f32]| l.iter().sum::<f32>() / l.len() as f32;
-    let (first, last) = (mean(&losses[..50]), mean(&losses[losses.len() - 50..]));
-    assert!(last < 0.5 * first, "loss {first} -> {last}");
+    assert_loss_halves(&losses);
     // Measured: 21.40 against 20.24 dB.
     assert!(
         reg >= plain + 0.5,
