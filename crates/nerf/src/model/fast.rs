@@ -520,16 +520,7 @@ impl FastModel {
         } = ws;
         let unit = self.config.box_diagonal();
         loss.add_penalty(|d_sigma| {
-            for p in (first..samples.rays()).step_by(PATCH_RAYS) {
-                let rays: [_; PATCH_RAYS] = std::array::from_fn(|i| samples.ray(p + i));
-                patch.add(
-                    &rays,
-                    (&samples.t, &samples.dt, weights),
-                    unit,
-                    scale,
-                    d_sigma,
-                );
-            }
+            patch.add_patches(samples, first, (&samples.dt, weights), unit, scale, d_sigma);
         });
     }
 

@@ -12,7 +12,7 @@ use crate::data::pixels::TrainingRays;
 use crate::field::{VanillaConfig, VanillaNet, VanillaWorkspace};
 use crate::math::{length, scale};
 use crate::nn::{GradBuffer, Grads, ParamLayout};
-use crate::render::depth_smoothness::{steps_for_backward, PatchBackward, PATCH_RAYS};
+use crate::render::depth_smoothness::{steps_for_backward, PatchBackward};
 use crate::render::loss::LossBackward;
 use crate::render::sampling::{merge_sorted, sample_pdf, stratified};
 use crate::render::volume::{composite_packed, depth_deltas};
@@ -343,11 +343,7 @@ fn add_patch_smoothness(ws: &mut ChunkWorkspace, scale: f32, unit: f32) {
     let spr = samples.samples_per_dir;
     steps_for_backward(&samples.dt, spr, patch_dt);
     loss.add_penalty(|d_sigma| {
-        for first in (0..samples.len() / spr).step_by(PATCH_RAYS) {
-            let rays: [_; PATCH_RAYS] =
-                std::array::from_fn(|i| (first + i) * spr..(first + i + 1) * spr);
-            patch.add(&rays, (&samples.t, patch_dt, weights), unit, scale, d_sigma);
-        }
+        patch.add_patches(samples, 0, (patch_dt, weights), unit, scale, d_sigma);
     });
 }
 
@@ -649,6 +645,7 @@ impl Model for VanillaModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::render::depth_smoothness::PATCH_RAYS;
 
     fn tiny_model() -> VanillaModel {
         tiny_model_of("demo")

@@ -15,6 +15,7 @@
 //! colours already place.
 
 use crate::render::distortion::weights_bwd;
+use crate::stage::PackedSamples;
 
 /// Rays along a patch's side.
 pub const PATCH_SIDE: usize = 4;
@@ -121,6 +122,23 @@ impl PatchBackward {
             );
         }
         patch_loss(&depth, &opacity)
+    }
+
+    /// [`add`](Self::add) for every patch of `samples`' rays from ray `first` on (whole
+    /// patches, one after another), their weights differentiated by the steps `dt`.
+    pub fn add_patches(
+        &mut self,
+        samples: &PackedSamples,
+        first: usize,
+        (dt, weights): (&[f32], &[f32]),
+        unit: f32,
+        scale: f32,
+        d_sigma: &mut [f32],
+    ) {
+        for p in (first..samples.rays()).step_by(PATCH_RAYS) {
+            let rays: [_; PATCH_RAYS] = std::array::from_fn(|i| samples.ray(p + i));
+            self.add(&rays, (&samples.t, dt, weights), unit, scale, d_sigma);
+        }
     }
 }
 
