@@ -168,6 +168,8 @@ pub struct FastWorkspace {
     colour_in: Vec<f32>,
     c1: Vec<f32>,
     c2: Vec<f32>,
+    /// The samples an inference coloured ([`Field::infer_picked`]).
+    picked: Vec<u32>,
     /// Densities of the last forward (one per sample).
     pub sigma: Vec<f32>,
     /// Colours of the last forward (three per sample).
@@ -219,6 +221,20 @@ fn relu_bwd(dh: &mut [f32], h: &[f32]) {
     for (d, &y) in dh.iter_mut().zip(h) {
         *d = if y > 0.0 { *d } else { 0.0 };
     }
+}
+
+/// Moves the colours of the picked samples, packed at the front of `rgb` (three values a
+/// row), to their own rows (`picked` in increasing order), and zeroes the other rows. In
+/// place from the back: a picked sample's row is never before its packed one.
+fn spread_rows(rgb: &mut [f32], picked: &[u32]) {
+    let mut end = rgb.len() / 3;
+    for (r, &s) in picked.iter().enumerate().rev() {
+        let s = s as usize;
+        rgb[3 * (s + 1)..3 * end].fill(0.0);
+        rgb.copy_within(3 * r..3 * r + 3, 3 * s);
+        end = s;
+    }
+    rgb[..3 * end].fill(0.0);
 }
 
 /// The name of the per-photo appearance codes (`images x dims`) among the parameters.
@@ -593,32 +609,45 @@ impl FastField {
     /// by `samples_per_dir` consecutive samples, appearance indices, footprints), into
     /// `ws.sigma` and `ws.rgb`.
     fn eval_samples(&self, params: &[f32], input: FieldInput, ws: &mut FastWorkspace) {
-        let FieldInput {
-            positions,
-            dirs,
-            samples_per_dir: spd,
-            appearance,
-            footprints,
-            times,
-            ..
-        } = input;
-        let n = positions.len() / 3;
+        let n = input.len();
+        self.eval_density(
+            params,
+            input.positions,
+            input.footprints,
+            Moments::of(input.times),
+            ws,
+        );
+        self.eval_colour(params, &input, 0..n, ws);
+    }
+
+    /// The colour network over the samples `rows` names (in increasing order), from the
+    /// geometry features the density pass left in `ws`: row `r` of `ws.colour_in`, `c1`,
+    /// `c2` and `rgb` holds the `r`th of them (all `n` samples in order for a forward,
+    /// which its backward reads).
+    fn eval_colour(
+        &self,
+        params: &[f32],
+        input: &FieldInput,
+        rows: impl ExactSizeIterator<Item = usize>,
+        ws: &mut FastWorkspace,
+    ) {
+        let (n, m) = (input.len(), rows.len());
         let (w, g, ci) = (
             self.config.hidden,
             self.config.geo_features,
             self.colour_in_dims(),
         );
+        let (dirs, spd) = (input.dirs, input.samples_per_dir);
         let dims = self.appearance_dims();
-        self.eval_density(params, positions, footprints, Moments::of(times), ws);
         let _clock = step_clock::start(Stage::Networks);
-        self.gather_codes(params, appearance, n, ws);
+        self.gather_codes(params, input.appearance, n, ws);
         let codes = self.codes(params);
-        grow(&mut ws.colour_in, n * ci);
-        grow(&mut ws.c1, n * w);
-        grow(&mut ws.c2, n * w);
-        grow(&mut ws.rgb, n * 3);
-        for s in 0..n {
-            let row = &mut ws.colour_in[s * ci..][..ci];
+        grow(&mut ws.colour_in, m * ci);
+        grow(&mut ws.c1, m * w);
+        grow(&mut ws.c2, m * w);
+        grow(&mut ws.rgb, n.max(m) * 3);
+        for (r, s) in rows.enumerate() {
+            let row = &mut ws.colour_in[r * ci..][..ci];
             let d = &dirs[3 * (s / spd)..][..3];
             row[..SH_DIMS].copy_from_slice(&sh4([d[0], d[1], d[2]]));
             row[SH_DIMS..][..g - 1].copy_from_slice(&ws.geo[s * g + 1..][..g - 1]);
@@ -630,26 +659,26 @@ impl FastField {
                 row[SH_DIMS + g - 1..].copy_from_slice(code);
             }
         }
-        let c1 = &mut ws.c1[..n * w];
+        let c1 = &mut ws.c1[..m * w];
         matmul(
             c1,
-            MatRef::new(&ws.colour_in, n, ci),
+            MatRef::new(&ws.colour_in, m, ci),
             self.weight(params, 2, ci, w),
             false,
         );
         relu(c1);
-        let c2 = &mut ws.c2[..n * w];
+        let c2 = &mut ws.c2[..m * w];
         matmul(
             c2,
-            MatRef::new(c1, n, w),
+            MatRef::new(c1, m, w),
             self.weight(params, 3, w, w),
             false,
         );
         relu(c2);
-        let rgb = &mut ws.rgb[..n * 3];
+        let rgb = &mut ws.rgb[..m * 3];
         matmul(
             rgb,
-            MatRef::new(c2, n, w),
+            MatRef::new(c2, m, w),
             self.weight(params, 4, w, 3),
             false,
         );
@@ -960,6 +989,35 @@ impl Field for FastField {
     ) -> FieldOutput<'c> {
         let n = input.len();
         self.eval_samples(params, input, ctx);
+        FieldOutput {
+            sigma: &ctx.sigma[..n],
+            rgb: &ctx.rgb[..n * 3],
+        }
+    }
+
+    fn infer_picked<'c>(
+        &self,
+        params: &[f32],
+        input: FieldInput,
+        ctx: &'c mut FastWorkspace,
+        pick: &mut dyn FnMut(&[f32], &mut Vec<u32>),
+    ) -> FieldOutput<'c> {
+        let n = input.len();
+        self.eval_density(
+            params,
+            input.positions,
+            input.footprints,
+            Moments::of(input.times),
+            ctx,
+        );
+        let mut picked = std::mem::take(&mut ctx.picked);
+        picked.clear();
+        pick(&ctx.sigma[..n], &mut picked);
+        debug_assert!(picked.windows(2).all(|p| p[0] < p[1]));
+        debug_assert!(picked.last().is_none_or(|&s| (s as usize) < n));
+        self.eval_colour(params, &input, picked.iter().map(|&s| s as usize), ctx);
+        spread_rows(&mut ctx.rgb[..n * 3], &picked);
+        ctx.picked = picked;
         FieldOutput {
             sigma: &ctx.sigma[..n],
             rgb: &ctx.rgb[..n * 3],
@@ -1491,6 +1549,53 @@ mod tests {
             rel < 1e-2,
             "relative gradient error {rel} over {checked} parameters"
         );
+    }
+
+    /// Inference that colours only the picked samples gives them the forward's colours
+    /// (appearance codes included), every sample the forward's density, and the other
+    /// samples no colour; the picker sees every density.
+    #[test]
+    fn picked_samples_get_the_forwards_colours_and_the_rest_none() {
+        let field = tiny_with_codes(2, 3);
+        let mut params = field.init_params(4);
+        let mut rng = crate::rng::Rng::new(3);
+        params.iter_mut().for_each(|v| *v += rng.range(-0.5, 0.5));
+        let n = 9;
+        let pos: Vec<f32> = (0..3 * n).map(|_| rng.range(-1.2, 1.2)).collect();
+        let dirs: Vec<f32> = (0..n)
+            .flat_map(|k| [0.6, 0.0, 0.8].map(|v| v * (k as f32 - 4.0).signum().max(0.5)))
+            .collect();
+        let appearance: Vec<u32> = (0..n as u32).map(|k| k % 4).collect();
+        let with_codes = FieldInput {
+            appearance: &appearance,
+            ..input(&pos, &dirs)
+        };
+        let mut ws = FastWorkspace::default();
+        let full = field.forward(&params, with_codes, &mut ws);
+        let (sigma, rgb) = (full.sigma.to_vec(), full.rgb.to_vec());
+        for picks in [
+            vec![],
+            vec![0],
+            vec![3, 4, 8],
+            (0..n as u32).collect::<Vec<_>>(),
+        ] {
+            let mut seen = Vec::new();
+            let mut ws = FastWorkspace::default();
+            let out = field.infer_picked(&params, with_codes, &mut ws, &mut |s, picked| {
+                seen = s.to_vec();
+                picked.extend(&picks);
+            });
+            assert_eq!(seen, sigma);
+            assert_eq!(out.sigma, &sigma[..]);
+            for s in 0..n {
+                let got = &out.rgb[3 * s..3 * s + 3];
+                if picks.contains(&(s as u32)) {
+                    assert_eq!(got, &rgb[3 * s..3 * s + 3], "sample {s} of {picks:?}");
+                } else {
+                    assert_eq!(got, &[0.0; 3], "sample {s} of {picks:?}");
+                }
+            }
+        }
     }
 
     #[test]

@@ -30,7 +30,7 @@ use crate::field::{FastField, FastFieldConfig, FastWorkspace as FieldContext};
 use crate::nn::{GradBuffer, ParamLayout};
 use crate::render::depth_smoothness::{PatchBackward, PATCH_RAYS};
 use crate::render::loss::{squared_error, LossBackward};
-use crate::render::march::{render_marched, MarchWorkspace, Marcher};
+use crate::render::march::{render_marched, MarchWorkspace, Marcher, MIN_WEIGHT};
 use crate::render::occupancy::{OccupancyConfig, OccupancyGrid};
 use crate::render::volume::composite_packed;
 use crate::stage::finite::{check_outputs, FiniteCheck};
@@ -816,6 +816,7 @@ impl Model for FastModel {
             &marcher,
             &self.grid,
             self.config.batch_samples,
+            MIN_WEIGHT,
             rays,
             &mut ws.march,
             out,
@@ -908,11 +909,33 @@ mod tests {
         sse: f64,
     }
 
+    /// What [`FastModel::render_chunk`] renders, with every sample coloured (training
+    /// colours every sample).
+    fn render_every_colour(
+        model: &FastModel,
+        params: &[f32],
+        rays: &RayBatch,
+        ws: &mut FastWorkspace,
+    ) -> Vec<RayOutput> {
+        let mut out = vec![RayOutput::default(); rays.len()];
+        render_marched(
+            &model.field,
+            params,
+            &model.marcher(rays.near, rays.far),
+            &model.grid,
+            model.config.batch_samples,
+            0.0,
+            rays,
+            &mut ws.march,
+            &mut out,
+        );
+        out
+    }
+
     fn render_then_train(model: &FastModel, params: &[f32], rays: RayBatch) -> RenderThenTrain {
         let n = rays.len();
         let mut ws = FastWorkspace::default();
-        let mut out = vec![RayOutput::default(); n];
-        model.render_chunk(params, &rays, &mut ws, &mut out);
+        let out = render_every_colour(model, params, &rays, &mut ws);
         let taken = ws.march.taken.clone();
         let marcher = model.marcher(rays.near, rays.far);
         let mut block = MarchedBlock::default();
@@ -992,10 +1015,9 @@ mod tests {
         assert!(r.sse < 1e-9, "render and training disagree: sse {}", r.sse);
     }
 
-    /// With contraction, rays run on past the box with growing steps, and rendering and
-    /// training still see the same colour.
-    #[test]
-    fn contracted_rays_march_beyond_the_box_and_agree() {
+    /// A model whose rays run through a thin fog into contracted space (light reaches the
+    /// far shell), and those rays.
+    fn thin_fog() -> (FastModel, Vec<f32>, RayBatch) {
         let (mut model, mut params) = dense_model();
         model.config.contract = true;
         // A thin fog (sigma about 1): light reaches the contracted shell.
@@ -1009,11 +1031,16 @@ mod tests {
         let origins: Vec<[f32; 3]> = (0..4).map(|_| [0.0, -1.0, 0.2]).collect();
         let dirs: Vec<[f32; 3]> = (0..4).map(|k| [0.1 * k as f32 - 0.15, 1.0, 0.05]).collect();
         let bgs: Vec<[f32; 3]> = (0..4).map(|_| [0.2, 0.4, 0.6]).collect();
-        let r = render_then_train(
-            &model,
-            &params,
-            ray_batch(&origins, &dirs, &bgs, (0.05, 1e4)),
-        );
+        let rays = ray_batch(&origins, &dirs, &bgs, (0.05, 1e4));
+        (model, params, rays)
+    }
+
+    /// With contraction, rays run on past the box with growing steps, and rendering and
+    /// training still see the same colour.
+    #[test]
+    fn contracted_rays_march_beyond_the_box_and_agree() {
+        let (model, params, rays) = thin_fog();
+        let r = render_then_train(&model, &params, rays);
         let inner = r.marcher.contract.expect("contracted");
         // Samples reach far past the inner cube, with steps that grow with distance.
         let far_t = r.block.samples.t.iter().copied().fold(0.0f32, f32::max);
@@ -1030,6 +1057,28 @@ mod tests {
         assert!(r.block.samples.len() < 4 * r.marcher.max_samples);
         assert!(r.sse < 1e-9, "render and training disagree: sse {}", r.sse);
         assert!(r.out.iter().all(|o| o.opacity > 0.5), "{:?}", r.out);
+    }
+
+    /// Rendering leaves out the colour of samples that weigh less than `MIN_WEIGHT` in
+    /// their pixel, and nothing else: in a thin fog, whose far samples weigh little each,
+    /// opacity and depth are those of colouring every sample, and colour moves by less
+    /// than the left-out weights could carry.
+    #[test]
+    fn rendering_leaves_out_only_the_colour_that_cannot_show() {
+        let (model, params, rays) = thin_fog();
+        let mut ws = FastWorkspace::default();
+        let every = render_every_colour(&model, &params, &rays, &mut ws);
+        let mut out = vec![RayOutput::default(); rays.len()];
+        model.render_chunk(&params, &rays, &mut ws, &mut out);
+        let mut moved = 0.0f32;
+        for (a, b) in out.iter().zip(&every) {
+            assert_eq!((a.opacity, a.depth), (b.opacity, b.depth));
+            for c in 0..3 {
+                moved = moved.max((a.rgb[c] - b.rgb[c]).abs());
+            }
+        }
+        assert!(moved > 0.0, "no colour left out: the test shows nothing");
+        assert!(moved < 1e-3, "colour moved by {moved}");
     }
 }
 

@@ -7,7 +7,8 @@
 //! compositing. Rendering ([`render_marched`], any [`Field`]) marches in rounds: every live
 //! ray takes a few more steps, the round's samples are evaluated together, and rays stop
 //! once their transmittance falls below [`MIN_TRANSMITTANCE`] (early termination), so
-//! samples behind opaque surfaces are never evaluated.
+//! samples behind opaque surfaces are never evaluated; and only samples that weigh at least
+//! [`MIN_WEIGHT`] in their pixel go through the colour network.
 //!
 //! Depths are reported along the camera's (unnormalised) ray direction, like the paper's
 //! renderer, although marching itself works in metric units along unit directions.
@@ -20,6 +21,14 @@ use crate::stage::{Field, PackedSamples, RayBatch};
 
 /// Rendering stops a ray once less than this much light gets through.
 pub const MIN_TRANSMITTANCE: f32 = 1e-4;
+
+/// Rendering colours only samples whose weight in their pixel is at least this: the field
+/// evaluates every sample's density, but its colour network only where the colour shows.
+pub const MIN_WEIGHT: f32 = 1e-4;
+
+/// A ray's samples per rendering round at most. Most rays stop within a few samples of
+/// the surface they meet, and a round's samples past that are wasted.
+const ROUND_STEPS: usize = 4;
 
 /// Where and how finely rays are marched.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -209,7 +218,8 @@ pub struct MarchWorkspace<C> {
 }
 
 /// Renders `rays` through `field` with early termination; a round evaluates at most about
-/// `samples_per_round` samples.
+/// `samples_per_round` samples, and colours only those whose weight is at least
+/// `min_weight` ([`MIN_WEIGHT`]; 0 colours every sample).
 #[allow(clippy::too_many_arguments)]
 pub fn render_marched<F: Field>(
     field: &F,
@@ -217,6 +227,7 @@ pub fn render_marched<F: Field>(
     marcher: &Marcher,
     grid: &OccupancyGrid,
     samples_per_round: usize,
+    min_weight: f32,
     rays: &RayBatch,
     ws: &mut MarchWorkspace<F::Context>,
     out: &mut [RayOutput],
@@ -255,7 +266,7 @@ pub fn render_marched<F: Field>(
     }
     let footprints = !rays.radii.is_empty();
     while !ws.live.is_empty() {
-        let per_ray = (samples_per_round / ws.live.len()).clamp(1, 64);
+        let per_ray = (samples_per_round / ws.live.len()).clamp(1, ROUND_STEPS);
         ws.round.clear();
         ws.round_rays.clear();
         let mut still = Vec::with_capacity(ws.live.len());
@@ -301,7 +312,20 @@ pub fn render_marched<F: Field>(
         if ws.round.is_empty() {
             break;
         }
-        let f = field.infer(params, ws.round.field_input(), &mut ws.field);
+        let (round, round_rays, acc) = (&ws.round, &ws.round_rays, &ws.acc);
+        let mut pick = |sigma: &[f32], picked: &mut Vec<u32>| {
+            for (i, &k) in round_rays.iter().enumerate() {
+                let mut trans = acc[k].transmittance();
+                for s in round.ray(i) {
+                    let alpha = 1.0 - (-sigma[s] * round.dt[s]).exp();
+                    if trans * alpha >= min_weight {
+                        picked.push(s as u32);
+                    }
+                    trans *= 1.0 - alpha;
+                }
+            }
+        };
+        let f = field.infer_picked(params, round.field_input(), &mut ws.field, &mut pick);
         for (i, &k) in ws.round_rays.iter().enumerate() {
             let norm = ws.unit_rays[k].norm;
             let acc = &mut ws.acc[k];

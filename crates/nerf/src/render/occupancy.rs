@@ -9,9 +9,10 @@
 //! Rays march with a fixed step `dt` on a lattice `t0 + (k + jitter) dt`: a sample is
 //! taken in occupied cells, and an empty cell is crossed in whole steps, so skipping changes
 //! only which lattice points are visited, never where they are. Where the whole block of
-//! [`BLOCK`]^3 cells around an empty cell is empty, the block is crossed in one skip: a ray
-//! through empty space looks up a flag per block instead of one per cell, and lands on the
-//! lattice point the cell-by-cell walk would reach (the first past the block's wall).
+//! [`BLOCK`]^3 cells around an empty cell is empty, the block is crossed in one skip, and
+//! where the whole region of [`REGION`]^3 cells around it is empty, the region: a ray
+//! through empty space looks up a flag per region or block instead of one per cell, and
+//! lands on the lattice point the cell-by-cell walk would reach (the first past the wall).
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -22,8 +23,13 @@ use crate::rng::Rng;
 /// are empty (grids whose resolution it does not divide skip cell by cell).
 pub const BLOCK: usize = 4;
 
+/// Cells per axis of the regions (of blocks) crossed in one skip when all of their cells
+/// are empty: far from the scene a ray crosses a 128^3 grid in a few skips.
+pub const REGION: usize = 16;
+
 // The GPU marcher finds a cell's block by a shift.
 const _: () = assert!(BLOCK.is_power_of_two());
+const _: () = assert!(REGION.is_power_of_two() && REGION.is_multiple_of(BLOCK));
 
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct OccupancyConfig {
@@ -85,9 +91,10 @@ pub struct OccupancyGrid {
     /// `occupied` packed 64 cells a word, for marching: an eighth of the bytes, so a
     /// 128^3 grid's lookups (one per cell a ray crosses) stay in a core's L2 cache.
     bits: Vec<u64>,
-    /// Per block of `BLOCK^3` cells, whether any of its cells is occupied, packed as `bits`
-    /// (empty when `BLOCK` does not divide the resolution).
-    blocks: Vec<u64>,
+    /// Per block of `BLOCK^3` cells, and per region of `REGION^3`, whether any of its cells
+    /// is occupied.
+    blocks: Cubes,
+    regions: Cubes,
     /// Cells that may hold anything (`None`: all): few-view training keeps the space the
     /// training cameras do not see empty (`model::few_view`).
     pub possible: Option<Vec<bool>>,
@@ -124,7 +131,8 @@ impl OccupancyGrid {
             thickness: vec![0.0; n],
             occupied: vec![true; n],
             bits: pack(&vec![true; n]),
-            blocks: block_flags(&vec![true; n], resolution),
+            blocks: Cubes::new(&vec![true; n], resolution, BLOCK),
+            regions: Cubes::new(&vec![true; n], resolution, REGION),
             possible: None,
         }
     }
@@ -177,7 +185,8 @@ impl OccupancyGrid {
             bound,
             thickness,
             bits: pack(&occupied),
-            blocks: block_flags(&occupied, resolution),
+            blocks: Cubes::new(&occupied, resolution, BLOCK),
+            regions: Cubes::new(&occupied, resolution, REGION),
             occupied,
             possible: None,
         }
@@ -210,24 +219,34 @@ impl OccupancyGrid {
             *o = v >= cut && self.possible.as_ref().is_none_or(|p| p[i]);
         }
         self.bits = pack(&self.occupied);
-        self.blocks = block_flags(&self.occupied, self.resolution);
+        self.blocks = Cubes::new(&self.occupied, self.resolution, BLOCK);
+        self.regions = Cubes::new(&self.occupied, self.resolution, REGION);
     }
 
     /// Per block of `BLOCK^3` cells (x fastest), whether any of its cells is occupied;
     /// empty when `BLOCK` does not divide the resolution (what a GPU marcher uploads).
     pub fn occupied_blocks(&self) -> Vec<bool> {
-        if self.blocks.is_empty() {
-            return Vec::new();
-        }
-        let n = blocks_per_axis(self.resolution).pow(3);
-        (0..n).map(|i| bit(&self.blocks, i)).collect()
+        self.blocks.unpacked()
     }
 
-    /// The same grid marched cell by cell (the plain walk the block skips are tested
-    /// against).
+    /// Per region of `REGION^3` cells (x fastest), whether any of its cells is occupied;
+    /// empty when `REGION` does not divide the resolution (what a GPU marcher uploads).
+    pub fn occupied_regions(&self) -> Vec<bool> {
+        self.regions.unpacked()
+    }
+
+    /// The same grid marched cell by cell (the plain walk the skips are tested against).
     #[cfg(test)]
     pub(crate) fn without_blocks(mut self) -> Self {
-        self.blocks.clear();
+        self.blocks = Cubes::none();
+        self.regions = Cubes::none();
+        self
+    }
+
+    /// The same grid with blocks but no regions.
+    #[cfg(test)]
+    pub(crate) fn without_regions(mut self) -> Self {
+        self.regions = Cubes::none();
         self
     }
 
@@ -235,6 +254,13 @@ impl OccupancyGrid {
     /// tests, at a resolution `BLOCK` divides.
     #[cfg(test)]
     pub(crate) fn sparse_for_tests(res: usize, seed: u64) -> OccupancyGrid {
+        Self::ball_for_tests(res, seed, 0.003)
+    }
+
+    /// A ball and cells scattered with probability `scatter`, at a resolution `BLOCK`
+    /// divides.
+    #[cfg(test)]
+    pub(crate) fn ball_for_tests(res: usize, seed: u64, scatter: f32) -> OccupancyGrid {
         let mut rng = Rng::new(seed);
         let cell = 2.0 / res as f32;
         let flags: Vec<bool> = (0..res * res * res)
@@ -242,17 +268,11 @@ impl OccupancyGrid {
                 let c = [i % res, (i / res) % res, i / (res * res)];
                 let p = c.map(|k| (k as f32 + 0.5) * cell - 1.0);
                 let r2 = p[0] * p[0] + 0.5 * p[1] * p[1] + p[2] * p[2];
-                r2 < 0.25 || rng.uniform() < 0.003
+                r2 < 0.25 || rng.uniform() < scatter
             })
             .collect();
         let thickness = flags.iter().map(|&o| f32::from(u8::from(o))).collect();
         OccupancyGrid::from_parts(res, 1.0, thickness, flags)
-    }
-
-    /// Whether the block around cell `c` holds no occupied cell.
-    #[inline]
-    fn block_empty(&self, c: [usize; 3]) -> bool {
-        !self.blocks.is_empty() && !bit(&self.blocks, block_of(c, self.resolution))
     }
 
     #[inline]
@@ -284,14 +304,21 @@ impl OccupancyGrid {
                 t += dt;
                 continue;
             }
-            // Distance to the far wall of the cell, or of its block if that is empty too,
-            // along the ray, then whole steps past it.
-            let k = if self.block_empty(c) { BLOCK } else { 1 };
+            // Distance to the far wall of the cell, or of its block or region if that is
+            // empty too, along the ray, then whole steps past it.
+            let k = if self.regions.empty_at(c) {
+                self.regions.shift
+            } else if self.blocks.empty_at(c) {
+                self.blocks.shift
+            } else {
+                0
+            };
             let mut exit = f32::INFINITY;
             for a in 0..3 {
                 if d[a] != 0.0 {
-                    let low = c[a] / k * k;
-                    let wall = if d[a] > 0.0 { low + k } else { low } as f32 * cs - self.bound;
+                    let low = c[a] >> k << k;
+                    let wall =
+                        if d[a] > 0.0 { low + (1 << k) } else { low } as f32 * cs - self.bound;
                     exit = exit.min((wall - p[a]) / d[a]);
                 }
             }
@@ -373,37 +400,79 @@ fn bit(words: &[u64], i: usize) -> bool {
 /// Blocks per axis of a `resolution^3` grid: 0 where `BLOCK` does not divide it (such a
 /// grid is marched cell by cell, on both engines).
 pub fn blocks_per_axis(resolution: usize) -> usize {
-    if resolution.is_multiple_of(BLOCK) {
-        resolution / BLOCK
+    cubes_per_axis(resolution, BLOCK)
+}
+
+/// Regions per axis of a `resolution^3` grid: 0 where `REGION` does not divide it.
+pub fn regions_per_axis(resolution: usize) -> usize {
+    cubes_per_axis(resolution, REGION)
+}
+
+fn cubes_per_axis(resolution: usize, size: usize) -> usize {
+    if resolution.is_multiple_of(size) {
+        resolution / size
     } else {
         0
     }
 }
 
-/// The index of the block holding cell `c` of a `resolution^3` grid (x fastest).
-#[inline]
-fn block_of(c: [usize; 3], resolution: usize) -> usize {
-    let r = blocks_per_axis(resolution);
-    c[0] / BLOCK + r * (c[1] / BLOCK + r * (c[2] / BLOCK))
+/// Per cube of `size^3` cells of a grid (x fastest), whether any of its cells is occupied,
+/// packed as [`pack`]; none when `size` does not divide the resolution.
+#[derive(Clone, Debug, PartialEq)]
+struct Cubes {
+    /// log2 of the cells per axis of a cube.
+    shift: u32,
+    per_axis: usize,
+    flags: Vec<u64>,
 }
 
-/// Per block of `BLOCK^3` cells of a `resolution^3` grid, whether any of its cells is
-/// occupied, packed as [`pack`]; empty when `BLOCK` does not divide `resolution`.
-fn block_flags(occupied: &[bool], resolution: usize) -> Vec<u64> {
-    let r = blocks_per_axis(resolution);
-    if r == 0 {
-        return Vec::new();
+impl Cubes {
+    fn new(occupied: &[bool], resolution: usize, size: usize) -> Self {
+        debug_assert!(size.is_power_of_two());
+        let r = cubes_per_axis(resolution, size);
+        let mut any = vec![false; r * r * r];
+        if r > 0 {
+            for (i, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
+                let c = [
+                    i % resolution,
+                    (i / resolution) % resolution,
+                    i / (resolution * resolution),
+                ];
+                any[c[0] / size + r * (c[1] / size + r * (c[2] / size))] = true;
+            }
+        }
+        Cubes {
+            shift: size.trailing_zeros(),
+            per_axis: r,
+            flags: pack(&any),
+        }
     }
-    let mut any = vec![false; r * r * r];
-    for (i, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
-        let c = [
-            i % resolution,
-            (i / resolution) % resolution,
-            i / (resolution * resolution),
-        ];
-        any[block_of(c, resolution)] = true;
+
+    #[cfg(test)]
+    fn none() -> Self {
+        Cubes {
+            shift: 0,
+            per_axis: 0,
+            flags: Vec::new(),
+        }
     }
-    pack(&any)
+
+    fn unpacked(&self) -> Vec<bool> {
+        (0..self.per_axis.pow(3))
+            .map(|i| bit(&self.flags, i))
+            .collect()
+    }
+
+    /// Whether the cube around cell `c` holds no occupied cell (false without cubes).
+    #[inline]
+    fn empty_at(&self, c: [usize; 3]) -> bool {
+        let (r, k) = (self.per_axis, self.shift);
+        r > 0
+            && !bit(
+                &self.flags,
+                (c[0] >> k) + r * ((c[1] >> k) + r * (c[2] >> k)),
+            )
+    }
 }
 
 /// The floor of a quotient that is not negative, as the truncating cast computes it: one
@@ -586,21 +655,35 @@ mod tests {
         check(&g, &flipped);
     }
 
-    /// Crossing empty blocks in one skip visits the lattice points the cell-by-cell walk
-    /// visits: the same samples (depths equal to rounding) on rays through a sparse grid,
-    /// whole and resumed in pieces.
+    /// Crossing empty blocks and regions in one skip visits the lattice points the
+    /// cell-by-cell walk visits: the same samples (depths equal to rounding) on rays through
+    /// sparse grids (with empty blocks; with empty regions too), whole and resumed in pieces,
+    /// with regions and blocks, blocks alone, and cell by cell.
     #[test]
-    fn block_skips_take_the_samples_of_the_cell_walk() {
-        let grid = OccupancyGrid::sparse_for_tests(32, 3);
-        let plain = grid.clone().without_blocks();
-        let blocks = grid.occupied_blocks();
-        let empty = blocks.iter().filter(|&&b| !b).count();
-        assert!(
-            empty * 2 > blocks.len(),
-            "{empty} of {} blocks empty",
-            blocks.len()
-        );
-        assert!(plain.occupied_blocks().is_empty());
+    fn block_and_region_skips_take_the_samples_of_the_cell_walk() {
+        for grid in [
+            OccupancyGrid::sparse_for_tests(32, 3),
+            OccupancyGrid::ball_for_tests(64, 3, 2e-5),
+        ] {
+            let empty = |flags: Vec<bool>| flags.iter().filter(|&&b| !b).count() * 2 > flags.len();
+            assert!(empty(grid.occupied_blocks()), "most blocks empty");
+            if grid.resolution == 64 {
+                let regions = grid.occupied_regions();
+                let empty = regions.iter().filter(|&&b| !b).count();
+                assert!(
+                    (16..regions.len()).contains(&empty),
+                    "{empty} of {} regions empty",
+                    regions.len()
+                );
+            }
+            let plain = grid.clone().without_blocks();
+            assert!(plain.occupied_blocks().is_empty() && plain.occupied_regions().is_empty());
+            let no_regions = grid.clone().without_regions();
+            check_skips(&grid, &no_regions, &plain);
+        }
+    }
+
+    fn check_skips(grid: &OccupancyGrid, no_regions: &OccupancyGrid, plain: &OccupancyGrid) {
         let mut rng = Rng::new(9);
         let (mut rays, mut samples) = (0, 0);
         for _ in 0..400 {
@@ -613,12 +696,15 @@ mod tests {
             };
             let dt = 2.0 * 3f32.sqrt() / 256.0;
             let start = t0 + rng.uniform() * dt;
-            let (mut fast, mut slow) = (Vec::new(), Vec::new());
+            let (mut fast, mut blocks, mut slow) = (Vec::new(), Vec::new(), Vec::new());
             grid.march(o, d, start..t1, dt, usize::MAX, &mut fast);
+            no_regions.march(o, d, start..t1, dt, usize::MAX, &mut blocks);
             plain.march(o, d, start..t1, dt, usize::MAX, &mut slow);
-            assert_eq!(fast.len(), slow.len(), "ray from {o:?}");
-            for (a, b) in fast.iter().zip(&slow) {
-                assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+            for walk in [&fast, &blocks] {
+                assert_eq!(walk.len(), slow.len(), "ray from {o:?}");
+                for (a, b) in walk.iter().zip(&slow) {
+                    assert!((a - b).abs() < 1e-4, "{a} vs {b}");
+                }
             }
             let mut pieces = Vec::new();
             let mut t = start;

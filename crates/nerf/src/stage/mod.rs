@@ -84,6 +84,22 @@ pub trait Field: Sync {
         self.forward(params, input, ctx)
     }
 
+    /// Inference for a renderer that needs colour only where a sample shows: the densities
+    /// of every sample first, then `pick`, handed them, pushes onto its list (in increasing
+    /// order) the samples that need a colour. The other samples' colour rows are zero, or
+    /// their colours where a field has no cheaper way (this default colours every sample
+    /// and never asks).
+    fn infer_picked<'c>(
+        &self,
+        params: &[f32],
+        input: FieldInput,
+        ctx: &'c mut Self::Context,
+        pick: &mut dyn FnMut(&[f32], &mut Vec<u32>),
+    ) -> FieldOutput<'c> {
+        let _ = pick;
+        self.infer(params, input, ctx)
+    }
+
     /// Densities alone at `positions` (`n x 3`) into `out` (`n`): occupancy refreshes and
     /// mesh grids need no colour.
     fn density(&self, params: &[f32], positions: &[f32], ctx: &mut Self::Context, out: &mut [f32]);

@@ -24,7 +24,7 @@ use crate::error::{NerfError, Result};
 use crate::math::{length, scale};
 use crate::render::contraction::FAR_N;
 use crate::render::march::{Marcher, MIN_TRANSMITTANCE};
-use crate::render::occupancy::{blocks_per_axis, OccupancyGrid, BLOCK};
+use crate::render::occupancy::{blocks_per_axis, regions_per_axis, OccupancyGrid, BLOCK, REGION};
 use crate::stage::RayBatch;
 
 const GROUP: u32 = 64;
@@ -50,6 +50,9 @@ pub struct MarchParams {
     blocks: u32,
     /// `log2(BLOCK)`: a cell's block is its index shifted right by this.
     block_shift: u32,
+    /// Regions per axis (0: none) of `REGION^3` cells, whose flags follow the blocks'.
+    regions: u32,
+    region_shift: u32,
 }
 
 #[cube]
@@ -150,7 +153,15 @@ fn march_ray(
                 // that is empty too: walls found by shifts (0 for a cell), where a
                 // division by a launch value costs a GPU tens of instructions a step.
                 let mut shift = 0u32;
-                if p.blocks > 0 {
+                if p.regions > 0 {
+                    let (s, nr) = (p.region_shift, p.regions);
+                    let ri = (cx >> s) + nr * ((cy >> s) + nr * (cz >> s));
+                    let at = res * res * res + p.blocks * p.blocks * p.blocks + ri;
+                    if occ[at as usize] == 0 {
+                        shift = s;
+                    }
+                }
+                if p.blocks > 0 && shift == 0 {
                     let (s, nb) = (p.block_shift, p.blocks);
                     let bi = (cx >> s) + nb * ((cy >> s) + nb * (cz >> s));
                     if occ[(res * res * res + bi) as usize] == 0 {
@@ -609,11 +620,16 @@ impl PendingCut<'_> {
 }
 
 /// A host grid's flags as the device marcher reads them: 1 per occupied cell (x fastest),
-/// then 1 per block of `BLOCK^3` cells holding an occupied one.
+/// then 1 per block of `BLOCK^3` cells holding an occupied one, then 1 per region of
+/// `REGION^3` cells.
 pub fn grid_flags(grid: &OccupancyGrid) -> Vec<u32> {
     let flags = grid.occupied_cells().iter();
-    let blocks = grid.occupied_blocks();
-    flags.chain(&blocks).map(|&o| u32::from(o)).collect()
+    let (blocks, regions) = (grid.occupied_blocks(), grid.occupied_regions());
+    flags
+        .chain(&blocks)
+        .chain(&regions)
+        .map(|&o| u32::from(o))
+        .collect()
 }
 
 /// Rays marched and counted, with their slots: what [`GpuMarcher::write`] packs.
@@ -629,8 +645,10 @@ pub struct GpuMarcher {
     /// The grid's flags: its cells', then its blocks' ([`grid_flags`]).
     occ: Handle,
     res: usize,
-    /// Blocks per axis whose flags follow the cells' (0: none).
+    /// Blocks per axis whose flags follow the cells', and regions whose flags follow the
+    /// blocks' (0: none).
     blocks: usize,
+    regions: usize,
     bound: f32,
     dt: f32,
     max_samples: usize,
@@ -645,6 +663,7 @@ impl GpuMarcher {
             occ: occupied,
             res,
             blocks: blocks_per_axis(res),
+            regions: regions_per_axis(res),
             bound,
             dt: marcher.dt,
             max_samples: marcher.max_samples,
@@ -655,11 +674,12 @@ impl GpuMarcher {
     /// A marcher over a copy of a host grid.
     pub fn with_grid(gpu: &Gpu, marcher: &Marcher, grid: &OccupancyGrid) -> Self {
         let flags = grid_flags(grid);
-        // A grid without block flags (as tests make one) is walked cell by cell.
-        let has_blocks = flags.len() > grid.resolution.pow(3);
         let m = GpuMarcher::new(marcher, gpu.upload_u32(&flags), grid.resolution, grid.bound);
+        // A grid without block or region flags (as tests make them) goes without.
+        let per_axis = |flags: Vec<bool>| (flags.len() as f64).cbrt().round() as usize;
         GpuMarcher {
-            blocks: if has_blocks { m.blocks } else { 0 },
+            blocks: per_axis(grid.occupied_blocks()),
+            regions: per_axis(grid.occupied_regions()),
             ..m
         }
     }
@@ -676,6 +696,8 @@ impl GpuMarcher {
             FAR_N,
             self.blocks as u32,
             BLOCK.trailing_zeros(),
+            self.regions as u32,
+            REGION.trailing_zeros(),
         )
     }
 
@@ -717,9 +739,9 @@ impl GpuMarcher {
         scan(gpu, counts, n)
     }
 
-    /// The grid buffer's flags: cells and blocks.
+    /// The grid buffer's flags: cells, blocks and regions.
     fn cells(&self) -> usize {
-        self.res.pow(3) + self.blocks.pow(3)
+        self.res.pow(3) + self.blocks.pow(3) + self.regions.pow(3)
     }
 
     /// Where the budget of `budget` samples (or `max_rays` rays) cuts `n` counted rays;
@@ -1084,11 +1106,13 @@ mod tests {
         let Some(gpu) = super::super::device::test_gpu() else {
             return;
         };
+        // The sparse grids: most blocks empty (32^3), regions empty too (64^3).
         let cases = [
-            (None, false, false),
-            (Some(0.75), false, false),
-            (None, true, false),
-            (None, false, true),
+            (None, false, None),
+            (Some(0.75), false, None),
+            (None, true, None),
+            (None, false, Some(32)),
+            (None, false, Some(64)),
         ];
         for (contract, cylinders, sparse) in cases {
             let mut rng = Rng::new(9);
@@ -1096,12 +1120,16 @@ mod tests {
             let thickness: Vec<f32> = (0..res * res * res)
                 .map(|_| if rng.uniform() < 0.33 { 1.0 } else { 0.0 })
                 .collect();
-            // The sparse grid's empty blocks are crossed in one skip.
-            let grid = if sparse {
-                OccupancyGrid::sparse_for_tests(32, 3)
-            } else {
-                OccupancyGrid::from_thickness(res, bound, thickness, 0.5)
+            // The sparse grids' empty blocks and regions are crossed in one skip.
+            let grid = match sparse {
+                Some(32) => OccupancyGrid::sparse_for_tests(32, 3),
+                Some(r) => OccupancyGrid::ball_for_tests(r, 3, 2e-5),
+                None => OccupancyGrid::from_thickness(res, bound, thickness, 0.5),
             };
+            if sparse == Some(64) {
+                assert!(grid.occupied_regions().contains(&false));
+            }
+            let sparse = sparse.is_some();
             let bound = grid.bound;
             let marcher = Marcher {
                 dt: 3f32.sqrt() * 2.0 * bound / 128.0,

@@ -18,7 +18,9 @@ use cubecl::server::Handle;
 use super::device::Gpu;
 use super::launch::grid;
 use super::march::grid_flags;
-use crate::render::occupancy::{blocks_per_axis, OccupancyConfig, OccupancyGrid, BLOCK};
+use crate::render::occupancy::{
+    blocks_per_axis, regions_per_axis, OccupancyConfig, OccupancyGrid, BLOCK, REGION,
+};
 
 const GROUP: u32 = 256;
 /// Cells per field evaluation.
@@ -143,10 +145,10 @@ fn occupied_cells(
     }
 }
 
-/// `flags[cells + b]`: 1 where block `b` (of `blocks^3`, each `block^3` cells of a
-/// `res^3` grid) holds an occupied cell (`flags[..cells]`).
+/// `flags[at + b]`: 1 where cube `b` (of `blocks^3`, each `block^3` cells of a `res^3`
+/// grid) holds an occupied cell (`flags[..cells]`).
 #[cube(launch_unchecked)]
-fn occupied_blocks(flags: &mut [u32], res: u32, blocks: u32, block: u32) {
+fn occupied_blocks(flags: &mut [u32], res: u32, blocks: u32, block: u32, at: u32) {
     let b = ABSOLUTE_POS as u32;
     if b < blocks * blocks * blocks {
         let (bx, by, bz) = (b % blocks, (b / blocks) % blocks, b / (blocks * blocks));
@@ -158,7 +160,7 @@ fn occupied_blocks(flags: &mut [u32], res: u32, blocks: u32, block: u32) {
                 }
             }
         }
-        flags[(res * res * res + b) as usize] = any;
+        flags[(at + b) as usize] = any;
     }
 }
 
@@ -297,21 +299,32 @@ impl GpuOccupancy {
                 u32::from(self.masked),
             );
         }
-        let blocks = blocks_per_axis(self.resolution);
-        if blocks > 0 {
-            let flags = cells + blocks.pow(3);
-            // SAFETY: `occupied` holds the `cells` flags and the `blocks^3` after them; the
-            // kernel reads cells of its block only and bounds-checks the block index.
+        // Blocks, then regions, whose flags follow the cells' (`march::grid_flags`).
+        let (blocks, regions) = (
+            blocks_per_axis(self.resolution),
+            regions_per_axis(self.resolution),
+        );
+        let flags = cells + blocks.pow(3) + regions.pow(3);
+        for (per_axis, size, at) in [
+            (blocks, BLOCK, cells),
+            (regions, REGION, cells + blocks.pow(3)),
+        ] {
+            if per_axis == 0 {
+                continue;
+            }
+            // SAFETY: `occupied` holds the `cells` flags and the blocks' and regions' after
+            // them; the kernel reads cells of its cube only and bounds-checks the cube index.
             unsafe {
-                let (c, d) = grid(blocks.pow(3), GROUP);
+                let (c, d) = grid(per_axis.pow(3), GROUP);
                 occupied_blocks::launch_unchecked(
                     &gpu.client,
                     c,
                     d,
                     BufferArg::from_raw_parts(self.occupied.clone(), flags),
                     self.resolution as u32,
-                    blocks as u32,
-                    BLOCK as u32,
+                    per_axis as u32,
+                    size as u32,
+                    at as u32,
                 );
             }
         }
@@ -322,8 +335,9 @@ impl GpuOccupancy {
 mod tests {
     use super::*;
 
-    /// Two refreshes of a 40^3 grid (more than one chunk is not needed for the rule; the
-    /// chunk loop is exercised by `CHUNK`-independent indexing) with a density known in
+    /// Two refreshes of a 48^3 grid, with blocks and regions (more than one chunk is not
+    /// needed for the rule; the chunk loop is exercised by `CHUNK`-independent indexing),
+    /// with a density known in
     /// closed form: every cell decays, the chosen ones (all during warm-up; then the
     /// occupied ones and about `recheck_fraction` of the rest: a quarter while the field is
     /// young, then `update_fraction`) rise to `sigma * dt` at a point
@@ -333,7 +347,7 @@ mod tests {
         let Some(gpu) = super::super::device::test_gpu() else {
             return;
         };
-        let (res, bound, dt) = (40, 1.5, 0.01);
+        let (res, bound, dt) = (48, 1.5, 0.01);
         let config = OccupancyConfig {
             resolution: res,
             warmup_steps: 10,
@@ -413,10 +427,11 @@ mod tests {
             // The ball (about 15% of the box) is occupied and most of the rest is not.
             let share = bits.iter().filter(|&&b| b == 1).count() as f64 / bits.len() as f64;
             assert!((0.1..0.35).contains(&share), "{share} occupied");
-            // The blocks' flags after the cells' are the host grid's for these cells.
+            // The blocks' and regions' flags after the cells' are the host grid's for these
+            // cells.
             let host = OccupancyGrid::from_parts(res, g.bound, expected.clone(), occupied.clone());
             let want = grid_flags(&host);
-            assert!(want.len() > bits.len(), "the grid has blocks");
+            assert!(!host.occupied_regions().is_empty(), "the grid has regions");
             let flags = gpu.read_u32(&g.occupied, want.len()).expect("read");
             assert_eq!(flags, want);
         }

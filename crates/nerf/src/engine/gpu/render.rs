@@ -583,6 +583,7 @@ mod tests {
             &marcher,
             &grid,
             1 << 16,
+            0.0,
             &rays,
             &mut ws,
             &mut want,
