@@ -609,7 +609,12 @@ impl FastField {
     /// by `samples_per_dir` consecutive samples, appearance indices, footprints), into
     /// `ws.sigma` and `ws.rgb`.
     fn eval_samples(&self, params: &[f32], input: FieldInput, ws: &mut FastWorkspace) {
-        let n = input.len();
+        self.eval_input_density(params, &input, ws);
+        self.eval_colour(params, &input, 0..input.len(), ws);
+    }
+
+    /// The density pass of a forward over `input`'s samples (their footprints and moments).
+    fn eval_input_density(&self, params: &[f32], input: &FieldInput, ws: &mut FastWorkspace) {
         self.eval_density(
             params,
             input.positions,
@@ -617,7 +622,6 @@ impl FastField {
             Moments::of(input.times),
             ws,
         );
-        self.eval_colour(params, &input, 0..n, ws);
     }
 
     /// The colour network over the samples `rows` names (in increasing order), from the
@@ -1003,13 +1007,7 @@ impl Field for FastField {
         pick: &mut dyn FnMut(&[f32], &mut Vec<u32>),
     ) -> FieldOutput<'c> {
         let n = input.len();
-        self.eval_density(
-            params,
-            input.positions,
-            input.footprints,
-            Moments::of(input.times),
-            ctx,
-        );
+        self.eval_input_density(params, &input, ctx);
         let mut picked = std::mem::take(&mut ctx.picked);
         picked.clear();
         pick(&ctx.sigma[..n], &mut picked);
