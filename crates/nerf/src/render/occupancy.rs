@@ -125,14 +125,15 @@ impl OccupancyGrid {
     /// A grid with every cell occupied.
     pub fn new(resolution: usize, bound: f32) -> Self {
         let n = resolution.pow(3);
+        let (blocks, regions) = skip_cubes(&vec![true; n], resolution);
         OccupancyGrid {
             resolution,
             bound,
             thickness: vec![0.0; n],
             occupied: vec![true; n],
             bits: pack(&vec![true; n]),
-            blocks: Cubes::new(&vec![true; n], resolution, BLOCK),
-            regions: Cubes::new(&vec![true; n], resolution, REGION),
+            blocks,
+            regions,
             possible: None,
         }
     }
@@ -180,13 +181,14 @@ impl OccupancyGrid {
         occupied: Vec<bool>,
     ) -> Self {
         assert_eq!(thickness.len(), occupied.len());
+        let (blocks, regions) = skip_cubes(&occupied, resolution);
         OccupancyGrid {
             resolution,
             bound,
             thickness,
             bits: pack(&occupied),
-            blocks: Cubes::new(&occupied, resolution, BLOCK),
-            regions: Cubes::new(&occupied, resolution, REGION),
+            blocks,
+            regions,
             occupied,
             possible: None,
         }
@@ -219,8 +221,7 @@ impl OccupancyGrid {
             *o = v >= cut && self.possible.as_ref().is_none_or(|p| p[i]);
         }
         self.bits = pack(&self.occupied);
-        self.blocks = Cubes::new(&self.occupied, self.resolution, BLOCK);
-        self.regions = Cubes::new(&self.occupied, self.resolution, REGION);
+        (self.blocks, self.regions) = skip_cubes(&self.occupied, self.resolution);
     }
 
     /// Per block of `BLOCK^3` cells (x fastest), whether any of its cells is occupied;
@@ -233,6 +234,11 @@ impl OccupancyGrid {
     /// empty when `REGION` does not divide the resolution (what a GPU marcher uploads).
     pub fn occupied_regions(&self) -> Vec<bool> {
         self.regions.unpacked()
+    }
+
+    /// Blocks and regions per axis that marching skips by (0 for none).
+    pub fn skip_cubes_per_axis(&self) -> (usize, usize) {
+        (self.blocks.per_axis, self.regions.per_axis)
     }
 
     /// The same grid marched cell by cell (the plain walk the skips are tested against).
@@ -416,6 +422,13 @@ fn cubes_per_axis(resolution: usize, size: usize) -> usize {
     }
 }
 
+/// The flags marching skips empty space by: blocks from the cells, regions from the blocks.
+fn skip_cubes(occupied: &[bool], resolution: usize) -> (Cubes, Cubes) {
+    let blocks = Cubes::new(occupied, resolution, BLOCK);
+    let regions = blocks.grouped(REGION);
+    (blocks, regions)
+}
+
 /// Per cube of `size^3` cells of a grid (x fastest), whether any of its cells is occupied,
 /// packed as [`pack`]; none when `size` does not divide the resolution.
 #[derive(Clone, Debug, PartialEq)]
@@ -446,6 +459,14 @@ impl Cubes {
             per_axis: r,
             flags: pack(&any),
         }
+    }
+
+    /// Cubes of `size` cells (a multiple of these cubes'), each flagged where any of the
+    /// cubes inside it is: the coarser flags without another pass over the cells.
+    fn grouped(&self, size: usize) -> Self {
+        let mut coarser = Cubes::new(&self.unpacked(), self.per_axis, size >> self.shift);
+        coarser.shift = size.trailing_zeros();
+        coarser
     }
 
     #[cfg(test)]
@@ -676,6 +697,11 @@ mod tests {
                     regions.len()
                 );
             }
+            // Regions grouped from the blocks are those the cells give.
+            assert_eq!(
+                grid.regions,
+                Cubes::new(&grid.occupied, grid.resolution, REGION)
+            );
             let plain = grid.clone().without_blocks();
             assert!(plain.occupied_blocks().is_empty() && plain.occupied_regions().is_empty());
             let no_regions = grid.clone().without_regions();

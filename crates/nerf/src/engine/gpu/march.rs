@@ -676,10 +676,10 @@ impl GpuMarcher {
         let flags = grid_flags(grid);
         let m = GpuMarcher::new(marcher, gpu.upload_u32(&flags), grid.resolution, grid.bound);
         // A grid without block or region flags (as tests make them) goes without.
-        let per_axis = |flags: Vec<bool>| (flags.len() as f64).cbrt().round() as usize;
+        let (blocks, regions) = grid.skip_cubes_per_axis();
         GpuMarcher {
-            blocks: per_axis(grid.occupied_blocks()),
-            regions: per_axis(grid.occupied_regions()),
+            blocks,
+            regions,
             ..m
         }
     }
