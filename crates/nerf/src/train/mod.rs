@@ -13,6 +13,7 @@ pub mod defaults;
 pub mod folder;
 pub mod lock;
 pub mod options;
+pub mod pose_search;
 pub mod refined_cameras;
 pub mod run;
 pub mod run_scene;

@@ -8,23 +8,18 @@
 //! degrees off). Such a camera stands out: the field, shaped by the cameras that did
 //! converge, explains its photo several times worse than the median camera's. So at a few
 //! points of the schedule ([`CHECKS`]) every training photo is compared with the field's
-//! picture from its current pose, at a low resolution ([`Probe`]); a camera
-//! [`SEARCH_RATIO`] times worse than the median is searched for: a sweep of turns of its
-//! pose up to tens of degrees, about the scene's centre and about its own centre, on a
-//! coarser probe, then a local search from the sweep's best. The best pose is kept if it
+//! picture from its current pose, at a low resolution; a camera [`SEARCH_RATIO`] times
+//! worse than the median is searched for (`pose_search`). The best pose is kept if it
 //! explains the photo clearly better ([`BETTER`]), and the camera's optimiser state is reset
 //! so the gradient takes over from there. A camera still [`STUCK_RATIO`] times worse after
 //! the last check is left out of training, so its photo stops smearing the field.
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::{Camera, Pose, Ray};
-use crate::data::Dataset;
+use super::pose_search::{search, Probes};
+use crate::camera::Pose;
 use crate::engine::{Engine, EngineState};
-use crate::model::camera_refine::{corrected, rotation, turned, Frame, PER_CAMERA};
-use crate::stage::{Appearance, RayOutput};
-use crate::views::RenderSettings;
+use crate::model::camera_refine::{corrected, Frame, PER_CAMERA};
 
 /// A camera whose photo's error is this many times the median camera's is searched for.
 pub const SEARCH_RATIO: f32 = 2.5;
@@ -45,112 +40,6 @@ pub const CHECKS: [f32; 5] = [0.2, 0.3, 0.4, 0.5, 0.6];
 /// photo about equally badly, so a ratio to the median says nothing yet, and a search
 /// would cost far more than the few steps a run this short trains.
 pub const FIRST_CHECK_STEP: u64 = 100;
-
-/// The probes' longest sides in pixels: the coarse one scores the search's wide sweep
-/// (smooth enough that a pose tens of degrees off still sees the way back), the fine one
-/// finds stuck cameras and places them to a degree.
-const COARSE_SIDE: usize = 12;
-const FINE_SIDE: usize = 40;
-
-/// The wide sweep: every turn whose rotation vector lies on a cubic lattice of spacing
-/// [`SWEEP_STEP`] degrees within [`SWEEP_MAX`] degrees (even far out, unlike turns by a few
-/// angles about a few axes); its [`SWEEP_KEPT`] best go on to the fine probe.
-const SWEEP_STEP: f32 = 5.0;
-const SWEEP_MAX: f32 = 40.0;
-const SWEEP_KEPT: usize = 16;
-
-/// The local search after the sweep (degrees): at each angle it moves to the best turn
-/// about any of [`AXES`] axes while one is better (at most [`MOVES`] times), then halves
-/// the angle.
-const DEGREES: [f32; 3] = [4.0, 2.0, 1.0];
-const MOVES: usize = 3;
-
-/// Axes of the local search's turns: this many directions spread over the sphere.
-const AXES: usize = 26;
-
-/// The training photos at a low resolution, to score poses against the field.
-pub struct Probe {
-    /// The cameras' intrinsics at the probe's resolution (poses come from the caller).
-    cameras: Vec<Camera>,
-    /// Packed RGB over [`Probe::BACKGROUND`].
-    targets: Vec<Vec<f32>>,
-    settings: RenderSettings,
-}
-
-impl Probe {
-    const BACKGROUND: [f32; 3] = [1.0; 3];
-
-    /// The probe of the first `cameras` views of `data` (a multi-scale split appends its
-    /// smaller copies after them) at about `side` pixels on their longest side; `codes`:
-    /// whether the model renders each photo's look.
-    pub fn new(data: &Dataset, cameras: usize, codes: bool, side: usize) -> Probe {
-        let (cams, targets) = data.views[..cameras.min(data.views.len())]
-            .iter()
-            .map(|v| {
-                let longest = v.image.width.max(v.image.height);
-                let factor = longest.div_ceil(side.max(1)).max(1);
-                let image = v.image.downscale(factor);
-                let target = (0..image.width * image.height)
-                    .flat_map(|p| image.composite_pixel(p, Probe::BACKGROUND))
-                    .collect();
-                (v.camera.downscaled(factor), target)
-            })
-            .unzip();
-        let mut settings = RenderSettings::of_dataset(data, Probe::BACKGROUND);
-        settings.appearance = if codes {
-            Appearance::PerView
-        } else {
-            Appearance::Mean
-        };
-        Probe {
-            cameras: cams,
-            targets,
-            settings,
-        }
-    }
-
-    /// Mean squared error of camera `k`'s photo against the field seen from each of
-    /// `poses`, all rendered in one batch.
-    pub fn errors(&self, engine: &dyn Engine, k: usize, poses: &[Pose]) -> Vec<f32> {
-        let camera = &self.cameras[k];
-        let (w, h) = (camera.width, camera.height);
-        let (world, cones): (Vec<Ray>, Vec<f32>) = poses
-            .par_iter()
-            .flat_map_iter(|pose| {
-                let cam = Camera {
-                    c2w: *pose,
-                    ..camera.clone()
-                };
-                (0..w * h).map(move |p| {
-                    let (x, y) = ((p % w) as f32 + 0.5, (p / w) as f32 + 0.5);
-                    (cam.ray_at(x, y), cam.cone_radius(x, y))
-                })
-            })
-            .unzip();
-        let mut rays = self.settings.ray_batch_with_cones(&world, &cones, 0);
-        // Every ray is photo k's (`PerView` reads the view from the pixel id).
-        for (i, id) in rays.pixels.iter_mut().enumerate() {
-            *id = ((k as u64) << 32) | (i % (w * h)) as u64;
-        }
-        let mut out = vec![RayOutput::default(); rays.len()];
-        engine.render_rays(&rays, &mut out, &|_| {});
-        let target = &self.targets[k];
-        out.chunks(w * h)
-            .map(|picture| {
-                let sum: f64 = picture
-                    .iter()
-                    .enumerate()
-                    .map(|(p, o)| {
-                        (0..3)
-                            .map(|c| f64::from(o.rgb[c] - target[3 * p + c]).powi(2))
-                            .sum::<f64>()
-                    })
-                    .sum();
-                (sum / (3 * w * h) as f64) as f32
-            })
-            .collect()
-    }
-}
 
 /// What one check found and did, for the training log and `metrics.json`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -192,118 +81,6 @@ pub fn stuck(errors: &[f32]) -> (f32, Vec<usize>) {
     (median, found)
 }
 
-/// `n` unit vectors spread evenly over the sphere (a Fibonacci lattice).
-fn axes(n: usize) -> Vec<[f32; 3]> {
-    let golden = std::f32::consts::PI * (3.0 - 5f32.sqrt());
-    (0..n)
-        .map(|i| {
-            let z = 1.0 - 2.0 * (i as f32 + 0.5) / n as f32;
-            let r = (1.0 - z * z).max(0.0).sqrt();
-            let a = golden * i as f32;
-            [r * a.cos(), r * a.sin(), z]
-        })
-        .collect()
-}
-
-/// The corrections a search tries around `correction`: the camera turned by each of
-/// `turns` (rotation vectors), about the world's origin (the scene's centre) and, in the
-/// world frame, about the camera's own centre too.
-fn candidates(
-    correction: &[f32],
-    start: &Pose,
-    frame: Frame,
-    turns: &[[f32; 3]],
-) -> Vec<[f32; PER_CAMERA]> {
-    let now = corrected(start, correction, frame);
-    let centre = [now[0][3], now[1][3], now[2][3]];
-    let mut out = Vec::new();
-    for w in turns {
-        let turn = rotation(*w);
-        out.push(turned(correction, &turn, [0.0; 3], frame));
-        if frame == Frame::World {
-            out.push(turned(correction, &turn, centre, frame));
-        }
-    }
-    out
-}
-
-/// Turns by `degrees` about each of [`AXES`] axes, as rotation vectors.
-fn turns_by(degrees: f32) -> Vec<[f32; 3]> {
-    axes(AXES)
-        .into_iter()
-        .map(|a| a.map(|v| v * degrees.to_radians()))
-        .collect()
-}
-
-/// The sweep's turns: rotation vectors on a cubic lattice within [`SWEEP_MAX`] degrees.
-fn sweep_turns() -> Vec<[f32; 3]> {
-    let n = (SWEEP_MAX / SWEEP_STEP).floor() as i32;
-    let step = SWEEP_STEP.to_radians();
-    let max = SWEEP_MAX.to_radians();
-    let mut out = Vec::new();
-    for i in -n..=n {
-        for j in -n..=n {
-            for k in -n..=n {
-                let w = [i as f32 * step, j as f32 * step, k as f32 * step];
-                let len = crate::math::length(w);
-                if len > 0.0 && len <= max + 1e-6 {
-                    out.push(w);
-                }
-            }
-        }
-    }
-    out
-}
-
-/// The coarse and the fine probe.
-pub struct Probes {
-    pub coarse: Probe,
-    pub fine: Probe,
-}
-
-/// The best correction for camera `k` found from `now` (its error on the fine probe and
-/// its correction): a wide sweep on the coarse probe, its best few scored on the fine one,
-/// then, from the best of them if it beats `now`, a local search there.
-fn search(
-    engine: &dyn Engine,
-    probes: &Probes,
-    k: usize,
-    start: &Pose,
-    frame: Frame,
-    now: (f32, [f32; PER_CAMERA]),
-) -> (f32, [f32; PER_CAMERA]) {
-    let posed = |tried: &[[f32; PER_CAMERA]]| -> Vec<Pose> {
-        tried.iter().map(|c| corrected(start, c, frame)).collect()
-    };
-    let swept = candidates(&now.1, start, frame, &sweep_turns());
-    let coarse = probes.coarse.errors(engine, k, &posed(&swept));
-    let mut order: Vec<usize> = (0..swept.len()).collect();
-    order.sort_by(|&a, &b| coarse[a].total_cmp(&coarse[b]));
-    let kept: Vec<[f32; PER_CAMERA]> = order.iter().take(SWEEP_KEPT).map(|&i| swept[i]).collect();
-    let fine = probes.fine.errors(engine, k, &posed(&kept));
-    let mut best = now;
-    for (e, c) in fine.into_iter().zip(kept) {
-        if e < best.0 {
-            best = (e, c);
-        }
-    }
-    // Nothing far off explains the photo better: close by is the gradient's work.
-    if best.0 >= now.0 {
-        return now;
-    }
-    for degrees in DEGREES {
-        for _ in 0..MOVES {
-            let tried = candidates(&best.1, start, frame, &turns_by(degrees));
-            let scores = probes.fine.errors(engine, k, &posed(&tried));
-            match scores.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1)) {
-                Some((i, &e)) if e < best.0 => best = (e, tried[i]),
-                _ => break,
-            }
-        }
-    }
-    best
-}
-
 /// Whether a camera is left out at the last check: still [`STUCK_RATIO`] times worse than
 /// the median after the search (`after`), and not better than at the previous check
 /// (`now` against `previous`, ratios before the searches).
@@ -339,12 +116,10 @@ pub fn check(
     let correction = |params: &[f32], k: usize| -> [f32; PER_CAMERA] {
         std::array::from_fn(|i| params[at.start + PER_CAMERA * k + i])
     };
-    let errors: Vec<f32> = (0..starts.len())
-        .map(|k| {
-            let pose = corrected(&starts[k], &correction(&state.params, k), at.frame);
-            probes.fine.errors(engine, k, &[pose])[0]
-        })
+    let poses: Vec<Pose> = (0..starts.len())
+        .map(|k| corrected(&starts[k], &correction(&state.params, k), at.frame))
         .collect();
+    let errors = probes.fine.each_error(engine, &poses);
     let (median, stuck_cameras) = stuck(&errors);
     let floor = median.max(1e-6);
     let mut report = CheckReport {
@@ -484,10 +259,9 @@ impl Checker {
         last: bool,
     ) -> crate::error::Result<CheckReport> {
         let (cameras, codes) = (self.starts.len(), self.codes);
-        let probes = self.probes.get_or_insert_with(|| Probes {
-            coarse: Probe::new(&trainer.data, cameras, codes, COARSE_SIDE),
-            fine: Probe::new(&trainer.data, cameras, codes, FINE_SIDE),
-        });
+        let probes = self
+            .probes
+            .get_or_insert_with(|| Probes::new(&trainer.data, cameras, codes));
         let report = check(
             trainer.engine.as_mut(),
             probes,
@@ -573,40 +347,5 @@ mod tests {
         // A run too short for the field to explain any photo yet is not checked.
         assert_eq!(Checker::due(0.19, 0.2, FIRST_CHECK_STEP - 1), None);
         assert_eq!(Checker::due(0.59, 0.61, 50), None);
-    }
-
-    #[test]
-    fn the_sweep_fills_a_ball_of_turns() {
-        let turns = sweep_turns();
-        let max = SWEEP_MAX.to_radians() + 1e-6;
-        assert!(turns.iter().all(|w| crate::math::length(*w) <= max));
-        // Any turn within the ball is within half a lattice diagonal of a lattice turn.
-        let reach = 0.5 * 3f32.sqrt() * SWEEP_STEP.to_radians() + 1e-6;
-        for a in axes(200) {
-            let w = a.map(|v| v * 0.9 * max);
-            let nearest = turns
-                .iter()
-                .map(|t| crate::math::length(crate::math::sub(*t, w)))
-                .fold(f32::INFINITY, f32::min);
-            assert!(nearest <= reach, "{w:?}: {nearest}");
-        }
-    }
-
-    #[test]
-    fn the_search_axes_cover_the_sphere() {
-        let a = axes(AXES);
-        for v in &a {
-            assert!((crate::math::length(*v) - 1.0).abs() < 1e-5);
-        }
-        // Every direction is within 40 degrees of an axis.
-        for probe in axes(500) {
-            let nearest = a
-                .iter()
-                .map(|v| crate::math::dot(*v, probe).clamp(-1.0, 1.0))
-                .fold(-1.0f32, f32::max)
-                .acos()
-                .to_degrees();
-            assert!(nearest < 40.0, "{probe:?}: {nearest}");
-        }
     }
 }
