@@ -73,6 +73,13 @@ pub const SMALL_ERROR_DELAY: f32 = 0.2;
 /// at the real-capture rate, cameras degrees off do not come back within the schedule.
 pub const LARGE_ERROR_LR: f32 = 1e-2;
 
+/// Where the corrections' rate decays to for errors of degrees outside NDC, as a fraction
+/// of [`LARGE_ERROR_LR`] (a hundredth elsewhere): each camera gets a few dozen rays a step,
+/// so its gradient is mostly noise and Adam turns noise into steps of about the rate. A
+/// hundredth leaves the cameras wandering about 0.06 degrees from their poses at the end;
+/// a thousandth settles them sooner and closer (figures in `docs/benchmarks.md`).
+pub const LARGE_ERROR_FINAL_FRACTION: f32 = 1e-3;
+
 /// [`LARGE_ERROR_LR`] for forward-facing NDC captures, whose cameras all look one way: at
 /// the larger rate they drift together to a pose set that fits the training photos and
 /// not the held-out ones.

@@ -99,8 +99,8 @@ pub struct TrainOptions {
     /// The pose corrections' learning rate, decaying to a hundredth of it over the
     /// schedule (default 6e-4, for poses a fraction of a degree off, which start to move
     /// a fifth of the way in, once the field has taken shape; with --perturb-poses, for
-    /// errors of degrees, 1e-2 from the first step, or 3e-3 on forward-facing NDC
-    /// captures). Implies --refine-cameras.
+    /// errors of degrees, 1e-2 from the first step, decaying to a thousandth of it, or
+    /// 3e-3 on forward-facing NDC captures). Implies --refine-cameras.
     #[arg(long, conflicts_with = "no_refine_cameras", value_name = "LR")]
     pub camera_lr: Option<f32>,
     /// Fast: trust the given poses as they are (the default for Blender scenes).
@@ -468,6 +468,11 @@ impl TrainOptions {
                     // settled, at the coarse-to-fine window's end (better on lego).
                     if r.pose_gradient_only {
                         r.field_restart = Some(r.anneal[1]);
+                        // ... and the cameras' rate decays further, so they settle closer.
+                        if self.camera_lr.is_none() {
+                            r.lr_final =
+                                r.lr_init * crate::model::camera_refine::LARGE_ERROR_FINAL_FRACTION;
+                        }
                     }
                     // Poses a fraction of a degree off move once the field has taken shape.
                     if self.perturb_poses.is_none() {
@@ -832,6 +837,7 @@ mod tests {
         assert_eq!(
             refinement(&c).map(|r| (
                 r.lr_init,
+                r.lr_final,
                 r.pose_gradient_only,
                 r.field_restart,
                 r.anneal[1],
@@ -839,6 +845,8 @@ mod tests {
             )),
             Some((
                 crate::model::camera_refine::LARGE_ERROR_LR,
+                crate::model::camera_refine::LARGE_ERROR_LR
+                    * crate::model::camera_refine::LARGE_ERROR_FINAL_FRACTION,
                 true,
                 Some(0.4),
                 0.4,
@@ -857,9 +865,10 @@ mod tests {
             dir.path(),
         )
         .expect("given");
+        // A given rate decays to a hundredth of it, as always.
         assert_eq!(
-            refinement(&c).map(|r| (r.lr_init, r.pose_gradient_only)),
-            Some((1e-3, true))
+            refinement(&c).map(|r| (r.lr_init, r.lr_final, r.pose_gradient_only)),
+            Some((1e-3, 1e-3 / 100.0, true))
         );
         config(&["--camera-lr", "1e-3", "--no-refine-cameras"], dir.path()).expect_err("both");
     }

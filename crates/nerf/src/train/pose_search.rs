@@ -101,6 +101,9 @@ impl Probe {
     /// The error of each `(camera, pose)` job: the photo of that camera against the field
     /// seen from that pose. One batch, so that small probes still fill every core.
     fn scored(&self, engine: &dyn Engine, jobs: &[(usize, Pose)]) -> Vec<f32> {
+        if jobs.is_empty() {
+            return Vec::new();
+        }
         let sizes: Vec<usize> = jobs
             .iter()
             .map(|&(k, _)| self.cameras[k].width * self.cameras[k].height)
