@@ -9,6 +9,7 @@ use std::collections::HashSet;
 use rayon::prelude::*;
 
 use crate::camera::{Camera, Pose, Ray};
+use crate::data::poses::origin;
 use crate::data::Dataset;
 use crate::engine::Engine;
 use crate::model::camera_refine::{corrected, rotation, turned, Frame, PER_CAMERA};
@@ -305,8 +306,7 @@ fn local_candidates(
     frame: Frame,
     degrees: f32,
 ) -> Vec<[f32; PER_CAMERA]> {
-    let now = corrected(start, correction, frame);
-    let centre = [now[0][3], now[1][3], now[2][3]];
+    let centre = origin(&corrected(start, correction, frame));
     axes(AXES)
         .into_iter()
         .flat_map(|a| {
@@ -332,8 +332,7 @@ pub fn search(
     let posed = |tried: &[[f32; PER_CAMERA]]| -> Vec<Pose> {
         tried.iter().map(|c| corrected(start, c, frame)).collect()
     };
-    let pose = corrected(start, &now.1, frame);
-    let centre = [pose[0][3], pose[1][3], pose[2][3]];
+    let centre = origin(&corrected(start, &now.1, frame));
     let correction_of =
         |t: &LatticeTurn| turned_by(&now.1, t.vector(), t.own_centre, centre, frame);
     let mut swept = sweep(own_centres(frame), &mut |turns| {
