@@ -55,7 +55,7 @@ const TABLE: [(Feature, bool, bool); 11] = [
     (Feature::Dynamic, true, true),
     (Feature::DNerf, true, false),
     (Feature::FreeNerf, true, true),
-    (Feature::DepthSmoothness, true, false),
+    (Feature::DepthSmoothness, true, true),
     (Feature::RegNerf, true, false),
 ];
 

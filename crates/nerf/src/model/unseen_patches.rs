@@ -11,7 +11,7 @@ use crate::data::pixels::TrainingRays;
 use crate::data::Dataset;
 use crate::render::depth_smoothness::PATCH_SIDE;
 use crate::rng::Rng;
-use crate::stage::Appearance;
+use crate::stage::{Appearance, RayBatch};
 
 /// RegNeRF's depth smoothness in a run (`--depth-smoothness W`).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -125,6 +125,33 @@ pub fn draw_patch(data: &Dataset, draw: PatchDraw, stride: usize, out: &mut Trai
             patch_stream(draw.k, i + 1),
         ));
     }
+}
+
+/// Step `step`'s patches of a run seeded `seed`, one after another in one batch: the
+/// patches the CPU engine marches a block each (the GPU engine marches them together).
+pub fn draw_patches(
+    data: &Dataset,
+    (seed, step): (u64, u64),
+    smoothness: &DepthSmoothness,
+) -> TrainingRays {
+    let mut all = TrainingRays::default();
+    let mut one = TrainingRays::default();
+    for k in 0..smoothness.patches as u64 {
+        draw_patch(
+            data,
+            PatchDraw { seed, step, k },
+            smoothness.stride,
+            &mut one,
+        );
+        if k == 0 {
+            all.rays = RayBatch::new(one.rays.near, one.rays.far);
+            all.rays.cylinders = one.rays.cylinders;
+        }
+        all.rays.extend(&one.rays);
+        all.targets.extend_from_slice(&one.targets);
+        all.rngs.extend_from_slice(&one.rngs);
+    }
+    all
 }
 
 #[cfg(test)]

@@ -23,7 +23,7 @@ pub const PATCH_SIDE: usize = 4;
 pub const PATCH_RAYS: usize = PATCH_SIDE * PATCH_SIDE;
 
 /// Opacities below this carry no depth (their pairs weigh at most this much).
-const NO_DEPTH: f32 = 1e-6;
+pub const NO_DEPTH: f32 = 1e-6;
 
 /// One ray's opacity `A` and expected depth `d` from its samples' depths `t` and
 /// compositing weights `w` (`d = 0` where nothing is hit).

@@ -133,6 +133,18 @@ impl RayBatch {
         }
     }
 
+    /// Appends `other`'s rays (with their footprints and moments, which both batches
+    /// hold or neither); the bounds and appearance stay this batch's.
+    pub fn extend(&mut self, other: &RayBatch) {
+        self.origins.extend_from_slice(&other.origins);
+        self.dirs.extend_from_slice(&other.dirs);
+        self.view_dirs.extend_from_slice(&other.view_dirs);
+        self.backgrounds.extend_from_slice(&other.backgrounds);
+        self.pixels.extend_from_slice(&other.pixels);
+        self.radii.extend_from_slice(&other.radii);
+        self.times.extend_from_slice(&other.times);
+    }
+
     /// Rays `range` of this batch as a new batch (for tests and chunked callers).
     pub fn slice(&self, range: std::ops::Range<usize>) -> RayBatch {
         RayBatch {

@@ -454,10 +454,14 @@ mod tests {
             train_views: 3,
             ..facts(false, NDC)
         };
-        // The GPU engine does not run it yet: off, and said.
+        // Where the GPU engine runs it, the same default there; where not, off and said.
         let d = fast_defaults(&few, EngineKind::Gpu, &Flags::default());
-        assert_eq!(d.depth_smoothness, 0.0);
-        assert!(d.notes.iter().any(|n| n.contains("--depth-smoothness")));
+        if EngineKind::Gpu.runs(Feature::DepthSmoothness) {
+            assert_eq!(d.depth_smoothness, FEW_VIEW_DEPTH_SMOOTHNESS);
+        } else {
+            assert_eq!(d.depth_smoothness, 0.0);
+            assert!(d.notes.iter().any(|n| n.contains("--depth-smoothness")));
+        }
         let off = Flags {
             depth_smoothness: Choice::Off,
             ..Flags::default()
@@ -611,9 +615,13 @@ mod tests {
             ..Flags::default()
         };
         let (kind, note) = engine_for(Device::Auto, true, &still, &depth);
-        assert_eq!(kind, EngineKind::Cpu);
-        let note = note.unwrap_or_default();
-        assert!(note.contains("--depth-smoothness"), "{note}");
+        if EngineKind::Gpu.runs(Feature::DepthSmoothness) {
+            assert_eq!((kind, note), (EngineKind::Gpu, None));
+        } else {
+            assert_eq!(kind, EngineKind::Cpu);
+            let note = note.unwrap_or_default();
+            assert!(note.contains("--depth-smoothness"), "{note}");
+        }
         let asks = Flags {
             antialias: Choice::On(()),
             ..Flags::default()

@@ -27,7 +27,7 @@ use super::params::{
 };
 use super::rays::GpuViews;
 use super::space_time_grid::per_sample;
-use super::{antialias, distortion, loss, pose_grad, rays, render, volume};
+use super::{antialias, depth_smoothness, distortion, loss, pose_grad, rays, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
 use crate::engine::{
@@ -35,6 +35,8 @@ use crate::engine::{
 };
 use crate::error::Result;
 use crate::model::camera_refine::{correct_drawn_rays, CameraStep, PER_CAMERA};
+use crate::model::fast::BLOCK_RAYS;
+use crate::model::unseen_patches::{self, DepthSmoothness};
 use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
@@ -252,6 +254,12 @@ impl GpuEngine {
         // As the CPU engine: rays that find no occupied cell add no samples, and this
         // bound ends a step whose grid is (nearly) empty.
         let max_rays = budget.max(64);
+        // With patches from unseen poses, the photo rays end with a whole block, as the
+        // CPU engine's do (`FastModel::train_pass`).
+        let block = match self.model.config.depth_smoothness {
+            Some(_) => BLOCK_RAYS,
+            None => 1,
+        };
         let mut want = (self.last_rays + self.last_rays / 4 + 16).clamp(64, max_rays);
         if !matches!(&self.views, Some((key, _)) if *key == GpuViews::key_of(data)) {
             self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
@@ -266,9 +274,9 @@ impl GpuEngine {
                 backgrounds,
             } = self.draw_rays(data, spec, &marcher, want, cameras);
             let counted = self.marcher.count(&self.gpu, &on_device);
-            let cut = self
-                .marcher
-                .cut(&self.gpu, &counted, want, budget, max_rays)?;
+            let cut =
+                self.marcher
+                    .cut_in_blocks(&self.gpu, &counted, want, (budget, max_rays), block)?;
             if cut.found || want >= max_rays {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
@@ -406,6 +414,115 @@ impl GpuEngine {
             targets,
             backgrounds,
         }
+    }
+
+    /// The step's patches from poses between the training cameras (the CPU engine's:
+    /// `model::unseen_patches`), marched and run through the field apart from the photo
+    /// rays: they have no colour to match, only RegNeRF's depth smoothness, whose gradient
+    /// (with the distortion loss's and the prior of smooth change's, which the CPU engine
+    /// adds for every ray) joins the step's. `photo_rays`: the rays the step's loss is a
+    /// mean over.
+    fn train_patches(
+        &self,
+        data: &Dataset,
+        spec: &StepSpec,
+        smoothness: &DepthSmoothness,
+        photo_rays: usize,
+        check: &FiniteCheck,
+    ) -> Result<()> {
+        let seed_step = (spec.sampling.seed, spec.sampling.step);
+        let mut patches = unseen_patches::draw_patches(data, seed_step, smoothness);
+        // Each ray's first draw is its lattice jitter, as in `FastModel::pack_block`.
+        let jitter: Vec<f32> = patches.rngs.iter_mut().map(|r| r.uniform()).collect();
+        let gpu = &self.gpu;
+        let marcher = self.model.marcher(data.near, data.far);
+        let on_device = GpuRays::new(gpu, &marcher, &self.model.grid, &patches.rays, &jitter);
+        let counted = self.marcher.count(gpu, &on_device);
+        let rays = patches.len();
+        let all = self.marcher.cut(gpu, &counted, rays, usize::MAX, rays)?;
+        let n = all.samples;
+        if n == 0 {
+            return Ok(());
+        }
+        let (samples, positions, dirs) = self.marcher.write(gpu, &on_device, &counted, all);
+        let codes = SampleCodes::all(gpu, MEAN_APPEARANCE);
+        let footprints = (self.model.config.field.antialias.is_some()).then(|| {
+            antialias::sample_footprints(
+                gpu,
+                &on_device,
+                &gpu.upload(&patches.rays.radii),
+                data.space.cylinders(),
+                marcher.contract,
+                (&samples.offsets, &samples.t),
+                rays,
+                n,
+            )
+        });
+        let times = self.field.is_moving().then(|| {
+            let per_ray = match patches.rays.times.len() {
+                0 => vec![0.0; rays],
+                _ => std::mem::take(&mut patches.rays.times),
+            };
+            per_sample(gpu, &gpu.upload(&per_ray), &samples.offsets, rays, n)
+        });
+        let input = DeviceInput {
+            positions: &positions,
+            dirs: &dirs,
+            codes: &codes,
+            footprints: footprints.as_ref(),
+            moments: times
+                .as_ref()
+                .map_or(DeviceMoments::At(0.0), DeviceMoments::Each),
+            n,
+        };
+        let acts = self.field.forward(gpu, &self.state.values, &input);
+        check_device(gpu, check, "field.forward", "sigma", &acts.sigma, n)?;
+        let weights = gpu.floats(n);
+        let out = gpu.floats(rays * volume::OUT_WORDS);
+        let black = gpu.zeros(3 * rays);
+        volume::composite(
+            gpu,
+            &samples,
+            &acts.sigma,
+            &acts.rgb,
+            &black,
+            &weights,
+            &out,
+        );
+        let (d_sigma, d_rgb) = (gpu.zeros(n), gpu.zeros(3 * n));
+        let config = &self.model.config;
+        // The step's gradient is scaled by 1 / (3 photo rays) (see `render::loss`): this
+        // makes the loss the weight times its mean over the step's patches, as on the CPU.
+        let scale = smoothness.weight * (3 * photo_rays) as f32 / smoothness.patches.max(1) as f32;
+        depth_smoothness::add_depth_smoothness(
+            gpu,
+            &samples,
+            &weights,
+            &d_sigma,
+            config.box_diagonal(),
+            scale,
+        );
+        if config.distortion > 0.0 {
+            distortion::add_distortion(
+                gpu,
+                &samples,
+                &positions,
+                &weights,
+                &d_sigma,
+                config.step_length(),
+                config.box_diagonal(),
+                config.distortion,
+            );
+        }
+        check_device(gpu, check, "loss.backward", "d_sigma", &d_sigma, n)?;
+        let state = (&self.state.values, &self.state.grads);
+        self.field
+            .backward(gpu, state.0, state.1, &acts, &codes, &d_sigma, &d_rgb);
+        if config.time_smoothness > 0.0 {
+            let weight = 3.0 * config.time_smoothness;
+            self.field.time_smoothness_bwd(gpu, state, &acts, weight);
+        }
+        Ok(())
     }
 
     /// This step's correction of every training camera, from the corrections on the device
@@ -665,6 +782,9 @@ impl Engine for GpuEngine {
             let state = (&self.state.values, &self.state.grads);
             let weight = 3.0 * config.time_smoothness;
             self.field.time_smoothness_bwd(gpu, state, &acts, weight);
+        }
+        if let Some(smoothness) = config.depth_smoothness {
+            self.train_patches(data, spec, &smoothness, rays, &check)?;
         }
         check_device(
             gpu,

@@ -430,8 +430,8 @@ fn scan_add(offsets: &mut [u32], totals: &[u32], n: u32) {
 }
 
 /// The cut (one thread): the rays a step keeps, as the CPU engine keeps them: up to and
-/// including the first ray at which the running sample count reaches `budget`, or
-/// `max_rays` rays. Writes `[rays kept, their samples, 1 if the cut was found, rays with
+/// including the first ray at which the running sample count reaches `budget` (to the end
+/// of its block of `block` rays), or `max_rays` rays. Writes `[rays kept, their samples, 1 if the cut was found, rays with
 /// samples]`; without a cut (too few rays marched) `[n, all samples, 0, ...]`.
 #[cube(launch_unchecked)]
 fn find_cut(
@@ -442,6 +442,7 @@ fn find_cut(
     n: u32,
     budget: u32,
     max_rays: u32,
+    block: u32,
 ) {
     if ABSOLUTE_POS == 0 {
         // The inclusive sums grow with the ray index: the first one >= budget by bisection.
@@ -455,11 +456,13 @@ fn find_cut(
                 lo = mid + 1;
             }
         }
-        // `lo` is that ray (n if none); the ray cap may come first.
+        // `lo` is that ray (n if none), its block's end the cut (unless too few rays were
+        // marched to end it); the ray cap may come first.
         let mut kept = n;
         let mut found = 0u32;
-        if lo < n {
-            kept = lo + 1;
+        let whole = (lo + block) / block * block;
+        if whole <= n {
+            kept = whole;
             found = 1;
         }
         if max_rays <= kept {
@@ -757,6 +760,21 @@ impl GpuMarcher {
         self.cut_later(gpu, counted, n, budget, max_rays).wait()
     }
 
+    /// [`GpuMarcher::cut`] at the end of a block of `block` rays: the one whose ray
+    /// reaches the budget (as the CPU engine keeps its photo rays when patches from
+    /// unseen poses follow them).
+    pub fn cut_in_blocks(
+        &self,
+        gpu: &Gpu,
+        counted: &Counted,
+        n: usize,
+        (budget, max_rays): (usize, usize),
+        block: usize,
+    ) -> Result<Cut> {
+        self.cut_blocks_later(gpu, counted, n, (budget, max_rays), block)
+            .wait()
+    }
+
     /// [`GpuMarcher::cut`] on its way back: the cut is found and its copy sent to the
     /// device now, and the host may queue other work before it waits for the numbers.
     pub fn cut_later<'g>(
@@ -766,6 +784,17 @@ impl GpuMarcher {
         n: usize,
         budget: usize,
         max_rays: usize,
+    ) -> PendingCut<'g> {
+        self.cut_blocks_later(gpu, counted, n, (budget, max_rays), 1)
+    }
+
+    fn cut_blocks_later<'g>(
+        &self,
+        gpu: &'g Gpu,
+        counted: &Counted,
+        n: usize,
+        (budget, max_rays): (usize, usize),
+        block: usize,
     ) -> PendingCut<'g> {
         if n == 0 {
             return PendingCut::Known(Cut {
@@ -791,6 +820,7 @@ impl GpuMarcher {
                 n as u32,
                 budget.min(u32::MAX as usize) as u32,
                 max_rays.min(u32::MAX as usize) as u32,
+                block.max(1) as u32,
             );
         }
         PendingCut::Reading(gpu.read_u32_later(&cut, 4))
@@ -1097,7 +1127,7 @@ mod tests {
     /// A grid with a random third of its cells occupied, 500 rays from outside the box in
     /// every direction (some missing it), with and without contraction, and a sparse grid
     /// (most blocks empty): the device's counts,
-    /// slots, cut and packed samples against `Marcher::pack_ray` on the host. Positions
+    /// slots, cut (at a ray and at the end of its block) and packed samples against `Marcher::pack_ray` on the host. Positions
     /// may differ by rounding (the device may fuse multiply-adds), so a ray agrees when its
     /// sample count matches and its depths are within 1e-4; at most 1% may not (a point
     /// that rounds across a cell wall).
@@ -1194,6 +1224,22 @@ mod tests {
             assert_eq!(
                 gm.cut(&gpu, &counted, 500, 1 << 30, 7).expect("cut").rays,
                 7
+            );
+            // In blocks of 16: to the end of the block holding that ray, its samples
+            // counted; a block that would end past the rays marched is no cut.
+            let whole = (first / 16 + 1) * 16;
+            let blocks = gm
+                .cut_in_blocks(&gpu, &counted, 500, (budget, 10_000), 16)
+                .expect("cut");
+            let whole_samples: u32 = counts[..whole].iter().sum();
+            assert_eq!(
+                (blocks.rays, blocks.samples, blocks.found),
+                (whole, whole_samples as usize, true)
+            );
+            assert!(
+                !gm.cut_in_blocks(&gpu, &counted, whole - 1, (budget, 10_000), 16)
+                    .expect("cut")
+                    .found
             );
 
             let all = Cut {

@@ -26,7 +26,8 @@
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient; [`distortion`]: the distortion
-//!   loss's gradient per ray;
+//!   loss's gradient per ray; [`depth_smoothness`]: RegNeRF's depth smoothness on
+//!   patches of rays from unseen poses;
 //! * [`adam`]: the optimiser step over the whole parameter vector (lazy for hash tables);
 //! * [`finite`]: counting non-finite gradients before the optimiser runs;
 //! * [`rays`]: training rays made from pixel indices, with the images and cameras on the
@@ -42,6 +43,7 @@
 pub mod adam;
 pub mod antialias;
 pub mod codes;
+pub mod depth_smoothness;
 pub mod device;
 pub mod distortion;
 pub mod engine;
