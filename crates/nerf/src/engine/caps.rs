@@ -56,7 +56,7 @@ const TABLE: [(Feature, bool, bool); 11] = [
     (Feature::DNerf, true, false),
     (Feature::FreeNerf, true, true),
     (Feature::DepthSmoothness, true, true),
-    (Feature::RegNerf, true, false),
+    (Feature::RegNerf, true, true),
 ];
 
 impl Feature {
@@ -235,8 +235,7 @@ mod tests {
         assert!(refusal(EngineKind::Gpu, &preset("dnerf"))
             .is_some_and(|why| why.contains("--preset dnerf")));
         assert_eq!(Feature::used_by(&preset("regnerf")), [Feature::RegNerf]);
-        assert!(refusal(EngineKind::Gpu, &preset("regnerf"))
-            .is_some_and(|why| why.contains("--preset regnerf")));
+        assert_eq!(refusal(EngineKind::Gpu, &preset("regnerf")), None);
         assert_eq!(Feature::used_by(&preset("paper")), []);
     }
 

@@ -127,22 +127,19 @@ pub fn draw_patch(data: &Dataset, draw: PatchDraw, stride: usize, out: &mut Trai
     }
 }
 
-/// Step `step`'s patches of a run seeded `seed`, one after another in one batch: the
-/// patches the CPU engine marches a block each (the GPU engine marches them together).
+/// Step `step`'s first `patches` patches of a run seeded `seed`, `stride` pixels between
+/// rays, one after another in one batch: the patches the CPU engine renders one at a time
+/// (the GPU engine renders them together).
 pub fn draw_patches(
     data: &Dataset,
     (seed, step): (u64, u64),
-    smoothness: &DepthSmoothness,
+    patches: usize,
+    stride: usize,
 ) -> TrainingRays {
     let mut all = TrainingRays::default();
     let mut one = TrainingRays::default();
-    for k in 0..smoothness.patches as u64 {
-        draw_patch(
-            data,
-            PatchDraw { seed, step, k },
-            smoothness.stride,
-            &mut one,
-        );
+    for k in 0..patches as u64 {
+        draw_patch(data, PatchDraw { seed, step, k }, stride, &mut one);
         if k == 0 {
             all.rays = RayBatch::new(one.rays.near, one.rays.far);
             all.rays.cylinders = one.rays.cylinders;

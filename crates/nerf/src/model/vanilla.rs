@@ -395,7 +395,7 @@ impl VanillaModel {
 
     /// RegNeRF's sample-space annealing: training rays at `step` sample a range shrunk
     /// about the middle of `[near, far]`.
-    fn anneal(&self, rays: &mut TrainingRays, step: u64) {
+    pub fn anneal(&self, rays: &mut TrainingRays, step: u64) {
         if let Some(reg) = &self.config.reg_nerf {
             (rays.rays.near, rays.rays.far) =
                 reg.sampled_range(rays.rays.near, rays.rays.far, step);

@@ -69,6 +69,7 @@ fn depth_smoothness_bwd(
     rays: u32,
     unit: f32,
     scale: f32,
+    infinite_last: u32,
 ) {
     let r = ABSOLUTE_POS;
     if r < rays as usize && depths[2 * r] > NO_DEPTH {
@@ -101,22 +102,37 @@ fn depth_smoothness_bwd(
             let d_w = g * (t[k] / unit - d);
             w_so_far += weights[k];
             dw_so_far += d_w * weights[k];
-            d_sigma[k] += dt[k] * (d_w * (1.0 - w_so_far) - (dw_all - dw_so_far));
+            // A last step "to infinity" differentiates as 0 (`steps_for_backward`).
+            let mut step = dt[k];
+            if infinite_last == 1 && k + 1 == end {
+                step = 0.0f32;
+            }
+            d_sigma[k] += step * (d_w * (1.0 - w_so_far) - (dw_all - dw_so_far));
         }
     }
+}
+
+/// How a ray's last step is differentiated.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LastStep {
+    /// As it is (the fast model's marched samples).
+    Own,
+    /// As 0: the paper model's rays end with a step "to infinity"
+    /// (`render::depth_smoothness::steps_for_backward`).
+    Infinite,
 }
 
 /// Adds to `d_sigma` (one per sample) `scale` times the gradient of the depth smoothness of
 /// `samples`' rays, whole patches of `PATCH_RAYS` rays one after another, as
 /// `PatchBackward::add_patches` adds it on the host: depths in units of `unit`, the
-/// compositing `weights` differentiated by the samples' own steps.
+/// compositing `weights` differentiated by the samples' steps (the last as `last` says).
 pub fn add_depth_smoothness(
     gpu: &Gpu,
     samples: &GpuSamples,
-    weights: &Handle,
-    d_sigma: &Handle,
+    (weights, d_sigma): (&Handle, &Handle),
     unit: f32,
     scale: f32,
+    last: LastStep,
 ) {
     let (r, n) = (samples.rays, samples.len);
     debug_assert_eq!(r % PATCH_RAYS, 0, "rays in whole patches");
@@ -154,6 +170,7 @@ pub fn add_depth_smoothness(
             r as u32,
             unit,
             scale,
+            u32::from(last == LastStep::Infinite),
         );
     }
 }
@@ -169,7 +186,8 @@ mod tests {
 
     /// 12 patches of rays of 0 to 30 samples at random depths, steps and densities (some
     /// rays empty, some nearly transparent): the densities' gradient against the host's
-    /// `PatchBackward::add_patches`, within 1e-4 relative.
+    /// `PatchBackward::add_patches`, within 1e-4 relative, with each ray's last step as it
+    /// is and as one to infinity (zeroed in the host's steps).
     #[test]
     fn the_depth_smoothness_gradient_matches_the_cpu() {
         let Some(gpu) = test_gpu() else { return };
@@ -212,16 +230,6 @@ mod tests {
             &mut weights,
             &mut out,
         );
-        let mut want = vec![0.0f32; n];
-        PatchBackward::default().add_patches(
-            &samples,
-            0,
-            (&samples.dt, &weights),
-            unit,
-            scale,
-            &mut want,
-        );
-
         let offsets: Vec<u32> = samples.offsets.iter().map(|&o| o as u32).collect();
         let device_samples = GpuSamples {
             offsets: gpu.upload_u32(&offsets),
@@ -230,23 +238,43 @@ mod tests {
             rays,
             len: n,
         };
-        let d_sigma = gpu.zeros(n);
-        add_depth_smoothness(
-            &gpu,
-            &device_samples,
-            &gpu.upload(&weights),
-            &d_sigma,
-            unit,
-            scale,
-        );
-        let got = gpu.read(&d_sigma, n).expect("read");
-        let e = worst(&got, &want);
-        eprintln!("worst difference {e:.1e} over {n} samples");
-        assert!(e < 1e-4, "{e}");
-        // The term moved the gradient: something was compared.
-        assert!(
-            want.iter().any(|g| g.abs() > 1e-3),
-            "no depth-smoothness gradient"
-        );
+        let device_weights = gpu.upload(&weights);
+        for last in [LastStep::Own, LastStep::Infinite] {
+            let mut steps = samples.dt.clone();
+            if last == LastStep::Infinite {
+                for r in 0..rays {
+                    if let Some(k) = samples.ray(r).last() {
+                        steps[k] = 0.0;
+                    }
+                }
+            }
+            let mut want = vec![0.0f32; n];
+            PatchBackward::default().add_patches(
+                &samples,
+                0,
+                (&steps, &weights),
+                unit,
+                scale,
+                &mut want,
+            );
+            let d_sigma = gpu.zeros(n);
+            add_depth_smoothness(
+                &gpu,
+                &device_samples,
+                (&device_weights, &d_sigma),
+                unit,
+                scale,
+                last,
+            );
+            let got = gpu.read(&d_sigma, n).expect("read");
+            let e = worst(&got, &want);
+            eprintln!("{last:?}: worst difference {e:.1e} over {n} samples");
+            assert!(e < 1e-4, "{e}");
+            // The term moved the gradient: something was compared.
+            assert!(
+                want.iter().any(|g| g.abs() > 1e-3),
+                "no depth-smoothness gradient"
+            );
+        }
     }
 }

@@ -18,6 +18,7 @@ use cubecl::server::Handle;
 use rayon::prelude::*;
 
 use super::codes::SampleCodes;
+use super::depth_smoothness::LastStep;
 use super::device::Gpu;
 use super::field::{Activations, DeviceInput, DeviceMoments, GpuFastField, InputGradients};
 use super::march::{Cut, GpuMarcher, GpuRays};
@@ -430,8 +431,9 @@ impl GpuEngine {
         photo_rays: usize,
         check: &FiniteCheck,
     ) -> Result<()> {
-        let seed_step = (spec.sampling.seed, spec.sampling.step);
-        let mut patches = unseen_patches::draw_patches(data, seed_step, smoothness);
+        let draw = (spec.sampling.seed, spec.sampling.step);
+        let mut patches =
+            unseen_patches::draw_patches(data, draw, smoothness.patches, smoothness.stride);
         // Each ray's first draw is its lattice jitter, as in `FastModel::pack_block`.
         let jitter: Vec<f32> = patches.rngs.iter_mut().map(|r| r.uniform()).collect();
         let gpu = &self.gpu;
@@ -497,10 +499,10 @@ impl GpuEngine {
         depth_smoothness::add_depth_smoothness(
             gpu,
             &samples,
-            &weights,
-            &d_sigma,
+            (&weights, &d_sigma),
             config.box_diagonal(),
             scale,
+            LastStep::Own,
         );
         if config.distortion > 0.0 {
             distortion::add_distortion(

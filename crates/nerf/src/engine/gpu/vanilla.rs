@@ -10,10 +10,14 @@
 //! faster there), are made on the host from weights read back. The host reads back one
 //! float per ray per pass (the loss) and one count (non-finite gradients). Rendering goes
 //! through the same two passes in chunks of rays. FreeNeRF's band mask is applied by the
-//! device's encoding and its occlusion penalty by a kernel beside the loss.
+//! device's encoding and its occlusion penalty by a kernel beside the loss. RegNeRF's
+//! annealed range is the host's sampling; its patches from unseen poses go through both
+//! passes after the photo rays, their depth smoothness's gradient from the device's
+//! kernel (`depth_smoothness`).
 
 use cubecl::server::Handle;
 
+use super::depth_smoothness::{add_depth_smoothness, LastStep};
 use super::device::Gpu;
 use super::importance::{self, PassSamples};
 use super::loss;
@@ -24,6 +28,8 @@ use crate::data::pixels::TrainingRays;
 use crate::data::Dataset;
 use crate::engine::{render_in_chunks, Engine, EngineOptions, EngineState, StepSpec, StepStats};
 use crate::error::Result;
+use crate::model::reg_nerf::RegNerf;
+use crate::model::unseen_patches;
 use crate::model::vanilla::ChunkWorkspace;
 use crate::model::{Model, ModelConfig, VanillaModel, VanillaModelConfig};
 use crate::nn::ParamLayout;
@@ -191,6 +197,67 @@ impl GpuVanillaEngine {
         Ok(gpu.read(&sse, rays)?.iter().map(|&e| e as f64).sum())
     }
 
+    /// RegNeRF's patches from poses between the training cameras (the CPU engine's, all in
+    /// one batch), through both passes with the photo rays' annealed range: no colour to
+    /// match, only the depth smoothness (and FreeNeRF's occlusion penalty where it is on, as
+    /// the CPU engine adds it to every ray), whose gradient joins the step's.
+    /// `photo_rays`: the rays the step's loss is a mean over.
+    fn train_patches(
+        &self,
+        data: &Dataset,
+        spec: &StepSpec,
+        reg: &RegNerf,
+        photo_rays: usize,
+        ws: &mut ChunkWorkspace,
+        check: &FiniteCheck,
+    ) -> Result<()> {
+        let step = spec.sampling.step;
+        let patches = reg.patches(photo_rays);
+        let stride = unseen_patches::stride_for(data.views[0].camera.width);
+        let draw = (spec.sampling.seed, step);
+        let mut rays = unseen_patches::draw_patches(data, draw, patches, stride);
+        self.model.anneal(&mut rays, step);
+        let backgrounds = self.gpu.upload(rays.rays.backgrounds.as_flattened());
+        let smoothness = (
+            reg.smoothness_scale(step, photo_rays, patches),
+            data.far - data.near,
+        );
+        let samples = self.model.pack_coarse(ws, &rays.rays, Some(&mut rays.rngs));
+        let coarse = self.pass(&self.coarse, samples, &backgrounds);
+        self.check_forward(check, &coarse)?;
+        self.patch_backward(&self.coarse, &coarse, smoothness, check)?;
+        if let Some(fine) = self.fine_net() {
+            let rngs = Some(&mut rays.rngs[..]);
+            let pass = self.fine_pass(fine, ws, &rays.rays, &coarse, rngs, &backgrounds)?;
+            self.check_forward(check, &pass)?;
+            self.patch_backward(fine, &pass, smoothness, check)?;
+        }
+        Ok(())
+    }
+
+    /// The backward of a pass of patches: the depth smoothness's gradient times `scale`
+    /// (depths in units of `unit`) and no colour loss.
+    fn patch_backward(
+        &self,
+        net: &GpuVanillaNet,
+        pass: &Pass,
+        (scale, unit): (f32, f32),
+        check: &FiniteCheck,
+    ) -> Result<()> {
+        let gpu = &self.gpu;
+        let n = pass.samples.len;
+        let (d_sigma, d_rgb) = (gpu.zeros(n), gpu.zeros(n * 3));
+        let buffers = (&pass.weights, &d_sigma);
+        add_depth_smoothness(gpu, &pass.samples, buffers, unit, scale, LastStep::Infinite);
+        if let Some(free) = &self.model.config.free_nerf {
+            loss::add_occlusion(gpu, free, &pass.samples, &d_sigma);
+        }
+        check_device(gpu, check, "loss.backward", "d_sigma", &d_sigma, n)?;
+        let state = (&self.state.values, &self.state.grads);
+        net.backward(gpu, state.0, state.1, &pass.acts, &d_sigma, &d_rgb);
+        Ok(())
+    }
+
     /// The fine pass of `rays` after their `coarse` one: its samples drawn from the coarse
     /// weights, with `rngs` (training's random draws) on the device; without them
     /// (rendering's evenly spaced draws) and for mip-NeRF's frustums on the host, from
@@ -315,6 +382,7 @@ impl Engine for GpuVanillaEngine {
         let mut rays = std::mem::take(&mut self.rays);
         let mut ws = std::mem::take(&mut self.ws);
         rays.draw_parallel(data, &spec.sampling, 0..batch as u64);
+        self.model.anneal(&mut rays, step);
         let result = (|| -> Result<(f64, f64, usize)> {
             let gpu = &self.gpu;
             let check = FiniteCheck::new(self.check_finite);
@@ -336,6 +404,9 @@ impl Engine for GpuVanillaEngine {
                 self.check_forward(&check, &pass)?;
                 fine_sse = Some(self.backward(fine, &pass, &backgrounds, &targets, &check)?);
                 evaluated += pass.samples.len;
+            }
+            if let Some(reg) = &self.model.config.reg_nerf {
+                self.train_patches(data, spec, reg, batch, &mut ws, &check)?;
             }
             check_device(
                 gpu,
