@@ -855,14 +855,14 @@ fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
 /// (equal to rounding), and the losses agree step by step; renders of the result agree.
 #[test]
 fn the_paper_model_trains_alike_on_both_engines() {
-    paper_model_alike("paper model", 1e-2, |_| {});
+    paper_model_alike("paper model", 1e-2, 12, |_| {});
 }
 
 /// The same with mip-NeRF's conical frustums (the integrated encoding) and one network
 /// for both passes (`--preset mip`).
 #[test]
 fn mip_nerf_trains_alike_on_both_engines() {
-    paper_model_alike("mip-NeRF", 1e-2, |m| {
+    paper_model_alike("mip-NeRF", 1e-2, 12, |m| {
         m.integrated = true;
         m.shared_network = true;
     });
@@ -873,7 +873,7 @@ fn mip_nerf_trains_alike_on_both_engines() {
 /// losses agree to 1e-7 on lavapipe; without the device's penalty they drift 6e-3 apart).
 #[test]
 fn free_nerf_trains_alike_on_both_engines() {
-    paper_model_alike("FreeNeRF", 1e-3, |m| {
+    paper_model_alike("FreeNeRF", 1e-3, 12, |m| {
         m.free_nerf = Some(nerf::model::free_nerf::FreeNerf {
             reveal_until: 24.0 / 200_000.0,
             ..Default::default()
@@ -883,8 +883,8 @@ fn free_nerf_trains_alike_on_both_engines() {
 
 /// RegNeRF (`--preset regnerf`'s settings, its depth smoothness 100 times stronger so that
 /// it moves the losses well beyond the engines' rounding): the annealed range and the
-/// patches from unseen poses through both passes. The losses agree to 1e-3, and part by
-/// more than that from those of the same range without patches.
+/// patches from unseen poses through both passes. Over 6 steps the losses agree to 1e-3,
+/// and part by more than 1e-2 from those of the same range without patches.
 #[test]
 fn reg_nerf_trains_alike_on_both_engines() {
     use nerf::model::reg_nerf::RegNerf;
@@ -893,7 +893,7 @@ fn reg_nerf_trains_alike_on_both_engines() {
         smoothness_end: 10.0,
         ..Default::default()
     };
-    let Some(with) = paper_model_alike("RegNeRF", 1e-3, |m| m.reg_nerf = Some(reg)) else {
+    let Some(with) = paper_model_alike("RegNeRF", 1e-3, 6, |m| m.reg_nerf = Some(reg)) else {
         return;
     };
     let faint = RegNerf {
@@ -935,12 +935,13 @@ fn paper_model_setup(
     (dir, c, scene, train)
 }
 
-/// The demo preset, changed by `tweak`, on both engines (see the tests above), the losses
-/// within `tolerance` of each other (relative). Returns the CPU engine's losses (`None`
+/// The demo preset, changed by `tweak`, `steps` steps on both engines (see the tests
+/// above), the losses within `tolerance` of each other (relative). Returns the CPU engine's losses (`None`
 /// where there is no adapter).
 fn paper_model_alike(
     label: &str,
     tolerance: f32,
+    steps: usize,
     tweak: impl Fn(&mut nerf::model::VanillaModelConfig),
 ) -> Option<Vec<f32>> {
     if !gpu_available() {
@@ -952,7 +953,7 @@ fn paper_model_alike(
     let mut worst: f32 = 0.0;
     let (mut first, mut last) = (0.0, 0.0);
     let mut losses = Vec::new();
-    for step in 0..12 {
+    for step in 0..steps {
         let a = cpu.step().expect("cpu step");
         let b = gpu.step().expect("gpu step");
         assert_eq!((a.rays, a.samples), (b.rays, b.samples));
@@ -964,7 +965,7 @@ fn paper_model_alike(
         last = b.loss;
     }
     eprintln!(
-        "{label}, 12 steps: worst relative loss difference {worst:.1e}; gpu {first} -> {last}"
+        "{label}, {steps} steps: worst relative loss difference {worst:.1e}; gpu {first} -> {last}"
     );
     assert!(worst < tolerance, "losses differ by {worst}");
     assert!(
