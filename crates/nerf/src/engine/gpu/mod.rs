@@ -8,8 +8,9 @@
 //!   density queries with parameters, gradients, Adam's moments and the occupancy grid on
 //!   the device; [`vanilla`]: [`vanilla::GpuVanillaEngine`], the paper's model; [`params`]:
 //!   the trainable state both keep on the device;
-//! * [`vanilla_net`]: the paper's network forward and backward; [`importance`]: its
-//!   importance samples drawn from the coarse weights and packed for the fine pass;
+//! * [`vanilla_net`]: the paper's network forward and backward; [`deformation`]: D-NeRF's
+//!   deformation before it; [`importance`]: its importance samples drawn from the coarse
+//!   weights and packed for the fine pass;
 //! * [`march`]: occupancy-grid marching with sample compaction (count, prefix sum, budget
 //!   cut, packed write), for training steps and rendering rounds; [`occupancy`]: the
 //!   grid's refresh;
@@ -43,6 +44,7 @@
 pub mod adam;
 pub mod antialias;
 pub mod codes;
+pub mod deformation;
 pub mod depth_smoothness;
 pub mod device;
 pub mod distortion;
@@ -156,37 +158,6 @@ mod tests {
         let text = e.to_string();
         assert!(
             text.contains("--samples 1048576") && text.contains("524288"),
-            "{text}"
-        );
-    }
-
-    /// A feature the GPU engine does not run (D-NeRF's deformation network, so far) is
-    /// refused by name when the GPU is asked for, with the way out, and `auto` takes the
-    /// CPU engine for it.
-    #[test]
-    fn what_the_gpu_does_not_run_is_refused_by_name() {
-        let model = ModelConfig::Vanilla(crate::presets::build("dnerf").expect("dnerf").0);
-        let missing = caps::EngineKind::Gpu.missing(&model);
-        if missing.is_empty() {
-            eprintln!("skipping: the GPU engine runs --preset dnerf");
-            return;
-        }
-        let options = || EngineOptions {
-            adam: crate::nn::adam::AdamConfig::default(),
-            chunk_rays: 64,
-            check_finite: false,
-        };
-        let auto = open(Device::Auto, &model, options(), 0).expect("auto");
-        assert_eq!(auto.kind(), caps::EngineKind::Cpu);
-        if device::test_gpu().is_none() {
-            return;
-        }
-        let Err(e) = open(Device::Wgpu, &model, options(), 0) else {
-            panic!("the GPU engine took --preset dnerf");
-        };
-        let text = e.to_string();
-        assert!(
-            text.contains("--preset dnerf") && text.contains("--device cpu"),
             "{text}"
         );
     }

@@ -13,7 +13,8 @@
 //! device's encoding and its occlusion penalty by a kernel beside the loss. RegNeRF's
 //! annealed range is the host's sampling; its patches from unseen poses go through both
 //! passes after the photo rays, their depth smoothness's gradient from the device's
-//! kernel (`depth_smoothness`).
+//! kernel (`depth_smoothness`). D-NeRF's deformation runs inside each network's forward
+//! and backward (`vanilla_net`, `deformation`), each sample at its ray's moment.
 
 use cubecl::server::Handle;
 
@@ -22,6 +23,7 @@ use super::device::Gpu;
 use super::importance::{self, PassSamples};
 use super::loss;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
+use super::space_time_grid::per_sample;
 use super::vanilla_net::{GpuVanillaNet, VanillaActs};
 use super::volume::{self, GpuSamples, OUT_WORDS};
 use crate::data::pixels::TrainingRays;
@@ -116,16 +118,19 @@ impl GpuVanillaEngine {
             dirs: gpu.upload(&dirs),
         };
         let variances = (!samples.variances.is_empty()).then(|| gpu.upload(&samples.variances));
-        self.pass_on_device(net, on_device, variances.as_ref(), backgrounds)
+        let times = (!samples.times.is_empty()).then(|| gpu.upload(&samples.times));
+        let extra = (variances.as_ref(), times.as_ref());
+        self.pass_on_device(net, on_device, extra, backgrounds)
     }
 
     /// Runs `net` forward on `samples` already on the device (each a Gaussian of diagonal
-    /// covariance `variances` when given), and compositing over `backgrounds`.
+    /// covariance `variances`, each at its moment in `times`, where given), and compositing
+    /// over `backgrounds`.
     fn pass_on_device(
         &self,
         net: &GpuVanillaNet,
         samples: PassSamples,
-        variances: Option<&Handle>,
+        (variances, times): (Option<&Handle>, Option<&Handle>),
         backgrounds: &Handle,
     ) -> Pass {
         let gpu = &self.gpu;
@@ -135,7 +140,8 @@ impl GpuVanillaEngine {
             dirs,
         } = samples;
         let (rays, n) = (on_device.rays, on_device.len);
-        let acts = net.forward(gpu, &self.state.values, &positions, variances, &dirs, n);
+        let params = &self.state.values;
+        let acts = net.forward(gpu, params, &positions, variances, times, &dirs, n);
         let (weights, out) = (gpu.floats(n), gpu.floats(rays * OUT_WORDS));
         volume::composite(
             gpu,
@@ -292,7 +298,13 @@ impl GpuVanillaEngine {
             &draws,
             (n_c, n_f),
         );
-        Ok(self.pass_on_device(net, samples, None, backgrounds))
+        // Each sample at its ray's moment (a moving scene's rays carry one).
+        let times = (!rays.times.is_empty()).then(|| {
+            let per_ray = gpu.upload(&rays.times);
+            let s = &samples.samples;
+            per_sample(gpu, &per_ray, &s.offsets, s.rays, s.len)
+        });
+        Ok(self.pass_on_device(net, samples, (None, times.as_ref()), backgrounds))
     }
 
     /// FreeNeRF: the position encoding's bands visible at `progress` of training, as the
@@ -484,17 +496,19 @@ impl Engine for GpuVanillaEngine {
     }
 
     /// The fine network's density (the coarse one's without a fine network).
-    fn density(&self, positions: &[f32], _time: Option<f32>, out: &mut [f32]) {
+    fn density(&self, positions: &[f32], time: Option<f32>, out: &mut [f32]) {
         let net = self.fine.as_ref().unwrap_or(&self.coarse);
         density_in_chunks(positions, out, DENSITY_CHUNK, |p, o| {
             let n = o.len();
             // Density does not depend on the direction: any unit vector will do.
             let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.0, 1.0]).collect();
+            let times = time.map(|t| self.gpu.upload(&vec![t; n]));
             let acts = net.forward(
                 &self.gpu,
                 &self.state.values,
                 &self.gpu.upload(p),
                 None,
+                times.as_ref(),
                 &self.gpu.upload(&dirs),
                 n,
             );
