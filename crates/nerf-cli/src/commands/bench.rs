@@ -33,15 +33,15 @@ pub struct BenchArgs {
     /// Fast: log2 of the hash-table entries per level.
     #[arg(long)]
     table_log2: Option<u32>,
-    /// Fast: anti-aliased (the default on the CPU engine but for forward-facing NDC
-    /// scenes, as `nerf train`).
+    /// Fast: anti-aliased (the default but for forward-facing NDC scenes, as
+    /// `nerf train`).
     #[arg(long, conflicts_with = "no_antialias")]
     antialias: bool,
-    /// Fast: point samples (the default on a GPU).
+    /// Fast: point samples (the default for forward-facing NDC scenes).
     #[arg(long)]
     no_antialias: bool,
     /// Fast: train with the distortion loss of this weight (as `nerf train`: the default
-    /// for forward-facing NDC scenes on the CPU engine).
+    /// for forward-facing NDC scenes).
     #[arg(long, value_name = "WEIGHT", conflicts_with = "no_distortion",
           value_parser = nerf::args::positive_f64)]
     distortion: Option<f64>,

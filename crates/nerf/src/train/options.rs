@@ -170,7 +170,7 @@ pub struct TrainOptions {
     /// over time (per ray; default 0, as it measured no better: docs/benchmarks.md).
     #[arg(long, value_parser = crate::args::positive, allow_negative_numbers = true)]
     pub time_smoothness: Option<f32>,
-    /// Fast, CPU engine: weight of RegNeRF's depth smoothness, on 16 patches of 4x4 rays
+    /// Fast: weight of RegNeRF's depth smoothness, on 16 patches of 4x4 rays
     /// per step rendered from poses between the training cameras, against geometry that
     /// only looks right from where the photos were taken. Default: 0.1 for forward-facing
     /// (NDC) runs on at most 16 photos (+2.4 dB on the rug from 3); none for others (on
