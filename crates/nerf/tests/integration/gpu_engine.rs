@@ -228,10 +228,17 @@ fn the_distortion_loss_trains_alike_on_both_engines() {
     if let nerf::model::ModelConfig::Fast(m) = &mut with.model {
         m.distortion = 1.0;
     }
-    let train = training_split(&plain);
-    let (cpu, _) = train_steps(Device::Cpu, &with, &train, 10);
-    let (gpu, _) = train_steps(Device::Wgpu, &with, &train, 10);
-    let (without, _) = train_steps(Device::Cpu, &plain, &train, 10);
+    ten_steps_alike(&plain, &with);
+}
+
+/// Ten steps of `with` on both engines, and of `plain` on the CPU engine: the losses agree
+/// to 1e-3 relative on both engines, and part from `plain`'s by more than that (the term
+/// `with` adds reached the weights).
+fn ten_steps_alike(plain: &TrainConfig, with: &TrainConfig) {
+    let train = training_split(plain);
+    let (cpu, _) = train_steps(Device::Cpu, with, &train, 10);
+    let (gpu, _) = train_steps(Device::Wgpu, with, &train, 10);
+    let (without, _) = train_steps(Device::Cpu, plain, &train, 10);
     let (worst, moved) = (relative_apart(&cpu, &gpu), relative_apart(&cpu, &without));
     eprintln!(
         "worst relative loss difference cpu/gpu {worst:.1e}; with/without the term {moved:.1e}"
@@ -270,19 +277,7 @@ fn depth_smoothness_trains_alike_on_both_engines() {
             stride: 1,
         });
     }
-    let train = training_split(&plain);
-    let (cpu, _) = train_steps(Device::Cpu, &with, &train, 10);
-    let (gpu, _) = train_steps(Device::Wgpu, &with, &train, 10);
-    let (without, _) = train_steps(Device::Cpu, &plain, &train, 10);
-    let (worst, moved) = (relative_apart(&cpu, &gpu), relative_apart(&cpu, &without));
-    eprintln!(
-        "worst relative loss difference cpu/gpu {worst:.1e}; with/without the term {moved:.1e}"
-    );
-    assert!(worst < 1e-3, "cpu {cpu:?}, gpu {gpu:?}");
-    assert!(
-        moved > 1e-3,
-        "the term changed nothing: {cpu:?} vs {without:?}"
-    );
+    ten_steps_alike(&plain, &with);
 }
 
 /// Few-view training on both engines: ten steps on the same samples give the same losses
