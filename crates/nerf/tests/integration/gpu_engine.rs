@@ -910,10 +910,10 @@ fn reg_nerf_trains_alike_on_both_engines() {
 }
 
 /// D-NeRF's deformation (`--preset dnerf`) at the demo networks' size: on the turning
-/// chair, 8 steps on both engines agree as the paper model's do (on lavapipe to 5e-5 over
-/// the first 6 steps, then to 3e-3 as each engine's fine samples, drawn from its own coarse
-/// weights, part), the still paper model's losses are 6e-2 away, and the renders agree at
-/// a moment halfway through the motion.
+/// chair, 6 steps on both engines agree to 1e-3 (5e-5 on lavapipe; from the 7th step each
+/// engine's fine samples, drawn from its own coarse weights, part by up to 5e-3, as the
+/// paper model's may), the still paper model's losses are further away, and the renders
+/// agree at a moment halfway through the motion.
 #[test]
 fn dnerf_trains_alike_on_both_engines() {
     use nerf::field::DeformationConfig;
@@ -924,7 +924,7 @@ fn dnerf_trains_alike_on_both_engines() {
         time_frequencies: 4,
     };
     let setup = paper_model_setup(true, |m| m.net.deformation = Some(deformation.clone()));
-    let Some(moving) = paper_model_alike("D-NeRF", 1e-2, 8, setup) else {
+    let Some(moving) = paper_model_alike("D-NeRF", 1e-3, 6, setup) else {
         return;
     };
     let (_dir, c, _, train) = paper_model_setup(true, |_| {});
