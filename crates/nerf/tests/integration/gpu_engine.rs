@@ -932,7 +932,7 @@ fn dnerf_trains_alike_on_both_engines() {
     let moved = relative_apart(&moving, &still);
     eprintln!("D-NeRF: against the still model {moved:.1e}");
     assert!(
-        moved > 1e-3,
+        moved > 1e-2,
         "the deformation changed nothing: {moving:?} vs {still:?}"
     );
 }
