@@ -10,7 +10,7 @@ use cubecl::server::Handle;
 use super::device::Gpu;
 use super::launch::grid;
 use super::mlp::Dense;
-use super::vanilla_net::{trunk_backward, trunk_forward, Trunk, TrunkActs};
+use super::trunk::{copy, encode, trunk_backward, trunk_forward, Trunk, TrunkActs};
 use crate::encoding::FrequencyEncoding;
 use crate::field::deformation::DeformationConfig;
 use crate::nn::ParamLayout;
@@ -228,9 +228,9 @@ impl GpuDeformation {
         n: usize,
     ) -> DeformActs {
         let (in_x, cols) = (self.pe.dims(), self.input_dims());
-        let enc = super::vanilla_net::encode(gpu, self.pe, positions, None, None, n);
+        let enc = encode(gpu, self.pe, positions, None, None, n);
         let input = gpu.floats(n * cols);
-        super::vanilla_net::copy(gpu, &enc, &input, n, in_x, (in_x, 0), (cols, 0));
+        copy(gpu, &enc, &input, n, in_x, (in_x, 0), (cols, 0));
         // SAFETY: `times` holds `n` floats, `input` `n x cols` with the moment's columns
         // `in_x..cols`; bounds-checked.
         unsafe {

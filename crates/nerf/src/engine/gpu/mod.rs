@@ -8,8 +8,8 @@
 //!   density queries with parameters, gradients, Adam's moments and the occupancy grid on
 //!   the device; [`vanilla`]: [`vanilla::GpuVanillaEngine`], the paper's model; [`params`]:
 //!   the trainable state both keep on the device;
-//! * [`vanilla_net`]: the paper's network forward and backward; [`deformation`]: D-NeRF's
-//!   deformation before it; [`importance`]: its importance samples drawn from the coarse
+//! * [`vanilla_net`]: the paper's network forward and backward, its [`trunk`] shared with
+//!   [`deformation`], D-NeRF's deformation before it; [`importance`]: its importance samples drawn from the coarse
 //!   weights and packed for the fine pass;
 //! * [`march`]: occupancy-grid marching with sample compaction (count, prefix sum, budget
 //!   cut, packed write), for training steps and rendering rounds; [`occupancy`]: the
@@ -70,6 +70,7 @@ pub mod rays;
 pub mod render;
 pub mod space_time_grid;
 pub mod time_smoothness;
+pub mod trunk;
 pub mod vanilla;
 pub mod vanilla_net;
 pub mod volume;
