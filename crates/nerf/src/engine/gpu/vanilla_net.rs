@@ -389,22 +389,10 @@ impl GpuVanillaNet {
             }
         }
         let in_x = self.pe.dims();
-        let (Some(deformation), Some(deform)) = (&self.deformation, &a.deform) else {
-            let io = (in_x, None);
-            trunk_backward(
-                gpu,
-                (params, grads, np),
-                &self.trunk,
-                &a.trunk,
-                d_last,
-                io,
-                n,
-            );
-            return;
-        };
-        // Through the trunk to the encoding, and on through it to the moved points.
-        let d_enc = gpu.floats(n * in_x);
-        let io = (in_x, Some(&d_enc));
+        // Through a deformation the trunk's input gradient goes on, through the encoding,
+        // to the moved points.
+        let d_enc = a.deform.is_some().then(|| gpu.floats(n * in_x));
+        let io = (in_x, d_enc.as_ref());
         trunk_backward(
             gpu,
             (params, grads, np),
@@ -414,9 +402,13 @@ impl GpuVanillaNet {
             io,
             n,
         );
-        let mask = self.band_mask.as_ref();
-        let d_moved = position_encoding_bwd(gpu, self.pe, &deform.moved, &d_enc, mask, n);
-        deformation.backward(gpu, (params, grads), deform, &d_moved, n);
+        if let (Some(deformation), Some(deform), Some(d_enc)) =
+            (&self.deformation, &a.deform, &d_enc)
+        {
+            let mask = self.band_mask.as_ref();
+            let d_moved = position_encoding_bwd(gpu, self.pe, &deform.moved, d_enc, mask, n);
+            deformation.backward(gpu, (params, grads), deform, &d_moved, n);
+        }
     }
 }
 
