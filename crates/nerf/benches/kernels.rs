@@ -2,8 +2,8 @@
 //! replace, measured in the same run (median of repeated runs): the fused ReLU backward on
 //! one chunk of the paper's model (64 rays x 192 samples = 12288 rows of 256), the grouped
 //! hash-grid encoding (eight samples at a time with AVX2), the dirty-block gradient update of
-//! the fast model, Adam's loop in the CPU's widest vectors, and the anti-aliased level
-//! weights.
+//! the fast model, Adam's loop in the CPU's widest vectors, the anti-aliased level
+//! weights, and the fast field's network products in f32 against bfloat16 inputs.
 
 use std::time::Instant;
 
@@ -61,6 +61,70 @@ fn main() {
     }
     adam_widths();
     level_weights();
+    network_products();
+}
+
+/// The fast field's network products over one chunk of 8192 samples (forward: the density
+/// network 32x64, 64x16, the colour network 31x64, 64x64, 64x3; backward: each layer's
+/// input and weight gradients), in `f32` against bfloat16 inputs with `f32` sums.
+fn network_products() {
+    use nerf::nn::linalg::{matmul_in, MatRef, Precision};
+    let Some(bf16) = Precision::bf16() else {
+        println!("\nnetwork products: this CPU has no AVX-512 BF16");
+        return;
+    };
+    let n = 8192;
+    let layers = [(32, 64), (64, 16), (31, 64), (64, 64), (64, 3)];
+    let values = |len: usize| -> Vec<f32> {
+        (0..len)
+            .map(|i| ((i * 7919) % 13) as f32 * 0.1 - 0.6)
+            .collect()
+    };
+    let inputs: Vec<Vec<f32>> = layers.iter().map(|&(k, _)| values(n * k)).collect();
+    let outputs: Vec<Vec<f32>> = layers.iter().map(|&(_, m)| values(n * m)).collect();
+    let weights: Vec<Vec<f32>> = layers.iter().map(|&(k, m)| values(k * m)).collect();
+    let mut out = vec![0.0f32; n * 64];
+    let mut grad = vec![0.0f32; 64 * 64];
+    let mut time = |precision: Precision| {
+        let forward = median_seconds(15, || {
+            for (l, &(k, m)) in layers.iter().enumerate() {
+                let (x, w) = (
+                    MatRef::new(&inputs[l], n, k),
+                    MatRef::new(&weights[l], k, m),
+                );
+                matmul_in(precision, &mut out, x, w, false);
+            }
+        });
+        let backward = median_seconds(15, || {
+            for (l, &(k, m)) in layers.iter().enumerate() {
+                let (x, w) = (
+                    MatRef::new(&inputs[l], n, k),
+                    MatRef::new(&weights[l], k, m),
+                );
+                let dy = MatRef::new(&outputs[l], n, m);
+                matmul_in(precision, &mut grad, x.t(), dy, true);
+                matmul_in(precision, &mut out, dy, w.t(), false);
+            }
+        });
+        (forward, backward)
+    };
+    let (f32_fwd, f32_bwd) = time(Precision::F32);
+    let (bf_fwd, bf_bwd) = time(bf16);
+    println!(
+        "\nthe fast field's network products, {n} samples, one thread (f32 / bfloat16 inputs):"
+    );
+    println!(
+        "  forward:  {:8.3} / {:8.3} ms, {:.2}x",
+        f32_fwd * 1e3,
+        bf_fwd * 1e3,
+        f32_fwd / bf_fwd
+    );
+    println!(
+        "  backward: {:8.3} / {:8.3} ms, {:.2}x",
+        f32_bwd * 1e3,
+        bf_bwd * 1e3,
+        f32_bwd / bf_bwd
+    );
 }
 
 /// Adam's loop in the baseline's vectors against the widest the CPU has, on one segment of

@@ -48,6 +48,13 @@ pub struct BenchArgs {
     /// Fast: no distortion loss, whatever the scene (the figure to compare against).
     #[arg(long)]
     no_distortion: bool,
+    /// Fast: the networks' products with bfloat16 inputs and f32 sums (as `nerf train`:
+    /// the default on the CPU engine where the CPU has AVX-512 BF16).
+    #[arg(long, conflicts_with = "no_bf16")]
+    bf16: bool,
+    /// Fast: the networks' products in f32 (the figure to compare against).
+    #[arg(long)]
+    no_bf16: bool,
     /// Vanilla: rays per training step.
     #[arg(long, default_value_t = 1024)]
     rays: usize,
@@ -121,7 +128,13 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         (_, true) => Some(0.0),
         _ => None,
     };
+    let bf16 = match (a.bf16, a.no_bf16) {
+        (true, _) => Some(true),
+        (_, true) => Some(false),
+        _ => None,
+    };
     let opts = nerf::app::bench_fast::FastBenchOptions {
+        bf16,
         data: a.data,
         warmup_steps: a.warmup_steps,
         steps: a.steps.unwrap_or(32).max(1),
@@ -137,13 +150,18 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     println!(
-        "\n{}, fast model{}{} on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        "\n{}, fast model{}{}{} on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
         r.engine,
         if r.antialias { " (anti-aliased)" } else { "" },
         if r.distortion > 0.0 {
             format!(" (distortion loss {})", r.distortion)
         } else {
             String::new()
+        },
+        if r.bf16_products {
+            " (bfloat16 products)"
+        } else {
+            ""
         },
         r.scene,
         r.warmup_steps,

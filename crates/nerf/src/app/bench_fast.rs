@@ -39,6 +39,9 @@ pub struct FastBenchOptions {
     /// Weight of the distortion loss; `None`: as `nerf train` would (forward-facing NDC
     /// scenes on the CPU engine get it).
     pub distortion: Option<f32>,
+    /// The networks' products in bfloat16; `None`: as `nerf train` would (on the CPU
+    /// engine where the CPU has AVX-512 BF16).
+    pub bf16: Option<bool>,
     pub device: crate::engine::Device,
 }
 
@@ -51,6 +54,8 @@ pub struct FastBenchReport {
     pub antialias: bool,
     /// Weight of the distortion loss the model trained with (0: none).
     pub distortion: f32,
+    /// Whether the networks' products ran in bfloat16.
+    pub bf16_products: bool,
     pub warmup_steps: u64,
     pub samples_per_step: usize,
     pub rays_per_step_median: f64,
@@ -148,6 +153,11 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         few_view: Choice::Default,
         dynamic: Choice::Default,
         depth_smoothness: Choice::Default,
+        bf16: match opts.bf16 {
+            Some(true) => Choice::On(()),
+            Some(false) => Choice::Off,
+            None => Choice::Default,
+        },
     };
     let facts = defaults::SceneFacts {
         blender,
@@ -163,6 +173,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     }
     let antialias = chosen.antialias;
     model.distortion = chosen.distortion;
+    model.bf16_products = chosen.bf16_products;
     model.field.motion = chosen.dynamic.then(Default::default);
     model.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
         photos: data.views.len(),
@@ -173,6 +184,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     }
     let mut config = TrainConfig::fast("(in memory)".into());
     let distortion = model.distortion;
+    let bf16_products = model.bf16_products;
     config.model = ModelConfig::Fast(model);
     // Warm-up, the timed steps (a refresh among them) and the clocked ones.
     let every = opts.model.occupancy.update_every.max(1);
@@ -248,6 +260,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         scene,
         antialias,
         distortion,
+        bf16_products,
         warmup_steps: opts.warmup_steps,
         samples_per_step: opts.model.samples_per_step,
         rays_per_step_median: rays_median,

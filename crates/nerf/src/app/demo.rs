@@ -139,6 +139,7 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
             m.antialias_for(&opened.cameras(Split::Train), &opened.space);
         }
         m.distortion = chosen.distortion;
+        m.bf16_products = chosen.bf16_products;
         m.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
             photos: opened.train.len(),
         });

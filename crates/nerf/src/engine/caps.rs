@@ -42,10 +42,12 @@ pub enum Feature {
     /// RegNeRF's depth smoothness and sample-space annealing for the paper's model
     /// (`--preset regnerf`).
     RegNerf,
+    /// The fast model's networks trained with bfloat16 inputs and `f32` sums (`--bf16`).
+    Bf16Products,
 }
 
 /// Which engine runs which feature: `(feature, CPU, GPU)`.
-const TABLE: [(Feature, bool, bool); 11] = [
+const TABLE: [(Feature, bool, bool); 12] = [
     (Feature::Antialias, true, true),
     (Feature::Appearance, true, true),
     (Feature::CameraRefinement, true, true),
@@ -57,11 +59,12 @@ const TABLE: [(Feature, bool, bool); 11] = [
     (Feature::FreeNerf, true, true),
     (Feature::DepthSmoothness, true, true),
     (Feature::RegNerf, true, true),
+    (Feature::Bf16Products, true, false),
 ];
 
 impl Feature {
     /// Every feature, in the table's order.
-    pub const ALL: [Feature; 11] = [
+    pub const ALL: [Feature; 12] = [
         Feature::Antialias,
         Feature::Appearance,
         Feature::CameraRefinement,
@@ -73,6 +76,7 @@ impl Feature {
         Feature::FreeNerf,
         Feature::DepthSmoothness,
         Feature::RegNerf,
+        Feature::Bf16Products,
     ];
 
     /// Its name and the flags that ask for it and turn it off, for messages.
@@ -105,6 +109,9 @@ impl Feature {
                 "RegNeRF's depth smoothness and sample-space annealing for the paper's model \
                  (--preset regnerf)"
             }
+            Feature::Bf16Products => {
+                "the networks' products in bfloat16 (--bf16; turned off by --no-bf16)"
+            }
         }
     }
 
@@ -124,6 +131,7 @@ impl Feature {
                 (Feature::Mip, ModelConfig::Vanilla(c)) => c.integrated || c.shared_network,
                 (Feature::FreeNerf, ModelConfig::Vanilla(c)) => c.free_nerf.is_some(),
                 (Feature::RegNerf, ModelConfig::Vanilla(c)) => c.reg_nerf.is_some(),
+                (Feature::Bf16Products, ModelConfig::Fast(c)) => c.bf16_products,
                 _ => false,
             })
             .collect()
@@ -242,13 +250,22 @@ mod tests {
         assert_eq!(Feature::used_by(&preset("paper")), []);
     }
 
-    /// Every feature runs on both engines today; a refusal (for a feature whose GPU
-    /// kernels do not exist yet) names each one and the way out.
+    /// Every feature that changes what a model learns runs on both engines today (the
+    /// GPU's products are f32 only); a refusal names each missing one and the way out.
     #[test]
     fn a_refusal_names_what_is_missing_and_the_way_out() {
         for f in Feature::ALL {
-            assert!(EngineKind::Gpu.runs(f), "{f:?}");
+            assert_eq!(EngineKind::Gpu.runs(f), f != Feature::Bf16Products, "{f:?}");
         }
+        let bf16 = ModelConfig::Fast(FastModelConfig {
+            bf16_products: true,
+            ..FastModelConfig::default()
+        });
+        let why = refusal(EngineKind::Gpu, &bf16).unwrap_or_default();
+        assert!(
+            why.contains("--bf16") && why.contains("--device cpu"),
+            "{why}"
+        );
         let one = refusal_of(EngineKind::Gpu, &[Feature::DNerf]);
         assert_eq!(
             one,

@@ -99,7 +99,11 @@ impl<M: Model> CpuEngine<M> {
 
 impl<M: Model> Engine for CpuEngine<M> {
     fn describe(&self) -> String {
-        format!("cpu, {} threads", rayon::current_num_threads())
+        let products = match &self.config {
+            ModelConfig::Fast(c) if c.bf16_products => ", networks' products in bfloat16",
+            _ => "",
+        };
+        format!("cpu, {} threads{products}", rayon::current_num_threads())
     }
 
     fn kind(&self) -> super::caps::EngineKind {

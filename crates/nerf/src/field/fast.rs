@@ -24,7 +24,7 @@ use crate::encoding::space_time_grid::{SpaceTimeConfig, SpaceTimeGrid};
 use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
 use crate::nn::grow;
-use crate::nn::linalg::{matmul, MatRef};
+use crate::nn::linalg::{matmul_in, MatRef, Precision};
 use crate::nn::Grads;
 use crate::nn::ParamLayout;
 use crate::rng::Rng;
@@ -188,6 +188,8 @@ pub struct FastWorkspace {
     /// [`FastField::scatter_deferred`], keeping their points and encoding gradients here
     /// (level by level, room for that many samples).
     pub defer_grid: Option<usize>,
+    /// The precision of the networks' products (training sets it; `f32` by default).
+    pub products: Precision,
     deferred_unit: Vec<f32>,
     deferred_d_enc: Vec<f32>,
     /// A worker's share encoded ahead of its chunks ([`FastField::pre_encode`]): its points
@@ -485,6 +487,7 @@ impl FastField {
         ws: &mut FastWorkspace,
     ) {
         let n = positions.len() / 3;
+        let products = ws.products;
         let (w, g, e) = (
             self.config.hidden,
             self.config.geo_features,
@@ -510,7 +513,8 @@ impl FastField {
         clock.stop();
         let _clock = step_clock::start(Stage::Networks);
         let h = &mut ws.h[..n * w];
-        matmul(
+        matmul_in(
+            products,
             h,
             MatRef::new(&ws.enc, n, e),
             self.weight(params, 0, e, w),
@@ -518,7 +522,8 @@ impl FastField {
         );
         if let (Some(m), Some(at)) = (&self.motion, self.motion_weight) {
             let md = m.dims();
-            matmul(
+            matmul_in(
+                products,
                 h,
                 MatRef::new(&ws.enc_motion, n, md),
                 MatRef::new(&params[at..][..md * w], md, w),
@@ -526,7 +531,8 @@ impl FastField {
             );
         }
         relu(h);
-        matmul(
+        matmul_in(
+            products,
             &mut ws.geo,
             MatRef::new(h, n, w),
             self.weight(params, 1, w, g),
@@ -636,6 +642,7 @@ impl FastField {
         ws: &mut FastWorkspace,
     ) {
         let (n, m) = (input.len(), rows.len());
+        let products = ws.products;
         let (w, g, ci) = (
             self.config.hidden,
             self.config.geo_features,
@@ -664,7 +671,8 @@ impl FastField {
             }
         }
         let c1 = &mut ws.c1[..m * w];
-        matmul(
+        matmul_in(
+            products,
             c1,
             MatRef::new(&ws.colour_in, m, ci),
             self.weight(params, 2, ci, w),
@@ -672,7 +680,8 @@ impl FastField {
         );
         relu(c1);
         let c2 = &mut ws.c2[..m * w];
-        matmul(
+        matmul_in(
+            products,
             c2,
             MatRef::new(c1, m, w),
             self.weight(params, 3, w, w),
@@ -680,7 +689,8 @@ impl FastField {
         );
         relu(c2);
         let rgb = &mut ws.rgb[..m * 3];
-        matmul(
+        matmul_in(
+            products,
             rgb,
             MatRef::new(c2, m, w),
             self.weight(params, 4, w, 3),
@@ -700,6 +710,7 @@ impl FastField {
         grads: &mut Grads,
     ) {
         let n = d_sigma.len();
+        let products = ws.products;
         let (w, g, ci, e) = (
             self.config.hidden,
             self.config.geo_features,
@@ -721,33 +732,49 @@ impl FastField {
             *dl = dy * y * (1.0 - y);
         }
         let d_logit = MatRef::new(&ws.d_logit, n, 3);
-        matmul(
+        matmul_in(
+            products,
             &mut values[gw(4)..][..w * 3],
             MatRef::new(&ws.c2, n, w).t(),
             d_logit,
             true,
         );
         let d_c2 = &mut ws.d_c2[..n * w];
-        matmul(d_c2, d_logit, self.weight(params, 4, w, 3).t(), false);
+        matmul_in(
+            products,
+            d_c2,
+            d_logit,
+            self.weight(params, 4, w, 3).t(),
+            false,
+        );
         relu_bwd(d_c2, &ws.c2);
         let d_c2 = MatRef::new(d_c2, n, w);
-        matmul(
+        matmul_in(
+            products,
             &mut values[gw(3)..][..w * w],
             MatRef::new(&ws.c1, n, w).t(),
             d_c2,
             true,
         );
         let d_c1 = &mut ws.d_c1[..n * w];
-        matmul(d_c1, d_c2, self.weight(params, 3, w, w).t(), false);
+        matmul_in(
+            products,
+            d_c1,
+            d_c2,
+            self.weight(params, 3, w, w).t(),
+            false,
+        );
         relu_bwd(d_c1, &ws.c1);
         let d_c1 = MatRef::new(d_c1, n, w);
-        matmul(
+        matmul_in(
+            products,
             &mut values[gw(2)..][..ci * w],
             MatRef::new(&ws.colour_in, n, ci).t(),
             d_c1,
             true,
         );
-        matmul(
+        matmul_in(
+            products,
             &mut ws.d_colour_in,
             d_c1,
             self.weight(params, 2, ci, w).t(),
@@ -788,33 +815,49 @@ impl FastField {
             }
         }
         let d_geo = MatRef::new(&ws.d_geo, n, g);
-        matmul(
+        matmul_in(
+            products,
             &mut values[gw(1)..][..w * g],
             MatRef::new(&ws.h, n, w).t(),
             d_geo,
             true,
         );
         let d_h = &mut ws.d_h[..n * w];
-        matmul(d_h, d_geo, self.weight(params, 1, w, g).t(), false);
+        matmul_in(
+            products,
+            d_h,
+            d_geo,
+            self.weight(params, 1, w, g).t(),
+            false,
+        );
         relu_bwd(d_h, &ws.h);
         let d_h = MatRef::new(d_h, n, w);
-        matmul(
+        matmul_in(
+            products,
             &mut values[gw(0)..][..e * w],
             MatRef::new(&ws.enc, n, e).t(),
             d_h,
             true,
         );
-        matmul(&mut ws.d_enc, d_h, self.weight(params, 0, e, w).t(), false);
+        matmul_in(
+            products,
+            &mut ws.d_enc,
+            d_h,
+            self.weight(params, 0, e, w).t(),
+            false,
+        );
         if let (Some(m), Some(at)) = (&self.motion, self.motion_weight) {
             let md = m.dims();
-            matmul(
+            matmul_in(
+                products,
                 &mut values[at..][..md * w],
                 MatRef::new(&ws.enc_motion, n, md).t(),
                 d_h,
                 true,
             );
             grow(&mut ws.d_enc_motion, n * md);
-            matmul(
+            matmul_in(
+                products,
                 &mut ws.d_enc_motion,
                 d_h,
                 MatRef::new(&params[at..][..md * w], md, w).t(),
@@ -1277,6 +1320,63 @@ mod tests {
         aa.density(&params, &pos, &mut FastWorkspace::default(), &mut alone);
         assert_eq!(wide, alone.to_vec());
         assert_ne!(wide, point_sigma, "a wide footprint reads less detail");
+    }
+
+    /// The networks with bfloat16 products (8 significant bits per input, f32 sums) give
+    /// the f32 field's outputs and gradients up to that rounding, on the default widths.
+    #[test]
+    fn bf16_products_give_the_f32_field_up_to_their_rounding() {
+        let Some(bf16) = Precision::bf16() else {
+            eprintln!("skipped: this CPU has no AVX-512 BF16");
+            return;
+        };
+        let mut config = FastFieldConfig::default();
+        config.grid.log2_table_size = 10;
+        let field = FastField::new(config);
+        let mut rng = Rng::new(4);
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.3, 0.3))
+            .collect();
+        let n = 300;
+        let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+        let dirs = rng.unit_directions(n);
+        let d_sigma: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+        let d_rgb: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+        let run = |products: Precision| {
+            let mut ws = FastWorkspace {
+                products,
+                ..FastWorkspace::default()
+            };
+            let out = field.forward(&params, input(&pos, &dirs), &mut ws);
+            let (sigma, rgb) = (out.sigma.to_vec(), out.rgb.to_vec());
+            let mut grads = GradBuffer::new(field.num_params());
+            let d = FieldGrad {
+                d_sigma: &d_sigma,
+                d_rgb: &d_rgb,
+            };
+            field.backward(&params, &mut ws, d, &mut grads.all());
+            (sigma, rgb, grads.values)
+        };
+        let (sigma, rgb, grads) = run(Precision::F32);
+        let (sigma_b, rgb_b, grads_b) = run(bf16);
+        // Relative error of a whole vector: the rounding's 2^-9 per input, summed over
+        // a layer's inputs in random directions, through four layers.
+        let rel = |a: &[f32], b: &[f32]| {
+            let err: f64 = a.iter().zip(b).map(|(x, y)| ((x - y) as f64).powi(2)).sum();
+            let norm: f64 = a.iter().map(|x| (*x as f64).powi(2)).sum();
+            (err / norm).sqrt()
+        };
+        let (e_sigma, e_rgb, e_grad) = (
+            rel(&sigma, &sigma_b),
+            rel(&rgb, &rgb_b),
+            rel(&grads, &grads_b),
+        );
+        assert!(
+            e_sigma < 2e-3 && e_rgb < 2e-3 && e_grad < 6e-2,
+            "{e_sigma} {e_rgb} {e_grad}"
+        );
+        // And they are rounded: the same products in f32 would agree to 1e-6.
+        assert!(e_sigma > 1e-5, "{e_sigma}");
     }
 
     /// The appearance codes' gradient, per photo and through the mean code.

@@ -3,6 +3,7 @@
 
 pub mod activation;
 pub mod adam;
+pub mod bf16_kernels;
 pub mod dense;
 pub mod grads;
 pub mod linalg;
