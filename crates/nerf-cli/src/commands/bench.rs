@@ -150,18 +150,13 @@ fn bench_fast(a: BenchArgs) -> Result<()> {
         return Ok(());
     }
     println!(
-        "\n{}, fast model{}{}{} on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
+        "\n{}, fast model{}{} on {}, after {} warm-up steps ({:.1}% of the occupancy grid occupied)",
         r.engine,
         if r.antialias { " (anti-aliased)" } else { "" },
         if r.distortion > 0.0 {
             format!(" (distortion loss {})", r.distortion)
         } else {
             String::new()
-        },
-        if r.bf16_products {
-            " (bfloat16 products)"
-        } else {
-            ""
         },
         r.scene,
         r.warmup_steps,

@@ -583,14 +583,22 @@ impl FastField {
         true
     }
 
-    /// Densities at `positions` into `out`, in a workspace of the calling thread's own: for
-    /// callers that evaluate from many threads (occupancy refreshes, mesh grids).
-    pub fn density_into(&self, params: &[f32], positions: &[f32], out: &mut [f32]) {
+    /// Densities at `positions` into `out`, with the networks' products in `products`, in
+    /// a workspace of the calling thread's own: for callers that evaluate from many threads
+    /// (occupancy refreshes).
+    pub fn density_into(
+        &self,
+        params: &[f32],
+        positions: &[f32],
+        products: Precision,
+        out: &mut [f32],
+    ) {
         thread_local! {
             static WS: std::cell::RefCell<FastWorkspace> = std::cell::RefCell::default();
         }
         WS.with(|ws| {
             let ws = &mut ws.borrow_mut();
+            ws.products = products;
             self.eval_density(params, positions, &[], Moments::Any, ws);
             out.copy_from_slice(&ws.sigma[..out.len()]);
         })

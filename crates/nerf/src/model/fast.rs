@@ -808,13 +808,16 @@ impl Model for FastModel {
             return;
         }
         let dt = self.config.step_length();
+        // Training's precision: a refresh only compares densities with a threshold.
+        let products = self.products;
         let FastModel {
             config,
             field,
             grid,
             ..
         } = self;
-        let density = |points: &[f32], out: &mut [f32]| field.density_into(params, points, out);
+        let density =
+            |points: &[f32], out: &mut [f32]| field.density_into(params, points, products, out);
         grid.update(&config.occupancy, steps_done, seed, dt, &density);
     }
 
