@@ -86,65 +86,54 @@ impl PackedRight {
     }
 }
 
-/// `out (m x n, dense) = a b`, or `+=` when `accumulate`: `a` is `m x k` with its rows at
-/// stride `a_stride` (each row's `k` values contiguous), `b` packed. Panics if a slice is
-/// shorter than the shapes need, or if the CPU lacks the kernels ([`available`]).
-pub fn rows_product(
-    out: &mut [f32],
-    a: &[f32],
-    a_stride: usize,
-    m: usize,
-    k: usize,
-    b: &PackedRight,
-    accumulate: bool,
-) {
-    let n = b.n;
+/// `out (m x n, dense) = a b`, or `+=` when `accumulate`, for `a` of `m` rows of `k` and
+/// `b` packed. Panics if a slice is shorter than the shapes need, or if the CPU lacks the
+/// kernels ([`available`]).
+pub fn rows_product(out: &mut [f32], a: Rows, m: usize, b: &PackedRight, accumulate: bool) {
     assert!(available(), "the CPU has no AVX-512 BF16");
-    assert_eq!(b.pairs, k.div_ceil(2), "inner dimensions differ");
-    assert!(out.len() >= m * n, "output too short");
-    assert!(
-        m == 0 || a.len() >= (m - 1) * a_stride + k,
-        "left operand too short"
-    );
+    assert_eq!(b.pairs, a.cols.div_ceil(2), "inner dimensions differ");
+    assert!(out.len() >= m * b.n, "output too short");
+    a.assert_holds(m, "left operand");
     #[cfg(target_arch = "x86_64")]
     // SAFETY: the CPU has the features (asserted), and the asserts above keep every access
     // inside the slices.
     unsafe {
-        x86::rows_product(out, a, a_stride, m, k, b, accumulate)
+        x86::rows_product(out, a, m, b, accumulate)
     }
 }
 
-/// `out (k x n, dense) = x^T y`, or `+=` when `accumulate`: `x` is `m x k` and `y` is
-/// `m x n`, each with its rows at its stride (each row's values contiguous). Panics as
-/// [`rows_product`] does.
-#[allow(clippy::too_many_arguments)]
-pub fn pairs_product(
-    out: &mut [f32],
-    x: &[f32],
-    x_stride: usize,
-    k: usize,
-    y: &[f32],
-    y_stride: usize,
-    n: usize,
-    m: usize,
-    accumulate: bool,
-) {
+/// Rows of a matrix: row `r`'s `cols` values from `values[r * stride]`, contiguous.
+#[derive(Clone, Copy)]
+pub struct Rows<'a> {
+    pub values: &'a [f32],
+    pub stride: usize,
+    pub cols: usize,
+}
+
+impl Rows<'_> {
+    /// Panics unless `count` rows fit in the values.
+    fn assert_holds(self, count: usize, what: &str) {
+        assert!(
+            count == 0 || self.values.len() >= (count - 1) * self.stride + self.cols,
+            "{what} too short"
+        );
+    }
+}
+
+/// `out (k x n, dense) = x^T y`, or `+=` when `accumulate`, for `x` of `m` rows of `k`
+/// and `y` of `m` rows of `n`. Panics as [`rows_product`] does.
+pub fn pairs_product(out: &mut [f32], x: Rows, y: Rows, m: usize, accumulate: bool) {
+    let (k, n) = (x.cols, y.cols);
     assert!(available(), "the CPU has no AVX-512 BF16");
     assert!(out.len() >= k * n, "output too short");
-    assert!(
-        m == 0 || x.len() >= (m - 1) * x_stride + k,
-        "left operand too short"
-    );
-    assert!(
-        m == 0 || y.len() >= (m - 1) * y_stride + n,
-        "right operand too short"
-    );
+    x.assert_holds(m, "left operand");
+    y.assert_holds(m, "right operand");
     #[cfg(target_arch = "x86_64")]
     if n < 2 * LANES && k > n {
         // Few columns fill few lanes: the transpose `y^T x` runs `k` across them instead.
         let mut transposed = vec![0.0; n * k];
         // SAFETY: as in `rows_product`.
-        unsafe { x86::pairs_product(&mut transposed, y, y_stride, n, x, x_stride, k, m, false) }
+        unsafe { x86::pairs_product(&mut transposed, y, x, m, false) }
         for (r, row) in out.chunks_exact_mut(n).take(k).enumerate() {
             for (c, v) in row.iter_mut().enumerate() {
                 let t = transposed[c * k + r];
@@ -153,7 +142,7 @@ pub fn pairs_product(
         }
     } else {
         // SAFETY: as in `rows_product`.
-        unsafe { x86::pairs_product(out, x, x_stride, k, y, y_stride, n, m, accumulate) }
+        unsafe { x86::pairs_product(out, x, y, m, accumulate) }
     }
 }
 
@@ -239,19 +228,18 @@ mod x86 {
     #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
     pub(super) unsafe fn rows_product(
         out: &mut [f32],
-        a: &[f32],
-        a_stride: usize,
+        a: Rows,
         m: usize,
-        k: usize,
         b: &PackedRight,
         accumulate: bool,
     ) {
         // SAFETY: the caller guarantees the CPU features and the bounds.
         unsafe {
-            let n = b.n;
+            let (n, k) = (b.n, a.cols);
             // A block's rows as pairs, each row a whole number of vectors long.
             let row_words = round_up(b.pairs, LANES);
             let mut scratch = vec![0u32; 12 * row_words];
+            let out_ptr = out.as_mut_ptr();
             let mut c0 = 0;
             while c0 < n {
                 let vectors = (n - c0).div_ceil(LANES).min(4);
@@ -260,7 +248,7 @@ mod x86 {
                 while r0 < m {
                     let block = rows.min(m - r0);
                     for r in 0..block {
-                        let row = a.as_ptr().add((r0 + r) * a_stride);
+                        let row = a.values.as_ptr().add((r0 + r) * a.stride);
                         for (w, at) in (0..k).step_by(2 * LANES).enumerate() {
                             let v = pairs_along(row.add(at), k - at);
                             _mm512_storeu_si512(
@@ -269,23 +257,33 @@ mod x86 {
                             );
                         }
                     }
-                    let dst = out.as_mut_ptr().add(r0 * n + c0);
-                    let args = (dst, n, n - c0, &scratch[..], row_words, b, c0, accumulate);
+                    let tile = |r: usize| Tile {
+                        at: out_ptr.add((r0 + r) * n + c0),
+                        stride: n,
+                        cols: n - c0,
+                        accumulate,
+                    };
+                    let operands = |r: usize| Operands {
+                        left: scratch.as_ptr().add(r * row_words),
+                        left_row: row_words,
+                        left_step: 1,
+                        right: b.words.as_ptr().add(c0),
+                        right_step: b.cols,
+                        steps: b.pairs,
+                    };
                     match (vectors, block == rows) {
-                        (4, true) => rows_block::<4, 6>(args),
-                        (3, true) => rows_block::<3, 8>(args),
-                        (2, true) => rows_block::<2, 12>(args),
-                        (1, true) => rows_block::<1, 12>(args),
+                        (4, true) => block_of::<4, 6>(tile(0), operands(0)),
+                        (3, true) => block_of::<3, 8>(tile(0), operands(0)),
+                        (2, true) => block_of::<2, 12>(tile(0), operands(0)),
+                        (1, true) => block_of::<1, 12>(tile(0), operands(0)),
                         _ => {
                             for r in 0..block {
-                                let dst = out.as_mut_ptr().add((r0 + r) * n + c0);
-                                let row = &scratch[r * row_words..];
-                                let args = (dst, n, n - c0, row, row_words, b, c0, accumulate);
+                                let (t, o) = (tile(r), operands(r));
                                 match vectors {
-                                    4 => rows_block::<4, 1>(args),
-                                    3 => rows_block::<3, 1>(args),
-                                    2 => rows_block::<2, 1>(args),
-                                    _ => rows_block::<1, 1>(args),
+                                    4 => block_of::<4, 1>(t, o),
+                                    3 => block_of::<3, 1>(t, o),
+                                    2 => block_of::<2, 1>(t, o),
+                                    _ => block_of::<1, 1>(t, o),
                                 }
                             }
                         }
@@ -297,71 +295,17 @@ mod x86 {
         }
     }
 
-    /// `(output at the block's first row and column, output row stride, columns left from
-    /// there, the block's packed rows, their stride, b, b's first column, accumulate)`.
-    type RowsArgs<'a> = (
-        *mut f32,
-        usize,
-        usize,
-        &'a [u32],
-        usize,
-        &'a PackedRight,
-        usize,
-        bool,
-    );
-
     #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
-    #[inline]
-    unsafe fn rows_block<const V: usize, const R: usize>(args: RowsArgs) {
-        // SAFETY: the caller guarantees the CPU features and the bounds.
-        unsafe {
-            let (dst, stride, cols_left, rows, row_words, b, c0, accumulate) = args;
-            let mut acc = [[_mm512_setzero_ps(); V]; R];
-            if accumulate {
-                for (r, acc_r) in acc.iter_mut().enumerate() {
-                    for (q, v) in acc_r.iter_mut().enumerate() {
-                        let m = mask(cols_left.saturating_sub(q * LANES));
-                        *v = _mm512_maskz_loadu_ps(m, dst.add(r * stride + q * LANES));
-                    }
-                }
-            }
-            let bw = b.words.as_ptr().add(c0);
-            for j in 0..b.pairs {
-                let mut bv = [_mm512_setzero_si512(); V];
-                for (q, v) in bv.iter_mut().enumerate() {
-                    *v = _mm512_loadu_si512(bw.add(j * b.cols + q * LANES) as *const _);
-                }
-                for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let av = _mm512_set1_epi32(*rows.get_unchecked(r * row_words + j) as i32);
-                    for q in 0..V {
-                        acc_r[q] = dot(acc_r[q], av, bv[q]);
-                    }
-                }
-            }
-            for (r, acc_r) in acc.iter().enumerate() {
-                for (q, v) in acc_r.iter().enumerate() {
-                    let m = mask(cols_left.saturating_sub(q * LANES));
-                    _mm512_mask_storeu_ps(dst.add(r * stride + q * LANES), m, *v);
-                }
-            }
-        }
-    }
-
-    #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
-    #[allow(clippy::too_many_arguments)]
     pub(super) unsafe fn pairs_product(
         out: &mut [f32],
-        x: &[f32],
-        x_stride: usize,
-        k: usize,
-        y: &[f32],
-        y_stride: usize,
-        n: usize,
+        x: Rows,
+        y: Rows,
         m: usize,
         accumulate: bool,
     ) {
         // SAFETY: the caller guarantees the CPU features and the bounds.
         unsafe {
+            let (k, n) = (x.cols, y.cols);
             // The sums, `k` rounded up to 16 rows (so that blocks of 4, 8 or 16 rows fill
             // it), `n` to whole vectors; and a chunk's pairs of x and y, the same widths.
             let (rows, cols) = (round_up(k, LANES), round_up(n, LANES));
@@ -373,16 +317,11 @@ mod x86 {
                 for i in 0..pairs {
                     let even = s0 + 2 * i;
                     let odd = (even + 1 < m).then_some(even + 1);
-                    for (packed, width, src, stride, len) in [
-                        (&mut xp, rows, x, x_stride, k),
-                        (&mut yp, cols, y, y_stride, n),
-                    ] {
-                        for c in (0..len).step_by(LANES) {
-                            let v = pairs_across(
-                                src.as_ptr().add(even * stride + c),
-                                odd.map(|o| src.as_ptr().add(o * stride + c)),
-                                len - c,
-                            );
+                    for (packed, width, src) in [(&mut xp, rows, x), (&mut yp, cols, y)] {
+                        let at =
+                            |row: usize, c: usize| src.values.as_ptr().add(row * src.stride + c);
+                        for c in (0..src.cols).step_by(LANES) {
+                            let v = pairs_across(at(even, c), odd.map(|o| at(o, c)), src.cols - c);
                             _mm512_storeu_si512(
                                 packed.as_mut_ptr().add(i * width + c) as *mut _,
                                 v,
@@ -399,12 +338,25 @@ mod x86 {
                         _ => 16,
                     };
                     for r0 in (0..round_up(k, height)).step_by(height) {
-                        let args = (&mut sums[..], cols, &xp[..], rows, &yp[..], pairs, r0, c0);
+                        let tile = Tile {
+                            at: sums.as_mut_ptr().add(r0 * cols + c0),
+                            stride: cols,
+                            cols: cols - c0,
+                            accumulate: true,
+                        };
+                        let operands = Operands {
+                            left: xp.as_ptr().add(r0),
+                            left_row: 1,
+                            left_step: rows,
+                            right: yp.as_ptr().add(c0),
+                            right_step: cols,
+                            steps: pairs,
+                        };
                         match vectors {
-                            4 => pairs_block::<4, 4>(args),
-                            3 => pairs_block::<3, 4>(args),
-                            2 => pairs_block::<2, 8>(args),
-                            _ => pairs_block::<1, 16>(args),
+                            4 => block_of::<4, 4>(tile, operands),
+                            3 => block_of::<3, 4>(tile, operands),
+                            2 => block_of::<2, 8>(tile, operands),
+                            _ => block_of::<1, 16>(tile, operands),
                         }
                     }
                 }
@@ -420,47 +372,66 @@ mod x86 {
         }
     }
 
-    /// `(the sums, their row stride, x's pairs, their row stride, y's pairs, pairs, the
-    /// block's first row of sums, its first column)`.
-    type PairsArgs<'a> = (
-        &'a mut [f32],
-        usize,
-        &'a [u32],
-        usize,
-        &'a [u32],
-        usize,
-        usize,
-        usize,
-    );
+    /// A block of outputs: `R` rows of `V` vectors from `at`, rows `stride` apart, of which
+    /// `cols` columns are real (the rest neither read nor written); with `accumulate` the
+    /// sums start from what is there, else from zero.
+    #[derive(Clone, Copy)]
+    struct Tile {
+        at: *mut f32,
+        stride: usize,
+        cols: usize,
+        accumulate: bool,
+    }
 
+    /// The packed operands of a block's sums over `steps` pairs: the left word of the
+    /// block's row `r` at step `i` is at `left + r * left_row + i * left_step`, the right
+    /// vectors of step `i` from `right + i * right_step`.
+    #[derive(Clone, Copy)]
+    struct Operands {
+        left: *const u32,
+        left_row: usize,
+        left_step: usize,
+        right: *const u32,
+        right_step: usize,
+        steps: usize,
+    }
+
+    /// `tile (+)= left right` over the operands' steps: each step one broadcast of a row's
+    /// pair against `V` vectors of pairs, `R x V` independent sums.
     #[target_feature(enable = "avx512f,avx512bw,avx512bf16")]
     #[inline]
-    unsafe fn pairs_block<const V: usize, const R: usize>(args: PairsArgs) {
+    unsafe fn block_of<const V: usize, const R: usize>(tile: Tile, o: Operands) {
         // SAFETY: the caller guarantees the CPU features and the bounds.
         unsafe {
-            let (sums, cols, xp, rows, yp, pairs, r0, c0) = args;
-            let base = sums.as_mut_ptr().add(r0 * cols + c0);
+            let masks: [__mmask16; V] =
+                std::array::from_fn(|q| mask(tile.cols.saturating_sub(q * LANES)));
             let mut acc = [[_mm512_setzero_ps(); V]; R];
-            for (r, acc_r) in acc.iter_mut().enumerate() {
-                for (q, v) in acc_r.iter_mut().enumerate() {
-                    *v = _mm512_loadu_ps(base.add(r * cols + q * LANES));
+            if tile.accumulate {
+                for (r, acc_r) in acc.iter_mut().enumerate() {
+                    for (q, v) in acc_r.iter_mut().enumerate() {
+                        let at = tile.at.add(r * tile.stride + q * LANES);
+                        *v = _mm512_maskz_loadu_ps(masks[q], at);
+                    }
                 }
             }
-            for i in 0..pairs {
-                let mut yv = [_mm512_setzero_si512(); V];
-                for (q, v) in yv.iter_mut().enumerate() {
-                    *v = _mm512_loadu_si512(yp.as_ptr().add(i * cols + c0 + q * LANES) as *const _);
+            for i in 0..o.steps {
+                let right = o.right.add(i * o.right_step);
+                let mut rv = [_mm512_setzero_si512(); V];
+                for (q, v) in rv.iter_mut().enumerate() {
+                    *v = _mm512_loadu_si512(right.add(q * LANES) as *const _);
                 }
                 for (r, acc_r) in acc.iter_mut().enumerate() {
-                    let xv = _mm512_set1_epi32(*xp.get_unchecked(i * rows + r0 + r) as i32);
+                    let left = *o.left.add(r * o.left_row + i * o.left_step);
+                    let lv = _mm512_set1_epi32(left as i32);
                     for q in 0..V {
-                        acc_r[q] = dot(acc_r[q], xv, yv[q]);
+                        acc_r[q] = dot(acc_r[q], lv, rv[q]);
                     }
                 }
             }
             for (r, acc_r) in acc.iter().enumerate() {
                 for (q, v) in acc_r.iter().enumerate() {
-                    _mm512_storeu_ps(base.add(r * cols + q * LANES), *v);
+                    let at = tile.at.add(r * tile.stride + q * LANES);
+                    _mm512_mask_storeu_ps(at, masks[q], *v);
                 }
             }
         }

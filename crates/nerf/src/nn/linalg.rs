@@ -6,7 +6,7 @@
 //! `dW += X^T dY`; both are strided views of the same buffers, so no transpose is copied.
 //! Each call is single-threaded: parallelism comes from independent ray chunks per thread.
 
-use super::bf16_kernels::{pairs_product, rows_product, PackedRight};
+use super::bf16_kernels::{pairs_product, rows_product, PackedRight, Rows};
 
 /// A strided, read-only matrix view.
 #[derive(Clone, Copy, Debug)]
@@ -81,21 +81,27 @@ pub fn matmul_in(precision: Precision, out: &mut [f32], a: MatRef, b: MatRef, ac
     if precision.bf16 && m > 0 && n > 0 && k > 0 {
         if a.col_stride == 1 {
             let right = PackedRight::new(k, n, |r, c| b.data[r * b.row_stride + c * b.col_stride]);
-            rows_product(out, a.data, a.row_stride, m, k, &right, accumulate);
+            let rows = Rows {
+                values: a.data,
+                stride: a.row_stride,
+                cols: k,
+            };
+            rows_product(out, rows, m, &right, accumulate);
             return;
         }
         if a.row_stride == 1 && b.col_stride == 1 {
-            pairs_product(
-                out,
-                a.data,
-                a.col_stride,
-                m,
-                b.data,
-                b.row_stride,
-                n,
-                k,
-                accumulate,
-            );
+            // a is x^T: x's rows are a's columns.
+            let x = Rows {
+                values: a.data,
+                stride: a.col_stride,
+                cols: m,
+            };
+            let y = Rows {
+                values: b.data,
+                stride: b.row_stride,
+                cols: n,
+            };
+            pairs_product(out, x, y, k, accumulate);
             return;
         }
     }
