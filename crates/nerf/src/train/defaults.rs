@@ -37,6 +37,14 @@ use crate::engine::Device;
 /// forward-facing rug from 3 photos it gained 2.4 dB (figures in `docs/benchmarks.md`).
 pub const FEW_VIEW_DEPTH_SMOOTHNESS: f32 = 0.1;
 
+/// The fast model's samples per step in a run scheduled by the clock (`--minutes` alone):
+/// twice the default, since a step's fixed costs (Adam, the gradients' reduction, the
+/// occupancy refresh) then spread over twice the samples: lego_400 in 10 minutes took 25%
+/// more samples and reached 33.24 dB against 32.86 with 65,536 (figures in
+/// `docs/benchmarks.md`). A run of a fixed number of steps keeps the default, which
+/// would take twice the time.
+pub const TIMED_SAMPLES_PER_STEP: usize = 1 << 17;
+
 /// Appearance codes per photo when real captures get them by default.
 pub const DEFAULT_APPEARANCE_DIMS: u32 = 16;
 

@@ -123,7 +123,8 @@ pub struct TrainOptions {
     /// Vanilla: rays per step (default 1024; paper: 4096).
     #[arg(long)]
     pub batch: Option<usize>,
-    /// Fast: field samples per step; the number of rays adapts (default 65536).
+    /// Fast: field samples per step; the number of rays adapts (default 65536, and 131072
+    /// for a run scheduled by the clock, --minutes alone).
     #[arg(long)]
     pub samples: Option<usize>,
     /// Fast: log2 of the hash-table entries per level (default 19).
@@ -328,7 +329,12 @@ impl TrainOptions {
                 if self.batch.is_some() || self.paper_pe {
                     return refuse("--batch and --paper-pe apply to --model vanilla only".into());
                 }
-                m.samples_per_step = self.samples.unwrap_or(m.samples_per_step);
+                let timed = self.minutes.is_some() && self.steps.is_none();
+                let samples = match timed {
+                    true => defaults::TIMED_SAMPLES_PER_STEP,
+                    false => m.samples_per_step,
+                };
+                m.samples_per_step = self.samples.unwrap_or(samples);
                 m.field.grid.log2_table_size =
                     self.table_log2.unwrap_or(m.field.grid.log2_table_size);
             }
@@ -1106,6 +1112,43 @@ mod tests {
         assert_eq!(few_in(&[], llff.path()), None);
         let err = config(&["--few-view"], llff.path()).expect_err("ndc");
         assert!(err.to_string().contains("world space"), "{err}");
+    }
+
+    /// A run scheduled by the clock takes twice the samples per step unless told; a run
+    /// of steps, capped by minutes or not, keeps the default. `--bf16` and `--no-bf16`
+    /// reach the config (the default: where the CPU has the kernels), for the fast model
+    /// only.
+    #[test]
+    fn timed_runs_take_larger_steps_and_the_products_precision_is_chosen() {
+        let dir = tiny_scene(16);
+        let fast = |args: &[&str]| match config(args, dir.path()).expect("ok").model {
+            ModelConfig::Fast(m) => m,
+            ModelConfig::Vanilla(_) => panic!("fast model expected"),
+        };
+        let default = crate::model::FastModelConfig::default().samples_per_step;
+        assert_eq!(fast(&[]).samples_per_step, default);
+        assert_eq!(
+            fast(&["--minutes", "10"]).samples_per_step,
+            defaults::TIMED_SAMPLES_PER_STEP
+        );
+        assert_eq!(
+            fast(&["--minutes", "10", "--steps", "100"]).samples_per_step,
+            default
+        );
+        assert_eq!(
+            fast(&["--minutes", "10", "--samples", "4096"]).samples_per_step,
+            4096
+        );
+        let cpu = ["--device", "cpu"];
+        let has = Precision::bf16().is_some();
+        assert_eq!(fast(&cpu).bf16_products, has);
+        assert!(!fast(&["--device", "cpu", "--no-bf16"]).bf16_products);
+        match config(&["--device", "cpu", "--bf16"], dir.path()) {
+            Ok(c) => assert!(has && matches!(c.model, ModelConfig::Fast(m) if m.bf16_products)),
+            Err(e) => assert!(!has && e.to_string().contains("AVX-512 BF16"), "{e}"),
+        }
+        let err = config(&["--preset", "demo", "--bf16"], dir.path()).expect_err("vanilla");
+        assert!(err.to_string().contains("--model fast only"), "{err}");
     }
 
     /// A scene whose photos have times trains a field of space and time unless asked not
