@@ -275,11 +275,7 @@ pub(super) fn encode(
             n as u32,
             e.frequencies as u32,
             u32::from(e.paper_form),
-            if e.paper_form {
-                std::f32::consts::PI
-            } else {
-                1.0
-            },
+            e.frequency(0),
             u32::from(variances.is_some()),
             u32::from(mask.is_some()),
         );
