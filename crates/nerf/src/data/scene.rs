@@ -331,12 +331,9 @@ fn load_mask(path: &Path, image: &RgbaImage, factor: usize) -> Result<Vec<u32>> 
         ));
     }
     let small = mask.downscale(factor);
-    let kept: Vec<u32> = small
-        .data
-        .chunks_exact(4)
-        .enumerate()
-        .filter(|(_, p)| p[0] >= 0.5)
-        .map(|(i, _)| i as u32)
+    let kept: Vec<u32> = (0..small.width * small.height)
+        .filter(|&i| small.pixel(i)[0] >= 0.5)
+        .map(|i| i as u32)
         .collect();
     if kept.is_empty() {
         return Err(NerfError::format(

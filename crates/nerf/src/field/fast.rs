@@ -23,10 +23,10 @@ use crate::encoding::hash_grid::{HashGrid, HashGridConfig, FEATURES};
 use crate::encoding::space_time_grid::{SpaceTimeConfig, SpaceTimeGrid};
 use crate::encoding::spherical_harmonics::{sh4, sh4_bwd, SH_DIMS};
 use crate::nn::activation::{relu, sigmoid};
-use crate::nn::grow;
 use crate::nn::linalg::{matmul_in, MatRef, Precision};
 use crate::nn::Grads;
 use crate::nn::ParamLayout;
+use crate::nn::{grow, resize_reused};
 use crate::rng::Rng;
 use crate::stage::{Field, FieldGrad, FieldInput, FieldOutput};
 use crate::step_clock::{self, Stage};
@@ -191,6 +191,8 @@ pub struct FastWorkspace {
     /// The precision of the networks' products (training sets it; `f32` by default).
     pub products: Precision,
     deferred_unit: Vec<f32>,
+    /// The waiting encoding gradients' planes while no share is encoded ahead; with one,
+    /// they take the rows of `share_enc` its forwards have read.
     deferred_d_enc: Vec<f32>,
     /// A worker's share encoded ahead of its chunks ([`FastField::pre_encode`]): its points
     /// and their encodings level by level, the next chunk's first sample at `share_next`.
@@ -200,14 +202,45 @@ pub struct FastWorkspace {
 }
 
 impl FastWorkspace {
+    /// Where the deferred encoding gradients wait, and how many samples a level's plane
+    /// holds: the share's planes while one is encoded ahead (a chunk's gradients take the
+    /// rows its forward has read, so the share's encodings and the gradients waiting cost
+    /// the memory of one), else planes of their own with room for `room` samples.
+    fn waiting_planes(&self, room: usize) -> (&[f32], usize) {
+        if self.share_unit.is_empty() {
+            (&self.deferred_d_enc, room)
+        } else {
+            (&self.share_enc, self.share_unit.len() / 3)
+        }
+    }
+
+    /// How many waiting samples' gradients the planes can hold: with a share encoded
+    /// ahead, only the rows its forwards have read.
+    fn scatter_room(&self, room: usize) -> usize {
+        if self.share_unit.is_empty() {
+            room
+        } else {
+            self.share_next
+        }
+    }
+
     /// Keeps the last backward's `n` points and their encoding gradients (`e` a sample) for
-    /// a deferred scatter, after those already waiting, in planes of `room` samples a level.
+    /// a deferred scatter, after those already waiting (`room` as in
+    /// [`waiting_planes`](Self::waiting_planes)).
     fn keep_for_scatter(&mut self, n: usize, e: usize, room: usize) {
         let kept = self.deferred_unit.len() / 3;
+        let (planes, room) = if self.share_unit.is_empty() {
+            if kept == 0 {
+                resize_reused(&mut self.deferred_d_enc, room * e, 0.0);
+            }
+            (&mut self.deferred_d_enc[..room * e], room)
+        } else {
+            (&mut self.share_enc[..], self.share_unit.len() / 3)
+        };
         if kept == 0 {
-            self.deferred_d_enc.resize(room * e, 0.0);
+            // The points never outgrow the planes' room (`Vec`'s doubling would).
+            self.deferred_unit.reserve_exact(room * 3);
         }
-        let planes = &mut self.deferred_d_enc[..room * e];
         for (s, row) in self.d_enc[..n * e].chunks_exact(e).enumerate() {
             for (l, g) in row.chunks_exact(FEATURES).enumerate() {
                 let at = (l * room + kept + s) * FEATURES;
@@ -551,9 +584,9 @@ impl FastField {
     pub fn pre_encode(&self, params: &[f32], positions: &[f32], ws: &mut FastWorkspace) {
         let _clock = step_clock::start(Stage::Encoding);
         let n = positions.len() / 3;
-        ws.share_unit.resize(n * 3, 0.0);
+        resize_reused(&mut ws.share_unit, n * 3, 0.0);
         self.to_unit(positions, &mut ws.share_unit);
-        ws.share_enc.resize(n * self.grid.dims(), 0.0);
+        resize_reused(&mut ws.share_enc, n * self.grid.dims(), 0.0);
         self.grid
             .encode_by_level(params, &ws.share_unit, &mut ws.share_enc);
         ws.share_next = 0;
@@ -561,6 +594,8 @@ impl FastField {
 
     /// Forgets what [`pre_encode`](Self::pre_encode) left.
     pub fn end_pre_encoded(&self, ws: &mut FastWorkspace) {
+        // The share's planes may hold gradients waiting for their scatter.
+        assert!(ws.deferred_unit.is_empty(), "scatter before the share ends");
         ws.share_unit.clear();
         ws.share_next = 0;
     }
@@ -881,10 +916,10 @@ impl FastField {
         let deferred = match ws.defer_grid {
             Some(room) => {
                 // More samples came than there is room for: what waits goes first, in order.
-                if ws.deferred_unit.len() / 3 + n > room {
+                if ws.deferred_unit.len() / 3 + n > ws.scatter_room(room) {
                     self.scatter_waiting(ws, grads);
                 }
-                let fits = n <= room;
+                let fits = n <= ws.scatter_room(room);
                 if fits {
                     ws.keep_for_scatter(n, e, room);
                 }
@@ -977,8 +1012,9 @@ impl FastField {
     fn scatter_waiting(&self, ws: &mut FastWorkspace, grads: &mut Grads) {
         if let (Some(room), false) = (ws.defer_grid, ws.deferred_unit.is_empty()) {
             // The planes hold `room` samples a level; the first of each are filled.
+            let (planes, room) = ws.waiting_planes(room);
             self.grid
-                .encode_bwd_by_level(&ws.deferred_unit, &ws.deferred_d_enc, room, grads);
+                .encode_bwd_by_level(&ws.deferred_unit, planes, room, grads);
         }
         ws.deferred_unit.clear();
     }
@@ -1515,6 +1551,61 @@ mod tests {
             assert_eq!(deferred, immediate, "room {room}");
             assert_eq!(deferred_dirty, dirty, "room {room}");
         }
+    }
+
+    /// The same with the share encoded ahead, as training runs it: the gradients wait in
+    /// the rows of the share's planes its forwards have read (no planes of their own), a
+    /// chunk out of turn (a patch's rays) sends what waits to the tables first, and the
+    /// sums are those of the immediate scatters, bit for bit.
+    #[test]
+    fn gradients_waiting_in_the_shares_planes_are_the_immediate_scatter() {
+        let mut rng = Rng::new(12);
+        let field = tiny();
+        let params: Vec<f32> = (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect();
+        let chunks: Vec<_> = [7, 6, 5]
+            .iter()
+            .map(|&n| {
+                let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+                let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
+                let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+                let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+                (pos, dirs, a, b)
+            })
+            .collect();
+        // The share holds the first and last chunks; the middle one comes out of turn.
+        let share: Vec<f32> = [&chunks[0], &chunks[2]]
+            .iter()
+            .flat_map(|c| c.0.clone())
+            .collect();
+        let run = |ahead: bool| {
+            let mut ws = FastWorkspace {
+                defer_grid: ahead.then_some(12),
+                ..Default::default()
+            };
+            if ahead {
+                field.pre_encode(&params, &share, &mut ws);
+            }
+            let mut grads = GradBuffer::new(field.num_params());
+            for (pos, dirs, a, b) in &chunks {
+                field.forward(&params, input(pos, dirs), &mut ws);
+                let d = FieldGrad {
+                    d_sigma: a,
+                    d_rgb: b,
+                };
+                field.backward(&params, &mut ws, d, &mut grads.all());
+            }
+            field.scatter_deferred(&mut ws, &mut grads.all());
+            assert!(ws.deferred_d_enc.is_empty(), "no planes of their own");
+            let read = ws.share_next;
+            field.end_pre_encoded(&mut ws);
+            (grads.values, read)
+        };
+        let (immediate, _) = run(false);
+        let (deferred, read) = run(true);
+        assert_eq!(read, 12, "the share's chunks read their encodings from it");
+        assert_eq!(deferred, immediate);
     }
 
     /// The straight-through schedule: weighting the levels of the position gradient

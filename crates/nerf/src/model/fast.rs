@@ -710,15 +710,11 @@ impl Model for FastModel {
                 let share: usize = (first..shares[w + 1]).map(samples_of).sum();
                 worker.ws.field.defer_grid = Some(share);
                 worker.ws.field.products = self.products;
-                let positions: Vec<f32> = (first..shares[w + 1])
-                    .flat_map(|g| {
-                        let s = &blocks[g / BLOCK_RAYS].samples;
-                        s.positions[s.ray(g % BLOCK_RAYS)]
-                            .as_flattened()
-                            .iter()
-                            .copied()
-                    })
-                    .collect();
+                let mut positions = Vec::with_capacity(share * 3);
+                for g in first..shares[w + 1] {
+                    let s = &blocks[g / BLOCK_RAYS].samples;
+                    positions.extend_from_slice(s.positions[s.ray(g % BLOCK_RAYS)].as_flattened());
+                }
                 self.field
                     .pre_encode(input.params, &positions, &mut worker.ws.field);
                 for g in first..shares[w + 1] {

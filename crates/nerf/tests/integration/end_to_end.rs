@@ -202,7 +202,8 @@ fn nan_loss_stops_without_touching_the_weights() {
     };
     let mut data = synth::dataset(&opts, Split::Train, 3);
     for v in &mut data.views {
-        v.image.data.iter_mut().for_each(|x| *x = f32::NAN);
+        let (w, h) = (v.image.width, v.image.height);
+        v.image = nerf::data::RgbaImage::from_premultiplied(w, h, vec![f32::NAN; w * h * 4]);
     }
     let mut c = TrainConfig::from_preset("mem".into(), "demo").expect("preset");
     c.batch_rays = 16;

@@ -174,7 +174,8 @@ fn a_nan_step_on_the_gpu_leaves_the_weights_and_adam_alone() {
     let train = training_split(&c);
     let mut poisoned = train.clone();
     for v in &mut poisoned.views {
-        v.image.data.iter_mut().for_each(|x| *x = f32::NAN);
+        let (w, h) = (v.image.width, v.image.height);
+        v.image = nerf::data::RgbaImage::from_premultiplied(w, h, vec![f32::NAN; w * h * 4]);
     }
     let mut t = Trainer::on(Device::Wgpu, c.clone(), poisoned).expect("trainer");
     let before = t.engine.state();

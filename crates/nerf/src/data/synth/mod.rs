@@ -308,7 +308,7 @@ mod tests {
             crate::data::scene::load_blender(dir.path(), Split::Train, 1, 1).expect("load train");
         assert_eq!(train.views.len(), 3);
         let img = &train.views[0].image;
-        let coverage = img.data.chunks_exact(4).filter(|p| p[3] > 0.5).count();
+        let coverage = (0..24 * 24).filter(|&i| img.pixel(i)[3] > 0.5).count();
         assert!(
             coverage > 24 * 24 / 20 && coverage < 24 * 24 * 3 / 4,
             "object covers {coverage} pixels"

@@ -435,7 +435,7 @@ impl GpuViews {
             meta.extend([cam.width as u32, image_at as u32, table as u32]);
             cams.extend([cam.fx, cam.fy, cam.cx, cam.cy]);
             cams.extend(cam.c2w.iter().flatten());
-            images.extend_from_slice(&view.image.data);
+            images.extend(view.image.premultiplied());
         }
         // Pinhole views read (and ignore) the first two values.
         tables.extend([0.0, 0.0]);
