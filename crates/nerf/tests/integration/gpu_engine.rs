@@ -939,7 +939,7 @@ fn dnerf_trains_alike_on_both_engines() {
 }
 
 /// A paper-model setup: the scene's folder, the configuration, the scene and its
-/// training split. The demo preset (128 rays a step), changed by `tweak`, on the 16-pixel
+/// training split. The demo preset (64 rays a step), changed by `tweak`, on the 16-pixel
 /// chair, turning over the capture (each photo at its own moment) when `animate`.
 fn paper_model_setup(
     animate: bool,
@@ -969,7 +969,7 @@ fn paper_model_setup(
         small_scene(&data, 16);
     }
     let mut c = TrainConfig::from_preset(data.clone(), "demo").expect("preset");
-    c.batch_rays = 128;
+    c.batch_rays = 64;
     c.chunk_rays = 64;
     if let nerf::model::ModelConfig::Vanilla(m) = &mut c.model {
         tweak(m);
