@@ -1500,6 +1500,42 @@ mod tests {
         assert_eq!(forward(&mut ws, &chunks[0]), alone[0]);
     }
 
+    /// A chunk of samples for the backward tests: points, directions, and the gradients
+    /// of density and colour.
+    type Chunk = (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>);
+
+    /// Chunks of `sizes` samples, drawn from `rng`.
+    fn random_chunks(rng: &mut Rng, sizes: &[usize]) -> Vec<Chunk> {
+        sizes
+            .iter()
+            .map(|&n| {
+                let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
+                let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
+                let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
+                let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
+                (pos, dirs, a, b)
+            })
+            .collect()
+    }
+
+    /// The forward and backward of each chunk in turn, in `ws`, into `grads`.
+    fn train_chunks(
+        field: &FastField,
+        params: &[f32],
+        chunks: &[Chunk],
+        ws: &mut FastWorkspace,
+        grads: &mut GradBuffer,
+    ) {
+        for (pos, dirs, a, b) in chunks {
+            field.forward(params, input(pos, dirs), ws);
+            let d = FieldGrad {
+                d_sigma: a,
+                d_rgb: b,
+            };
+            field.backward(params, ws, d, &mut grads.all());
+        }
+    }
+
     /// Backward passes over two chunks with the grid's scatter deferred to one pass over
     /// both give the gradients of the passes scattered one by one, bit for bit.
     #[test]
@@ -1509,16 +1545,7 @@ mod tests {
         let params: Vec<f32> = (0..field.num_params())
             .map(|_| rng.range(-0.5, 0.5))
             .collect();
-        let chunks: Vec<_> = (0..2)
-            .map(|_| {
-                let n = 7;
-                let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
-                let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
-                let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
-                let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
-                (pos, dirs, a, b)
-            })
-            .collect();
+        let chunks = random_chunks(&mut rng, &[7, 7]);
         // Room for the 14 samples that come, for more (the planes are read part-filled), or
         // for fewer (what waits is scattered when a chunk does not fit).
         let run = |room: Option<usize>| {
@@ -1527,14 +1554,7 @@ mod tests {
                 ..Default::default()
             };
             let mut grads = GradBuffer::new(field.num_params());
-            for (pos, dirs, a, b) in &chunks {
-                field.forward(&params, input(pos, dirs), &mut ws);
-                let d = FieldGrad {
-                    d_sigma: a,
-                    d_rgb: b,
-                };
-                field.backward(&params, &mut ws, d, &mut grads.all());
-            }
+            train_chunks(&field, &params, &chunks, &mut ws, &mut grads);
             let before = grads.values.clone();
             field.scatter_deferred(&mut ws, &mut grads.all());
             let dirty = grads.dirty_fraction();
@@ -1564,16 +1584,7 @@ mod tests {
         let params: Vec<f32> = (0..field.num_params())
             .map(|_| rng.range(-0.5, 0.5))
             .collect();
-        let chunks: Vec<_> = [7, 6, 5]
-            .iter()
-            .map(|&n| {
-                let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
-                let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
-                let a: Vec<f32> = (0..n).map(|_| rng.range(-1.0, 1.0)).collect();
-                let b: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect();
-                (pos, dirs, a, b)
-            })
-            .collect();
+        let chunks = random_chunks(&mut rng, &[7, 6, 5]);
         // The share holds the first and last chunks; the middle one comes out of turn.
         let share: Vec<f32> = [&chunks[0], &chunks[2]]
             .iter()
@@ -1588,14 +1599,7 @@ mod tests {
                 field.pre_encode(&params, &share, &mut ws);
             }
             let mut grads = GradBuffer::new(field.num_params());
-            for (pos, dirs, a, b) in &chunks {
-                field.forward(&params, input(pos, dirs), &mut ws);
-                let d = FieldGrad {
-                    d_sigma: a,
-                    d_rgb: b,
-                };
-                field.backward(&params, &mut ws, d, &mut grads.all());
-            }
+            train_chunks(&field, &params, &chunks, &mut ws, &mut grads);
             field.scatter_deferred(&mut ws, &mut grads.all());
             assert!(ws.deferred_d_enc.is_empty(), "no planes of their own");
             let read = ws.share_next;

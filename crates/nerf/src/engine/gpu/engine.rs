@@ -472,9 +472,7 @@ impl GpuEngine {
             dirs: &dirs,
             codes: &codes,
             footprints: footprints.as_ref(),
-            moments: times
-                .as_ref()
-                .map_or(DeviceMoments::At(0.0), DeviceMoments::Each),
+            moments: DeviceMoments::each_if_any(times.as_ref()),
             n,
         };
         let acts = self.field.forward(gpu, &self.state.values, &input);
@@ -706,10 +704,7 @@ impl Engine for GpuEngine {
             dirs: &dirs,
             codes: &codes,
             footprints: footprints.as_ref(),
-            // A still field reads no moment.
-            moments: times
-                .as_ref()
-                .map_or(DeviceMoments::At(0.0), DeviceMoments::Each),
+            moments: DeviceMoments::each_if_any(times.as_ref()),
             n,
         };
         let acts = self.field.forward(gpu, &self.state.values, &input);

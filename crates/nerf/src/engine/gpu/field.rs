@@ -151,6 +151,14 @@ pub enum DeviceMoments<'a> {
     Any,
 }
 
+impl<'a> DeviceMoments<'a> {
+    /// Each sample's own moment where the step has them (a moving field's training
+    /// samples), else one moment, which a still field does not read.
+    pub fn each_if_any(times: Option<&'a Handle>) -> Self {
+        times.map_or(DeviceMoments::At(0.0), DeviceMoments::Each)
+    }
+}
+
 /// The field's activations for one batch, kept by the forward for the backward.
 pub struct Activations {
     pub n: usize,
