@@ -6,7 +6,7 @@ use nerf::mesh::export::write_mesh;
 use nerf::mesh::extract::{colour_vertices, extract, ExtractOptions, DEFAULT_THRESHOLD};
 use nerf::mesh::marching_cubes::{marching_cubes, Grid};
 use nerf::mesh::Mesh;
-use nerf::train::run::{self, LoadedRun};
+use nerf::train::run::LoadedRun;
 
 fn sphere_mesh() -> Mesh {
     let n = 24;
@@ -109,16 +109,13 @@ fn written_meshes_read_back_with_independent_readers() {
     assert!(err.to_string().contains("m.stl"), "{err}");
 }
 
+/// The shared trained chair's mesh has the chair's size (within 5% on every axis), its
+/// point cloud lies on the chair, and its vertices take the chair's colours.
 #[test]
 fn mesh_of_a_trained_chair_has_the_chairs_size() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let data = dir.path().join("chair");
-    crate::common::chair_scene(&data, 64, 60, 1, 3);
-    let config = crate::common::fast_config(&data, 600);
-    let out = dir.path().join("run");
-    let opts = crate::common::cpu_run(&out, config);
-    run::train(&opts, &mut |_| {}).expect("train");
-    let run = LoadedRun::open(&out).expect("run");
+    let chair = crate::common::trained_chair();
+    let data = &chair.data;
+    let run = LoadedRun::open(&chair.run).expect("run");
     let options = ExtractOptions {
         resolution: 96,
         threshold: DEFAULT_THRESHOLD,
@@ -150,7 +147,7 @@ fn mesh_of_a_trained_chair_has_the_chairs_size() {
     }
     // The point cloud from rendered depth lies on the chair too.
     let data_views =
-        nerf::data::scene::load_blender(&data, nerf::data::Split::Train, 2, 15).expect("views");
+        nerf::data::scene::load_blender(data, nerf::data::Split::Train, 2, 15).expect("views");
     let cameras: Vec<_> = data_views.views.iter().map(|v| v.camera.clone()).collect();
     let settings = nerf::views::RenderSettings::of_dataset(&data_views, [1.0; 3]);
     let (points, point_colours) =

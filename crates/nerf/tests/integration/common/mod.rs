@@ -1,7 +1,8 @@
 //! Scenes and configurations the integration tests share.
 #![allow(dead_code)] // builds without the GPU engine use a subset
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::model::ModelConfig;
@@ -25,6 +26,40 @@ pub fn chair_scene(dir: &Path, size: usize, train_views: usize, test_views: usiz
 /// The small chair most tests train on: 40 training views, 4 test views.
 pub fn small_scene(dir: &Path, size: usize) {
     chair_scene(dir, size, 40, 4, 1);
+}
+
+/// The built-in chair trained once for every test that only reads a trained fast model
+/// (its PSNR floor, its mesh, its point cloud, test-pose fitting): 64 pixels, 60 training
+/// and 3 test views, [`TRAINED_CHAIR_STEPS`] steps of [`fast_config`].
+pub struct TrainedChair {
+    pub data: PathBuf,
+    pub run: PathBuf,
+    pub summary: nerf::train::run::RunSummary,
+    /// Kept for the life of the test process (statics are never dropped, so the folder
+    /// stays in cargo's test scratch folder under `target/`).
+    _dir: tempfile::TempDir,
+}
+
+pub const TRAINED_CHAIR_STEPS: u64 = 600;
+
+/// The shared trained chair: the first test to ask trains it, the others wait for it.
+pub fn trained_chair() -> &'static TrainedChair {
+    static CHAIR: OnceLock<TrainedChair> = OnceLock::new();
+    CHAIR.get_or_init(|| {
+        let dir = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("tempdir");
+        let data = dir.path().join("chair");
+        chair_scene(&data, 64, 60, 3, 3);
+        let run = dir.path().join("run");
+        let config = fast_config(&data, TRAINED_CHAIR_STEPS);
+        let summary =
+            nerf::train::run::train(&cpu_run(&run, config), &mut |_| {}).expect("train the chair");
+        TrainedChair {
+            data,
+            run,
+            summary,
+            _dir: dir,
+        }
+    })
 }
 
 /// The fast defaults, shrunk for a test: smaller tables and batches, no validation or
