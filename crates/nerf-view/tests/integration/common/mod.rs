@@ -1,6 +1,7 @@
 //! The small trained run the viewer's tests serve.
 
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 
 use nerf::data::synth::{self, SceneKind, SynthOptions};
 use nerf::engine::Device;
@@ -20,7 +21,36 @@ pub const TRAINED_STEPS: u64 = 500;
 /// and time), trained for a few steps into `dir/run`, with a code per photo
 /// (`--appearance`); photo [`LOUD_PHOTO`]'s code is then set far from the others, so
 /// rendering with its look visibly differs from the mean.
+///
+/// Trained once per test process; each test gets its own copy of the scene and the run
+/// (the viewer writes camera paths and renders into the run folder).
 pub fn trained_run(dir: &Path) -> PathBuf {
+    static TRAINED: OnceLock<tempfile::TempDir> = OnceLock::new();
+    let trained = TRAINED.get_or_init(|| {
+        let folder = tempfile::tempdir_in(env!("CARGO_TARGET_TMPDIR")).expect("tempdir");
+        train_into(folder.path());
+        folder
+    });
+    copy_folder(trained.path(), dir);
+    dir.join("run")
+}
+
+/// Every file under `from`, copied to the same place under `to`.
+fn copy_folder(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).expect("create folder");
+    for entry in std::fs::read_dir(from).expect("read folder") {
+        let entry = entry.expect("folder entry");
+        let target = to.join(entry.file_name());
+        if entry.file_type().expect("file type").is_dir() {
+            copy_folder(&entry.path(), &target);
+        } else {
+            std::fs::copy(entry.path(), &target).expect("copy");
+        }
+    }
+}
+
+/// [`trained_run`]'s scene and run, made in `dir`.
+fn train_into(dir: &Path) {
     let data = dir.join("chair");
     let opts = SynthOptions {
         scene: SceneKind::Chair,
@@ -81,5 +111,4 @@ pub fn trained_run(dir: &Path) -> PathBuf {
     let ckpt = out.join(nerf::train::folder::CHECKPOINT_FILE);
     nerf::train::folder::save_checkpoint(&ckpt, run.engine.as_ref(), run.step, 1, 0.0)
         .expect("checkpoint");
-    out
 }
