@@ -1211,9 +1211,7 @@ mod tests {
     fn time_smoothness_gradient_matches_finite_differences() {
         let field = tiny_moving();
         let mut rng = Rng::new(5);
-        let params: Vec<f32> = (0..field.num_params())
-            .map(|_| rng.range(-0.5, 0.5))
-            .collect();
+        let params = random_params(&field, &mut rng);
         let n = 9;
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
         let dirs = rng.unit_directions(n);
@@ -1290,9 +1288,7 @@ mod tests {
         assert_eq!(field.mlp_range().start, motion.param_range().end);
         assert_eq!(motion.param_range().start, field.grid.param_range().end);
         let mut rng = Rng::new(3);
-        let params: Vec<f32> = (0..field.num_params())
-            .map(|_| rng.range(-0.5, 0.5))
-            .collect();
+        let params = random_params(&field, &mut rng);
         let pos = [0.2, -0.3, 0.4, 0.2, -0.3, 0.4];
         let dirs = [0.0, 0.0, 1.0, 0.0, 0.0, 1.0];
         let mut ws = FastWorkspace::default();
@@ -1467,9 +1463,7 @@ mod tests {
     fn a_share_encoded_ahead_gives_the_chunks_own_encodings() {
         let mut rng = Rng::new(9);
         let field = tiny();
-        let params: Vec<f32> = (0..field.num_params())
-            .map(|_| rng.range(-0.5, 0.5))
-            .collect();
+        let params = random_params(&field, &mut rng);
         let chunks: Vec<(Vec<f32>, Vec<f32>)> = [7, 5]
             .iter()
             .map(|&n| {
@@ -1498,6 +1492,14 @@ mod tests {
         assert_eq!(ws.share_next, 12, "both chunks came from the share");
         field.end_pre_encoded(&mut ws);
         assert_eq!(forward(&mut ws, &chunks[0]), alone[0]);
+    }
+
+    /// Parameters of `field` drawn uniformly from [-0.5, 0.5] (larger than the init's, so
+    /// every path carries signal).
+    fn random_params(field: &FastField, rng: &mut Rng) -> Vec<f32> {
+        (0..field.num_params())
+            .map(|_| rng.range(-0.5, 0.5))
+            .collect()
     }
 
     /// A chunk of samples for the backward tests: points, directions, and the gradients
@@ -1542,9 +1544,7 @@ mod tests {
     fn a_deferred_grid_scatter_is_the_immediate_one() {
         let mut rng = Rng::new(8);
         let field = tiny();
-        let params: Vec<f32> = (0..field.num_params())
-            .map(|_| rng.range(-0.5, 0.5))
-            .collect();
+        let params = random_params(&field, &mut rng);
         let chunks = random_chunks(&mut rng, &[7, 7]);
         // Room for the 14 samples that come, for more (the planes are read part-filled), or
         // for fewer (what waits is scattered when a chunk does not fit).
@@ -1581,9 +1581,7 @@ mod tests {
     fn gradients_waiting_in_the_shares_planes_are_the_immediate_scatter() {
         let mut rng = Rng::new(12);
         let field = tiny();
-        let params: Vec<f32> = (0..field.num_params())
-            .map(|_| rng.range(-0.5, 0.5))
-            .collect();
+        let params = random_params(&field, &mut rng);
         let chunks = random_chunks(&mut rng, &[7, 6, 5]);
         // The share holds the first and last chunks; the middle one comes out of turn.
         let share: Vec<f32> = [&chunks[0], &chunks[2]]
@@ -1619,9 +1617,7 @@ mod tests {
     fn position_level_weights_act_on_the_position_gradient_only() {
         let mut rng = Rng::new(5);
         let base = tiny();
-        let params: Vec<f32> = (0..base.num_params())
-            .map(|_| rng.range(-0.5, 0.5))
-            .collect();
+        let params = random_params(&base, &mut rng);
         let n = 5;
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
         let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.6, 0.8]).collect();
@@ -1688,10 +1684,7 @@ mod tests {
         footprints: &[f32],
     ) {
         let mut rng = Rng::new(11);
-        // Larger table values than the init so every path carries signal.
-        let params: Vec<f32> = (0..field.num_params())
-            .map(|_| rng.range(-0.5, 0.5))
-            .collect();
+        let params = random_params(field, &mut rng);
         let n = 6;
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
         let dirs = rng.unit_directions(n);
