@@ -175,9 +175,9 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     model.distortion = chosen.distortion;
     model.bf16_products = chosen.bf16_products;
     model.field.motion = chosen.dynamic.then(Default::default);
-    model.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
-        photos: data.views.len(),
-    });
+    if chosen.few_view {
+        model.train_from_few_views(data.views.len());
+    }
     if antialias {
         let cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
         model.antialias_for(&cameras, &data.space);

@@ -140,9 +140,9 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         }
         m.distortion = chosen.distortion;
         m.bf16_products = chosen.bf16_products;
-        m.few_view = chosen.few_view.then_some(crate::model::few_view::FewView {
-            photos: opened.train.len(),
-        });
+        if chosen.few_view {
+            m.train_from_few_views(opened.train.len());
+        }
         m.field.motion = chosen.dynamic.then(Default::default);
     }
     let run_options = RunOptions {

@@ -60,6 +60,22 @@ pub struct FastFieldConfig {
     /// still grid's in the density network's first layer. `None`: a still scene.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub motion: Option<SpaceTimeConfig>,
+    /// How many of the view direction's 16 spherical harmonics (degrees 0 to 3) reach the
+    /// colour network: 16, or 4 (degrees 0 and 1: colour that changes only slowly with
+    /// the view) for few-view training, where the finer harmonics let a photo's colours
+    /// be explained by the view instead of the geometry. The others are fed as 0 and
+    /// their weights start (and so stay) at 0.
+    #[serde(default = "all_harmonics", skip_serializing_if = "is_all_harmonics")]
+    pub view_harmonics: usize,
+}
+
+/// Every spherical harmonic of the view direction (the default).
+fn all_harmonics() -> usize {
+    SH_DIMS
+}
+
+fn is_all_harmonics(n: &usize) -> bool {
+    *n >= SH_DIMS
 }
 
 /// Zip-NeRF's feature down-weighting: level `l` (`N_l` cells per axis) of a sample whose
@@ -86,6 +102,7 @@ impl Default for FastFieldConfig {
             appearance_images: 0,
             antialias: None,
             motion: None,
+            view_harmonics: SH_DIMS,
         }
     }
 }
@@ -444,7 +461,17 @@ impl FastField {
             let n = self.config.appearance_images * self.config.appearance_dims;
             p[at..at + n].iter_mut().for_each(|v| *v = 0.0);
         }
+        // The weights of the harmonics the colour network is not fed start at 0; with
+        // their inputs 0 they get no gradient, and they give the view direction none.
+        let (used, width) = (self.view_harmonics(), self.config.hidden);
+        p[self.weights[2] + used * width..][..(SH_DIMS - used) * width].fill(0.0);
         p
+    }
+
+    /// The view direction's spherical harmonics the colour network is fed (the first
+    /// ones; see [`FastFieldConfig::view_harmonics`]).
+    pub fn view_harmonics(&self) -> usize {
+        self.config.view_harmonics.clamp(1, SH_DIMS)
     }
 
     /// Keeps in `ws` each sample's code index and the mean code, for the forward and its
@@ -696,6 +723,7 @@ impl FastField {
         let _clock = step_clock::start(Stage::Networks);
         self.gather_codes(params, input.appearance, n, ws);
         let codes = self.codes(params);
+        let harmonics = self.view_harmonics();
         grow(&mut ws.colour_in, m * ci);
         grow(&mut ws.c1, m * w);
         grow(&mut ws.c2, m * w);
@@ -704,6 +732,7 @@ impl FastField {
             let row = &mut ws.colour_in[r * ci..][..ci];
             let d = &dirs[3 * (s / spd)..][..3];
             row[..SH_DIMS].copy_from_slice(&sh4([d[0], d[1], d[2]]));
+            row[harmonics..SH_DIMS].fill(0.0);
             row[SH_DIMS..][..g - 1].copy_from_slice(&ws.geo[s * g + 1..][..g - 1]);
             if dims > 0 {
                 let code = match ws.code_index[s] as usize {
@@ -1164,6 +1193,7 @@ mod tests {
             appearance_images,
             antialias: None,
             motion: None,
+            view_harmonics: SH_DIMS,
         })
     }
 
@@ -1425,6 +1455,92 @@ mod tests {
         let field = tiny_with_codes(4, 3);
         let mean = crate::stage::MEAN_APPEARANCE;
         backward_matches_finite_differences_of(&field, &[0, 2, mean, 1, mean, 0], &[]);
+    }
+
+    /// A field fed the view direction's first four harmonics: the colour network's
+    /// weights for the other twelve start at 0 and get no gradient, so colours and the
+    /// direction's gradient follow degrees 0 and 1 alone (against central differences of
+    /// the loss in the direction); the parameters' gradients match finite differences.
+    #[test]
+    fn a_field_fed_four_harmonics_sees_degrees_0_and_1_alone() {
+        let mut field = tiny();
+        field.config.view_harmonics = 4;
+        let w = field.config.hidden;
+        let unused = field.weights[2] + 4 * w..field.weights[2] + SH_DIMS * w;
+        let mut params = field.init_params(5);
+        assert!(params[unused.clone()].iter().all(|&v| v == 0.0));
+        assert!(params[field.weights[2]..][..4 * w]
+            .iter()
+            .any(|&v| v != 0.0));
+        let mut rng = Rng::new(4);
+        for (i, v) in params.iter_mut().enumerate() {
+            if !unused.contains(&i) {
+                *v = rng.range(-0.5, 0.5);
+            }
+        }
+        let n = 5;
+        let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.2, 1.2)).collect();
+        let dirs = rng.unit_directions(n);
+        let (a, b): (Vec<f32>, Vec<f32>) = (
+            (0..n).map(|_| rng.range(-1.0, 1.0)).collect(),
+            (0..n * 3).map(|_| rng.range(-1.0, 1.0)).collect(),
+        );
+        let loss = |dirs: &[f32]| -> f64 {
+            let mut ws = FastWorkspace::default();
+            let out = field.forward(&params, input(&pos, dirs), &mut ws);
+            let ls: f64 = out
+                .sigma
+                .iter()
+                .zip(&a)
+                .map(|(s, a)| f64::from(s * a))
+                .sum();
+            let lc: f64 = out.rgb.iter().zip(&b).map(|(c, b)| f64::from(c * b)).sum();
+            ls + lc
+        };
+        let mut ws = FastWorkspace::default();
+        field.forward(&params, input(&pos, &dirs), &mut ws);
+        let mut grads = GradBuffer::new(field.num_params());
+        let (mut d_pos, mut d_dirs) = (Vec::new(), Vec::new());
+        let d = FieldGrad {
+            d_sigma: &a,
+            d_rgb: &b,
+        };
+        field.backward_with_positions(
+            &params,
+            &mut ws,
+            d,
+            &mut grads.all(),
+            &dirs,
+            &mut d_pos,
+            &mut d_dirs,
+        );
+        assert!(grads.values[unused].iter().all(|&g| g == 0.0));
+        for (k, &g) in d_dirs.iter().enumerate() {
+            let h = 1e-3;
+            let (mut p, mut m) = (dirs.clone(), dirs.clone());
+            p[k] += h;
+            m[k] -= h;
+            let fd = (loss(&p) - loss(&m)) / (2.0 * f64::from(h));
+            assert!(
+                (fd - f64::from(g)).abs() < 2e-3,
+                "direction {k}: {g} vs {fd}"
+            );
+        }
+        assert!(
+            d_dirs.iter().any(|&g| g.abs() > 1e-3),
+            "no direction gradient"
+        );
+        // Whatever the unused weights hold, they are fed nothing: the same colours.
+        let mut other = params.clone();
+        for v in &mut other[field.weights[2] + 4 * w..][..12 * w] {
+            *v = rng.range(-0.5, 0.5);
+        }
+        let colours = |p: &[f32]| {
+            let mut ws = FastWorkspace::default();
+            field.forward(p, input(&pos, &dirs), &mut ws).rgb.to_vec()
+        };
+        assert_eq!(colours(&params), colours(&other));
+        backward_matches_finite_differences_of(&field, &[], &[]);
     }
 
     /// Codes colour only: density is the same whatever the photo, and a photo's code

@@ -20,7 +20,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::camera_refine::{self, CameraRefinement, CameraStep};
-use super::few_view::FewView;
+use super::few_view::{self, FewView};
 use super::unseen_patches::{self, DepthSmoothness, PatchDraw};
 use super::{Model, PassTotals, StepInput, UpdateRule, Worker};
 use crate::camera::ray_space::RaySpace;
@@ -118,6 +118,14 @@ impl Default for FastModelConfig {
 }
 
 impl FastModelConfig {
+    /// Few-view training from `photos` training photos: the space too few of them see
+    /// kept empty, and colour that changes only slowly with the view
+    /// ([`few_view::VIEW_HARMONICS`]).
+    pub fn train_from_few_views(&mut self, photos: usize) {
+        self.few_view = Some(FewView { photos });
+        self.field.view_harmonics = few_view::VIEW_HARMONICS;
+    }
+
     /// Turns anti-aliasing on for a scene seen by `cameras` in `space`, with their typical
     /// footprint as the reference (see [`crate::field::fast::Antialias`]).
     pub fn antialias_for(&mut self, cameras: &[crate::camera::Camera], space: &RaySpace) {

@@ -2,7 +2,10 @@
 //! them see can explain their pixels with anything at any depth, and a field fills it
 //! with floaters that every other view then shows. Few-view training keeps the space that
 //! fewer than half of the training photos see empty: the occupancy grid never marks it,
-//! so no sample is taken there in training or rendering.
+//! so no sample is taken there in training or rendering. And the colour network sees
+//! only the view direction's first [`VIEW_HARMONICS`] spherical harmonics: with a
+//! handful of photos, the finer ones let colour vary with the view enough to explain
+//! each photo's pixels without the right geometry.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -12,6 +15,10 @@ use crate::camera::Camera;
 
 /// Runs on at most this many training views get few-view training by default.
 pub const FEW_VIEWS: usize = 16;
+
+/// The view direction's spherical harmonics (degrees 0 and 1) the colour network of a
+/// few-view run sees (`field::FastFieldConfig::view_harmonics`; 16 otherwise).
+pub const VIEW_HARMONICS: usize = 4;
 
 /// Whether keeping unseen space empty applies to a scene marched in `space`, contracted
 /// or not: only to bounded scenes in world space, whose grid cells are places the photos

@@ -313,8 +313,8 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
             few,
             &format!(
                 "few-view training: the space fewer than half of the {} training photos see \
-                 is kept empty (the default for runs on at most {} photos; --no-few-view \
-                 turns it off)",
+                 is kept empty and colour varies with the view at degree 1 only (the default \
+                 for runs on at most {} photos; --no-few-view turns it off)",
                 scene.train_views,
                 crate::model::few_view::FEW_VIEWS
             ),

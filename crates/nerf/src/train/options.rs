@@ -448,7 +448,7 @@ impl TrainOptions {
                     m.field.motion = Some(Default::default());
                 }
                 if d.few_view {
-                    m.few_view = Some(crate::model::few_view::FewView { photos });
+                    m.train_from_few_views(photos);
                 }
                 if d.depth_smoothness > 0.0 {
                     use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
@@ -1094,9 +1094,19 @@ mod tests {
         );
         let err = config(&["--preset", "demo", "--antialias"], dir.path()).expect_err("vanilla");
         assert!(err.to_string().contains("--model fast only"), "{err}");
-        // Few-view training: on for at most 16 photos (the kept ones), off when asked.
+        // Few-view training: on for at most 16 photos (the kept ones), off when asked;
+        // with it, the colour sees the view direction's first four harmonics, else all.
         let few_in = |args: &[&str], dir: &Path| match config(args, dir).expect("ok").model {
-            ModelConfig::Fast(m) => m.few_view,
+            ModelConfig::Fast(m) => {
+                let harmonics = m.field.view_harmonics;
+                assert_eq!(
+                    harmonics == 4,
+                    m.few_view.is_some(),
+                    "{harmonics} harmonics"
+                );
+                assert!(harmonics == 4 || harmonics == 16, "{harmonics} harmonics");
+                m.few_view
+            }
             ModelConfig::Vanilla(_) => panic!("fast model expected"),
         };
         let few = |args: &[&str]| few_in(args, dir.path());

@@ -310,7 +310,7 @@ fn few_view_training_trains_alike_on_both_engines() {
     let mut with = plain.clone();
     let (res, bound) = match &mut with.model {
         nerf::model::ModelConfig::Fast(m) => {
-            m.few_view = Some(few);
+            m.train_from_few_views(few.photos);
             (m.occupancy.resolution, m.field.bound)
         }
         other => panic!("not the fast model: {other:?}"),

@@ -66,15 +66,25 @@ fn density_head(geo: &[f32], sigma: &mut [f32], g: u32, log_max: f32) {
 /// features; an appearance code, if any, follows (`codes`). A thread per value of the
 /// first `15 + g` columns (`rows` rows), so that a warp's writes fill whole rows.
 #[cube(launch_unchecked)]
-fn colour_input(dirs: &[f32], geo: &[f32], colour_in: &mut [f32], g: u32, ci: u32, rows: u32) {
+fn colour_input(
+    dirs: &[f32],
+    geo: &[f32],
+    colour_in: &mut [f32],
+    g: u32,
+    ci: u32,
+    rows: u32,
+    harmonics: u32,
+) {
     let i = ABSOLUTE_POS;
     let (gw, ci) = (g as usize, ci as usize);
     let width = 15 + gw;
     if i < rows as usize * width {
         let s = i / width;
         let k = i % width;
-        let value = if k < 16 {
+        let value = if k < harmonics as usize {
             sh4_at(k, dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2])
+        } else if k < 16 {
+            0.0f32
         } else {
             geo[s * gw + k - 15]
         };
@@ -192,6 +202,8 @@ pub struct GpuFastField {
     enc_dims: usize,
     geo: usize,
     bound: f32,
+    /// The view direction's harmonics the colour network is fed (`FastField::view_harmonics`).
+    harmonics: usize,
     n_params: usize,
     /// density 0, 1, colour 0, 1, 2.
     layers: [Dense; 5],
@@ -249,7 +261,10 @@ impl GpuFastField {
             bound: c.bound,
         };
         // The fused kernel's colour input is the harmonics and the geometry features alone.
-        let plain = ci == SH_DIMS + g - 1 && c.antialias.is_none() && field.motion.is_none();
+        let plain = ci == SH_DIMS + g - 1
+            && c.antialias.is_none()
+            && field.motion.is_none()
+            && field.view_harmonics() == SH_DIMS;
         let fused = (gpu.fused_field && plain && shape.fits(gpu)).then_some(shape);
         let layer = |k: usize, inputs, outputs, relu| Dense {
             inputs,
@@ -263,6 +278,7 @@ impl GpuFastField {
             enc_dims: e,
             geo: g,
             bound: c.bound,
+            harmonics: field.view_harmonics(),
             n_params: field.num_params(),
             layers: [
                 layer(0, e, w, true),
@@ -582,6 +598,7 @@ impl GpuFastField {
                 self.geo as u32,
                 c0.inputs as u32,
                 n as u32,
+                self.harmonics as u32,
             );
         }
         if let Some(c) = &self.codes {
@@ -811,6 +828,17 @@ pub(super) mod tests {
     #[test]
     fn the_field_matches_the_cpu_forward_and_backward() {
         matches_the_cpu(&small_field(), None, false, false);
+    }
+
+    /// A field fed the view direction's first four harmonics (few-view training): the
+    /// colour network's other inputs are 0 on the device too.
+    #[test]
+    fn the_field_fed_four_harmonics_matches_the_cpu() {
+        let field = FastField::new(FastFieldConfig {
+            view_harmonics: 4,
+            ..small_field().config
+        });
+        matches_the_cpu(&field, None, false, false);
     }
 
     /// A moving field (a space-time grid of 3 levels beside the still one): each sample at
