@@ -1497,24 +1497,8 @@ mod tests {
             let lc: f64 = out.rgb.iter().zip(&b).map(|(c, b)| f64::from(c * b)).sum();
             ls + lc
         };
-        let mut ws = FastWorkspace::default();
-        field.forward(&params, input(&pos, &dirs), &mut ws);
-        let mut grads = GradBuffer::new(field.num_params());
-        let (mut d_pos, mut d_dirs) = (Vec::new(), Vec::new());
-        let d = FieldGrad {
-            d_sigma: &a,
-            d_rgb: &b,
-        };
-        field.backward_with_positions(
-            &params,
-            &mut ws,
-            d,
-            &mut grads.all(),
-            &dirs,
-            &mut d_pos,
-            &mut d_dirs,
-        );
-        assert!(grads.values[unused].iter().all(|&g| g == 0.0));
+        let (_, grads, _, d_dirs) = with_input_gradients(&field, &params, (&pos, &dirs), (&a, &b));
+        assert!(grads[unused].iter().all(|&g| g == 0.0));
         for (k, &g) in d_dirs.iter().enumerate() {
             let h = 1e-3;
             let (mut p, mut m) = (dirs.clone(), dirs.clone());
@@ -1742,25 +1726,7 @@ mod tests {
         let run = |weights: &[f32]| {
             let mut field = base.clone();
             field.position_level_weights = weights.to_vec();
-            let mut ws = FastWorkspace::default();
-            let out = field.forward(&params, input(&pos, &dirs), &mut ws);
-            let out = (out.sigma.to_vec(), out.rgb.to_vec());
-            let mut grads = GradBuffer::new(field.num_params());
-            let (mut d_pos, mut d_dirs) = (Vec::new(), Vec::new());
-            let d = FieldGrad {
-                d_sigma: &a,
-                d_rgb: &b,
-            };
-            field.backward_with_positions(
-                &params,
-                &mut ws,
-                d,
-                &mut grads.all(),
-                &dirs,
-                &mut d_pos,
-                &mut d_dirs,
-            );
-            (out, grads.values, d_pos, d_dirs)
+            with_input_gradients(&field, &params, (&pos, &dirs), (&a, &b))
         };
         let full = run(&[]);
         let weights = [1.0, 0.5, 0.0];
@@ -1792,6 +1758,37 @@ mod tests {
         assert!(close(&full.2, &sum_of(&[1.0; 3])), "the shares add up");
         assert!(close(&weighted.2, &sum_of(&weights)), "{:?}", weighted.2);
         assert!(!close(&weighted.2, &full.2), "the weights change it");
+    }
+
+    /// A forward's density and colours, every parameter's gradient, the positions' and
+    /// the directions' gradients.
+    type ForwardAndGradients = ((Vec<f32>, Vec<f32>), Vec<f32>, Vec<f32>, Vec<f32>);
+
+    /// The forward's density and colours of the samples at `pos` looking along `dirs`,
+    /// and the backward from `d_sigma` and `d_rgb`: every parameter's gradient and the
+    /// positions' and directions' (`FastField::backward_with_positions`).
+    fn with_input_gradients(
+        field: &FastField,
+        params: &[f32],
+        (pos, dirs): (&[f32], &[f32]),
+        (d_sigma, d_rgb): (&[f32], &[f32]),
+    ) -> ForwardAndGradients {
+        let mut ws = FastWorkspace::default();
+        let out = field.forward(params, input(pos, dirs), &mut ws);
+        let out = (out.sigma.to_vec(), out.rgb.to_vec());
+        let mut grads = GradBuffer::new(field.num_params());
+        let (mut d_pos, mut d_dirs) = (Vec::new(), Vec::new());
+        let d = FieldGrad { d_sigma, d_rgb };
+        field.backward_with_positions(
+            params,
+            &mut ws,
+            d,
+            &mut grads.all(),
+            dirs,
+            &mut d_pos,
+            &mut d_dirs,
+        );
+        (out, grads.values, d_pos, d_dirs)
     }
 
     fn backward_matches_finite_differences_of(
