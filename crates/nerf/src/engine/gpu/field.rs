@@ -62,7 +62,8 @@ fn density_head(geo: &[f32], sigma: &mut [f32], g: u32, log_max: f32) {
 }
 
 /// The colour network's input (rows `ci` wide): the 16 spherical harmonics of the sample's
-/// unit view direction (as `encoding::spherical_harmonics::sh4`), then the geometry
+/// unit view direction (as `encoding::spherical_harmonics::sh4`; those past the first
+/// `harmonics` 0, as `FastField::view_harmonics` says), then the geometry
 /// features; an appearance code, if any, follows (`codes`). A thread per value of the
 /// first `15 + g` columns (`rows` rows), so that a warp's writes fill whole rows.
 #[cube(launch_unchecked)]
