@@ -204,6 +204,21 @@ impl Camera {
         )
     }
 
+    /// Whether the point `p`, widened by `size` around it, lies in front of the camera
+    /// and inside its image (pinhole projection; lens distortion is ignored, which only
+    /// moves the border a little).
+    pub fn frames(&self, p: V3, size: f32) -> bool {
+        let (x, y, depth) = self.project(p);
+        if depth <= 0.0 {
+            return false;
+        }
+        let margin = self.fx.max(self.fy) * size / depth;
+        x >= -margin
+            && x <= self.width as f32 + margin
+            && y >= -margin
+            && y <= self.height as f32 + margin
+    }
+
     /// The ray through the centre of pixel (column `i`, row `j`).
     #[inline]
     pub fn ray(&self, i: usize, j: usize) -> Ray {

@@ -45,6 +45,8 @@ const _: () = assert!(BLOCK_RAYS == PATCH_RAYS);
 
 /// Name of the occupancy grid in checkpoints.
 const OCCUPANCY: &str = "occupancy.thickness";
+/// Few-view training's hidden cells (1) in a checkpoint, beside the thickness.
+const HIDDEN: &str = "occupancy.hidden";
 
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct FastModelConfig {
@@ -122,7 +124,7 @@ impl FastModelConfig {
     /// kept empty, and colour that changes only slowly with the view
     /// ([`few_view::VIEW_HARMONICS`]).
     pub fn train_from_few_views(&mut self, photos: usize) {
-        self.few_view = Some(FewView { photos });
+        self.few_view = Some(FewView::new(photos));
         self.field.view_harmonics = few_view::VIEW_HARMONICS;
     }
 
@@ -160,6 +162,9 @@ pub struct FastModel {
     /// The precision of the networks' products in training: `config.bf16_products` where
     /// the CPU has the kernels (`nerf train` refuses the setting where it does not).
     products: Precision,
+    /// Few-view training: which cells the training cameras frame and which the scene
+    /// hides from them.
+    visibility: few_view::Visibility,
 }
 
 /// What every training chunk of a step reads.
@@ -199,7 +204,41 @@ impl FastModel {
             layout,
             cameras_at,
             products,
+            visibility: few_view::Visibility::default(),
         }
+    }
+
+    /// Whether this run looks for the space the scene hides from its training cameras
+    /// (`model::hidden_space`); its answer is saved with the checkpoint.
+    pub fn keeps_hidden_space(&self) -> bool {
+        self.config.few_view.is_some_and(|f| f.hidden_every > 0)
+    }
+
+    /// Whether that pass runs after `steps_done` steps (on a scene few-view training
+    /// applies to: the cameras are known).
+    pub fn hidden_pass_due(&self, steps_done: u64) -> bool {
+        self.config
+            .few_view
+            .is_some_and(|f| f.hidden_pass_after(steps_done))
+            && !self.visibility.cameras.is_empty()
+    }
+
+    /// The pass on `grid` (the host's, or one an engine read back from its device):
+    /// returns the cells that may hold anything from now on.
+    pub fn find_hidden(&mut self, grid: &OccupancyGrid) -> Vec<bool> {
+        let dt = self.config.step_length();
+        self.visibility.find_hidden(grid, dt)
+    }
+
+    /// The model's buffers (`Model::buffers`) with the grid's thickness given: an engine
+    /// that keeps the grid on a device reads it back and the rest comes from here.
+    pub fn buffers_with(&self, mut thickness: Vec<f32>) -> Vec<f32> {
+        if self.keeps_hidden_space() {
+            let cells = self.grid.resolution.pow(3);
+            let hidden = |i: usize| self.visibility.hidden.get(i).copied().unwrap_or(false);
+            thickness.extend((0..cells).map(|i| f32::from(u8::from(hidden(i)))));
+        }
+        thickness
     }
 
     /// This step's correction of every training camera of `data` (none without refinement).
@@ -623,15 +662,22 @@ impl Model for FastModel {
         let mut l = ParamLayout::default();
         let r = self.grid.resolution;
         l.push(OCCUPANCY, &[r, r, r]);
+        if self.keeps_hidden_space() {
+            l.push(HIDDEN, &[r, r, r]);
+        }
         l
     }
 
     fn buffers(&self) -> Vec<f32> {
-        self.grid.thickness.clone()
+        self.buffers_with(self.grid.thickness.clone())
     }
 
-    fn load_buffers(&mut self, values: Vec<f32>) {
+    fn load_buffers(&mut self, mut values: Vec<f32>) {
         let (r, b) = (self.grid.resolution, self.grid.bound);
+        let hidden = values.split_off(values.len().min(r.pow(3)));
+        if self.keeps_hidden_space() {
+            self.visibility.hidden = hidden.iter().map(|&h| h != 0.0).collect();
+        }
         self.grid = OccupancyGrid::from_thickness(r, b, values, self.config.occupancy.threshold);
     }
 
@@ -783,7 +829,8 @@ impl Model for FastModel {
     }
 
     /// Few-view training of a bounded scene in world space: the space too few training
-    /// cameras see stays empty (`model::few_view`), marked once.
+    /// cameras frame stays empty (`model::few_view`), marked once, and so does the space
+    /// the last pass found hidden (`model::hidden_space`).
     fn prepare(&mut self, data: &Dataset) {
         let Some(few) = self.config.few_view else {
             return;
@@ -800,29 +847,34 @@ impl Model for FastModel {
             .map(|v| v.camera.clone())
             .collect();
         let (res, bound) = (self.grid.resolution, self.grid.bound);
-        let seen = super::few_view::seen_by(&cameras, res, bound, few.min_views());
-        self.grid.possible = Some(seen);
+        self.visibility.framed = super::few_view::seen_by(&cameras, res, bound, few.min_views());
+        self.visibility.cameras = cameras;
+        self.grid.possible = Some(self.visibility.possible());
         self.grid.refresh(self.config.occupancy.threshold);
     }
 
     /// Re-evaluates the occupancy grid every `update_every` steps with the current weights.
     fn after_step(&mut self, params: &[f32], steps_done: u64, seed: u64) {
-        let every = self.config.occupancy.update_every.max(1);
-        if !steps_done.is_multiple_of(every) {
-            return;
-        }
         let dt = self.config.step_length();
-        // Training's precision: a refresh only compares densities with a threshold.
-        let products = self.products;
-        let FastModel {
-            config,
-            field,
-            grid,
-            ..
-        } = self;
-        let density =
-            |points: &[f32], out: &mut [f32]| field.density_into(params, points, products, out);
-        grid.update(&config.occupancy, steps_done, seed, dt, &density);
+        let every = self.config.occupancy.update_every.max(1);
+        if steps_done.is_multiple_of(every) {
+            // Training's precision: a refresh only compares densities with a threshold.
+            let products = self.products;
+            let FastModel {
+                config,
+                field,
+                grid,
+                ..
+            } = self;
+            let density =
+                |points: &[f32], out: &mut [f32]| field.density_into(params, points, products, out);
+            grid.update(&config.occupancy, steps_done, seed, dt, &density);
+        }
+        if self.hidden_pass_due(steps_done) {
+            let possible = self.visibility.find_hidden(&self.grid, dt);
+            self.grid.possible = Some(possible);
+            self.grid.refresh(self.config.occupancy.threshold);
+        }
     }
 
     fn render_chunk(

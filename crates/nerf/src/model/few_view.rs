@@ -1,8 +1,9 @@
 //! Training from few photos (at most [`FEW_VIEWS`]). With few photos, space that few of
 //! them see can explain their pixels with anything at any depth, and a field fills it
 //! with floaters that every other view then shows. Few-view training keeps the space that
-//! fewer than half of the training photos see empty: the occupancy grid never marks it,
-//! so no sample is taken there in training or rendering. And the colour network sees
+//! fewer than half of the training photos frame empty: the occupancy grid never marks it,
+//! so no sample is taken there in training or rendering. It keeps the space the scene's
+//! surfaces hide from every photo empty too (`hidden_space`). And the colour network sees
 //! only the view direction's first [`VIEW_HARMONICS`] spherical harmonics: with a
 //! handful of photos, the finer ones let colour vary with the view enough to explain
 //! each photo's pixels without the right geometry.
@@ -12,6 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::ray_space::RaySpace;
 use crate::camera::Camera;
+use crate::render::occupancy::OccupancyGrid;
 
 /// Runs on at most this many training views get few-view training by default.
 pub const FEW_VIEWS: usize = 16;
@@ -32,19 +34,68 @@ pub fn applies(space: RaySpace, contract: bool) -> bool {
 pub struct FewView {
     /// The training photos.
     pub photos: usize,
+    /// Training steps between passes that find the space the scene hides from every
+    /// training camera (`hidden_space`); 0: none, as in runs saved before there were any.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub hidden_every: u64,
+}
+
+fn is_zero(x: &u64) -> bool {
+    *x == 0
 }
 
 impl FewView {
+    /// Few-view training from `photos` photos, as a new run trains.
+    pub fn new(photos: usize) -> Self {
+        FewView {
+            photos,
+            hidden_every: super::hidden_space::EVERY,
+        }
+    }
+
+    /// Whether the pass that finds hidden space runs after `steps_done` steps.
+    pub fn hidden_pass_after(&self, steps_done: u64) -> bool {
+        self.hidden_every > 0 && steps_done > 0 && steps_done.is_multiple_of(self.hidden_every)
+    }
+
     /// How many photos must see a cell for it to hold anything: half of them, at least 2.
     pub fn min_views(&self) -> usize {
         self.photos.div_ceil(2).max(2)
     }
 }
 
+/// What few-view training knows of a run's cells: which enough training cameras frame
+/// (fixed by the cameras) and which the scene hides from all of them (the last pass's
+/// answer, saved with the checkpoint).
+#[derive(Clone, Debug, Default)]
+pub struct Visibility {
+    pub cameras: Vec<Camera>,
+    pub framed: Vec<bool>,
+    pub hidden: Vec<bool>,
+}
+
+impl Visibility {
+    /// The cells that may hold anything: framed and not hidden.
+    pub fn possible(&self) -> Vec<bool> {
+        let hidden = |i: usize| self.hidden.get(i).copied().unwrap_or(false);
+        self.framed
+            .iter()
+            .enumerate()
+            .map(|(i, &f)| f && !hidden(i))
+            .collect()
+    }
+
+    /// Judges `grid`'s cells again (`hidden_space::hidden_cells`; `dt` is the marching
+    /// step of its thickness) and returns the cells that may hold anything from now on.
+    pub fn find_hidden(&mut self, grid: &OccupancyGrid, dt: f32) -> Vec<bool> {
+        self.hidden = super::hidden_space::hidden_cells(&self.cameras, grid, dt, &self.hidden);
+        self.possible()
+    }
+}
+
 /// For each cell of a `resolution^3` grid over `[-bound, bound]^3` (x fastest), whether at
 /// least `min_views` of `cameras` see its centre: in front of the camera and inside its
-/// image, widened by the cell's own size there (pinhole projection; lens distortion is
-/// ignored, which only moves the border a little).
+/// image, widened by the cell's own size there (`Camera::frames`).
 pub fn seen_by(cameras: &[Camera], resolution: usize, bound: f32, min_views: usize) -> Vec<bool> {
     let cell = 2.0 * bound / resolution as f32;
     (0..resolution.pow(3))
@@ -56,22 +107,9 @@ pub fn seen_by(cameras: &[Camera], resolution: usize, bound: f32, min_views: usi
                 i / (resolution * resolution),
             ];
             let p = c.map(|k| (k as f32 + 0.5) * cell - bound);
-            cameras.iter().filter(|cam| sees(cam, p, cell)).count() >= min_views
+            cameras.iter().filter(|cam| cam.frames(p, cell)).count() >= min_views
         })
         .collect()
-}
-
-/// Whether `camera` sees the point `p` (a cell of size `cell` around it).
-fn sees(camera: &Camera, p: [f32; 3], cell: f32) -> bool {
-    let (x, y, depth) = camera.project(p);
-    if depth <= 0.0 {
-        return false;
-    }
-    let margin = camera.fx.max(camera.fy) * cell / depth;
-    x >= -margin
-        && x <= camera.width as f32 + margin
-        && y >= -margin
-        && y <= camera.height as f32 + margin
 }
 
 #[cfg(test)]
@@ -80,7 +118,7 @@ mod tests {
 
     #[test]
     fn half_of_the_photos_and_at_least_two_must_see_a_cell() {
-        let min = |photos| FewView { photos }.min_views();
+        let min = |photos| FewView::new(photos).min_views();
         assert_eq!(
             [min(1), min(3), min(4), min(8), min(9), min(16)],
             [2, 2, 2, 4, 5, 8]
@@ -134,8 +172,8 @@ mod tests {
             0.5,
             look_at([0.0, -4.0, 0.0], [0.0; 3], [0.0, 0.0, 1.0]),
         );
-        assert!(sees(&cam, [0.0, 0.0, 0.0], 0.01));
-        assert!(!sees(&cam, [0.0, -6.0, 0.0], 0.01), "behind");
-        assert!(!sees(&cam, [3.0, 0.0, 0.0], 0.01), "off to the side");
+        assert!(cam.frames([0.0, 0.0, 0.0], 0.01));
+        assert!(!cam.frames([0.0, -6.0, 0.0], 0.01), "behind");
+        assert!(!cam.frames([3.0, 0.0, 0.0], 0.01), "off to the side");
     }
 }

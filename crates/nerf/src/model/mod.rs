@@ -10,6 +10,7 @@ pub mod camera_refine;
 pub mod fast;
 pub mod few_view;
 pub mod free_nerf;
+pub mod hidden_space;
 pub mod reg_nerf;
 pub mod unseen_patches;
 pub mod vanilla;

@@ -206,17 +206,19 @@ impl OccupancyGrid {
 
     /// Re-derives occupancy from the remembered thickness.
     pub fn refresh(&mut self, threshold: f32) {
-        let mean = self.thickness.iter().map(|&v| v as f64).sum::<f64>()
-            / self.thickness.len().max(1) as f64;
-        let cut = threshold.min(mean as f32);
         if let Some(possible) = &self.possible {
-            // Kept in the thickness too, so a saved grid stays empty there when loaded.
+            // Kept in the thickness too, so a saved grid stays empty there when loaded;
+            // before the mean, so a loaded grid derives the same cut (as a device's
+            // refresh, which never stores thickness there).
             for (v, &p) in self.thickness.iter_mut().zip(possible) {
                 if !p {
                     *v = 0.0;
                 }
             }
         }
+        let mean = self.thickness.iter().map(|&v| v as f64).sum::<f64>()
+            / self.thickness.len().max(1) as f64;
+        let cut = threshold.min(mean as f32);
         for (i, (o, &v)) in self.occupied.iter_mut().zip(&self.thickness).enumerate() {
             *o = v >= cut && self.possible.as_ref().is_none_or(|p| p[i]);
         }
@@ -527,6 +529,23 @@ mod tests {
         assert_eq!(fresh.occupancy(), 0.0);
         let loaded = OccupancyGrid::from_thickness(2, 1.0, g.thickness.clone(), 0.01);
         assert!((loaded.occupancy() - 0.5).abs() < 1e-12);
+    }
+
+    /// The cut (the mean thickness, when below the threshold) is taken over the cells
+    /// that may hold anything, so a grid reloaded from its saved thickness derives the
+    /// same cells as the grid that saved it (a resumed run continues exactly).
+    #[test]
+    fn impossible_cells_do_not_move_the_cut() {
+        let mut g = OccupancyGrid::new(2, 1.0);
+        g.thickness = vec![0.2, 5.0, 0.4, 5.0, 0.2, 5.0, 0.4, 5.0];
+        let possible: Vec<bool> = (0..8).map(|i| i % 2 == 0).collect();
+        g.possible = Some(possible.clone());
+        g.refresh(10.0);
+        assert_eq!(g.occupied_cells(), possible.as_slice());
+        let mut loaded = OccupancyGrid::from_thickness(2, 1.0, g.thickness.clone(), 10.0);
+        loaded.possible = Some(possible);
+        loaded.refresh(10.0);
+        assert_eq!(loaded.occupied_cells(), g.occupied_cells());
     }
 
     #[test]

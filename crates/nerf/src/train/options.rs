@@ -1111,8 +1111,8 @@ mod tests {
         };
         let few = |args: &[&str]| few_in(args, dir.path());
         use crate::model::few_view::FewView;
-        assert_eq!(few(&["--train-views", "2"]), Some(FewView { photos: 2 }));
-        assert_eq!(few(&[]), Some(FewView { photos: 3 }));
+        assert_eq!(few(&["--train-views", "2"]), Some(FewView::new(2)));
+        assert_eq!(few(&[]), Some(FewView::new(3)));
         assert_eq!(few(&["--no-few-view"]), None);
         let err = config(&["--preset", "demo", "--few-view"], dir.path()).expect_err("vanilla");
         assert!(err.to_string().contains("--model fast only"), "{err}");

@@ -304,9 +304,7 @@ fn few_view_training_trains_alike_on_both_engines() {
     small_scene(&data, 24);
     let plain = config(&data, 20);
     let train = training_split(&plain);
-    let few = FewView {
-        photos: train.views.len(),
-    };
+    let few = FewView::new(train.views.len());
     let mut with = plain.clone();
     let (res, bound) = match &mut with.model {
         nerf::model::ModelConfig::Fast(m) => {
@@ -345,6 +343,88 @@ fn few_view_training_trains_alike_on_both_engines() {
         thickness.iter().zip(&seen).any(|(&t, &s)| s && t > 0.0),
         "the seen space is empty too"
     );
+}
+
+/// Few-view training's pass that finds the space the scene hides from every photo, on the
+/// device's grid: a few-view run trained on the CPU until the chair hides some of its
+/// inside, resumed on each engine across the pass, finds the same hidden cells on both
+/// and trains on alike.
+#[test]
+fn the_hidden_space_pass_runs_alike_on_both_engines() {
+    use nerf::model::few_view::FewView;
+    if !gpu_available() {
+        return;
+    }
+    const PHOTOS: usize = 8;
+    const BEFORE: u64 = 300;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("chair");
+    crate::common::chair_scene(&data, 64, PHOTOS, 1, 3);
+    let mut c = fast_config(&data, BEFORE + 4);
+    if let nerf::model::ModelConfig::Fast(m) = &mut c.model {
+        m.train_from_few_views(PHOTOS);
+        m.few_view = Some(FewView {
+            photos: PHOTOS,
+            hidden_every: BEFORE + 2,
+        });
+    }
+    let cpu = dir.path().join("cpu");
+    run::train(
+        &options(&cpu, c.clone(), Device::Cpu, false, Some(BEFORE)),
+        &mut |_| {},
+    )
+    .expect("cpu part");
+    let gpu = dir.path().join("gpu");
+    std::fs::create_dir(&gpu).expect("mkdir");
+    for entry in std::fs::read_dir(&cpu).expect("run folder") {
+        let from = entry.expect("entry").path();
+        if from.is_file() {
+            std::fs::copy(&from, gpu.join(from.file_name().expect("name"))).expect("copy");
+        }
+    }
+    let mut losses = Vec::new();
+    for (out, device) in [(&cpu, Device::Cpu), (&gpu, Device::Wgpu)] {
+        let mut last = Vec::new();
+        let mut on_event = |e: run::Event| {
+            if let run::Event::Step(s) = e {
+                last.push(s.loss);
+            }
+        };
+        run::train(&options(out, c.clone(), device, true, None), &mut on_event).expect("resume");
+        losses.push(last);
+    }
+    let state = |out: &Path| {
+        LoadedRun::open_on(out, Device::Cpu)
+            .expect("open")
+            .engine
+            .state()
+    };
+    let (a, b) = (state(&cpu), state(&gpu));
+    let cells = a.buffers.len() / 2;
+    let hidden = |s: &nerf::engine::EngineState| -> Vec<bool> {
+        s.buffers[cells..].iter().map(|&h| h == 1.0).collect()
+    };
+    let (ha, hb) = (hidden(&a), hidden(&b));
+    let count = ha.iter().filter(|&&h| h).count();
+    let apart = ha.iter().zip(&hb).filter(|(x, y)| x != y).count();
+    eprintln!(
+        "{count} cells hidden on the cpu, {apart} judged otherwise on the gpu; losses after \
+         the pass: cpu {:?}, gpu {:?}",
+        losses[0], losses[1]
+    );
+    assert!(count > 0, "nothing hidden: nothing to test");
+    assert!(
+        apart * 100 <= count,
+        "{apart} of {count} hidden cells differ"
+    );
+    let worst = relative_apart(&losses[0], &losses[1]);
+    assert!(worst < 1e-3, "cpu {:?}, gpu {:?}", losses[0], losses[1]);
+    for (i, (&t, &h)) in b.buffers[..cells].iter().zip(&hb).enumerate() {
+        assert!(
+            !h || t == 0.0,
+            "hidden cell {i} has thickness {t} on the device"
+        );
+    }
 }
 
 /// Anti-aliasing on both engines: ten steps on the same samples (each with its pixel's

@@ -42,6 +42,7 @@ use crate::model::{FastModel, FastModelConfig, Model, ModelConfig};
 use crate::nn::ParamLayout;
 use crate::render::loss::mean_scale;
 use crate::render::march::Marcher;
+use crate::render::occupancy::OccupancyGrid;
 use crate::stage::finite::FiniteCheck;
 use crate::stage::{Appearance, RayBatch, RayOutput, MEAN_APPEARANCE};
 use crate::step_clock::{self, Stage};
@@ -608,19 +609,41 @@ impl GpuEngine {
     /// stays there: the marchers read it in place, and a checkpoint or the occupied share
     /// is read back when asked for ([`Engine::state`], [`Engine::occupancy`]); the host's
     /// copy keeps only what the device's refresh does not change (the box, the cells
-    /// few-view training leaves empty).
+    /// few-view training leaves empty). Few-view training's hidden-space pass follows
+    /// when due.
     fn refresh_occupancy(&mut self, steps_done: u64, seed: u64) {
         let config = self.model.config.occupancy;
-        if !steps_done.is_multiple_of(config.update_every.max(1)) {
-            return;
+        if steps_done.is_multiple_of(config.update_every.max(1)) {
+            let dt = self.model.config.step_length();
+            let (gpu, field, params) = (&self.gpu, &self.field, &self.state.values);
+            let density = |points: &Handle, n: usize| {
+                field.infer_density(gpu, params, points, DeviceMoments::Any, n)
+            };
+            self.occupancy
+                .update(gpu, &config, steps_done, seed, dt, &density);
         }
-        let dt = self.model.config.step_length();
-        let (gpu, field, params) = (&self.gpu, &self.field, &self.state.values);
-        let density = |points: &Handle, n: usize| {
-            field.infer_density(gpu, params, points, DeviceMoments::Any, n)
-        };
-        self.occupancy
-            .update(gpu, &config, steps_done, seed, dt, &density);
+        if self.model.hidden_pass_due(steps_done) {
+            if let Err(e) = self.find_hidden() {
+                report_device_failure(&e);
+            }
+        }
+    }
+
+    /// Few-view training's pass that finds the space the scene hides from the training
+    /// cameras (`model::hidden_space`): the device grid is read back, judged and
+    /// refreshed on the host as the CPU engine does, and put back on the device.
+    fn find_hidden(&mut self) -> Result<()> {
+        let cells = self.occupancy.cells();
+        let thickness = self.gpu.read(&self.occupancy.thickness, cells)?;
+        let occupied = self.gpu.read_u32(&self.occupancy.occupied, cells)?;
+        let occupied = occupied.iter().map(|&o| o == 1).collect();
+        let (res, bound) = (self.occupancy.resolution, self.occupancy.bound);
+        let mut grid = OccupancyGrid::from_parts(res, bound, thickness, occupied);
+        grid.possible = Some(self.model.find_hidden(&grid));
+        grid.refresh(self.model.config.occupancy.threshold);
+        self.model.grid = grid;
+        (self.occupancy, self.marcher) = GpuEngine::upload_occupancy(&self.gpu, &self.model);
+        Ok(())
     }
 
     /// Puts the host grid's state on the device.
@@ -961,7 +984,8 @@ impl Engine for GpuEngine {
                 report_device_failure(&e);
                 vec![f32::NAN; cells]
             });
-        self.state.state(&self.gpu, thickness)
+        self.state
+            .state(&self.gpu, self.model.buffers_with(thickness))
     }
 
     fn set_state(&mut self, state: EngineState) -> Result<()> {
