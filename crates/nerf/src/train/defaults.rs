@@ -312,9 +312,10 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
             Feature::FewView,
             few,
             &format!(
-                "few-view training: the space fewer than half of the {} training photos see \
-                 is kept empty and colour varies with the view at degree 1 only (the default \
-                 for runs on at most {} photos; --no-few-view turns it off)",
+                "few-view training: the space fewer than half of the {} training photos see, \
+                 and the space the scene hides from all of them, is kept empty and colour \
+                 varies with the view at degree 1 only (the default for runs on at most {} \
+                 photos; --no-few-view turns it off)",
                 scene.train_views,
                 crate::model::few_view::FEW_VIEWS
             ),
