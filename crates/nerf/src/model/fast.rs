@@ -853,7 +853,8 @@ impl Model for FastModel {
         self.grid.refresh(self.config.occupancy.threshold);
     }
 
-    /// Re-evaluates the occupancy grid every `update_every` steps with the current weights.
+    /// Re-evaluates the occupancy grid every `update_every` steps with the current weights,
+    /// and runs few-view training's hidden-space pass when it is due.
     fn after_step(&mut self, params: &[f32], steps_done: u64, seed: u64) {
         let dt = self.config.step_length();
         let every = self.config.occupancy.update_every.max(1);
