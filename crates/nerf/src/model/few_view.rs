@@ -13,7 +13,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::ray_space::RaySpace;
 use crate::camera::Camera;
-use crate::render::occupancy::OccupancyGrid;
+use crate::render::occupancy::{cell_centre, OccupancyGrid};
 
 /// Runs on at most this many training views get few-view training by default.
 pub const FEW_VIEWS: usize = 16;
@@ -101,12 +101,7 @@ pub fn seen_by(cameras: &[Camera], resolution: usize, bound: f32, min_views: usi
     (0..resolution.pow(3))
         .into_par_iter()
         .map(|i| {
-            let c = [
-                i % resolution,
-                (i / resolution) % resolution,
-                i / (resolution * resolution),
-            ];
-            let p = c.map(|k| (k as f32 + 0.5) * cell - bound);
+            let p = cell_centre(resolution, bound, i);
             cameras.iter().filter(|cam| cam.frames(p, cell)).count() >= min_views
         })
         .collect()

@@ -15,7 +15,8 @@
 use rayon::prelude::*;
 
 use crate::camera::Camera;
-use crate::render::occupancy::OccupancyGrid;
+use crate::math::{length, sub};
+use crate::render::occupancy::{cell_centre, OccupancyGrid};
 
 /// Training steps between passes in a new few-view run (the first pass ends the grid's
 /// warm-up, `OccupancyConfig::warmup_steps`). Passes every 64 steps measured the same.
@@ -54,8 +55,7 @@ pub fn hidden_cells(
             if !judged {
                 return false;
             }
-            let c = [i % res, (i / res) % res, i / (res * res)];
-            let p = c.map(|k| (k as f32 + 0.5) * cell - grid.bound);
+            let p = cell_centre(res, grid.bound, i);
             !cameras
                 .iter()
                 .any(|cam| cam.frames(p, cell) && sight.clear(p, cam.origin()))
@@ -75,17 +75,17 @@ impl Sight<'_> {
     /// optical depth passes [`OPAQUE`], stepping one cell at a time from
     /// [`SURFACE_CELLS`] cells out.
     fn clear(&self, p: [f32; 3], eye: [f32; 3]) -> bool {
-        let to = [eye[0] - p[0], eye[1] - p[1], eye[2] - p[2]];
-        let length = crate::math::length(to);
-        if length <= 0.0 {
+        let to = sub(eye, p);
+        let distance = length(to);
+        if distance <= 0.0 {
             return true;
         }
-        let dir = to.map(|x| x / length);
+        let dir = to.map(|x| x / distance);
         let mut depth = 0.0;
         let mut t = SURFACE_CELLS * self.cell;
-        while t < length {
+        while t < distance {
             let q = [0, 1, 2].map(|a| p[a] + dir[a] * t);
-            let Some(i) = self.index(q) else {
+            let Some(i) = self.grid.cell_index(q) else {
                 return true;
             };
             depth += self.grid.thickness[i] * self.per_thickness;
@@ -95,20 +95,6 @@ impl Sight<'_> {
             t += self.cell;
         }
         true
-    }
-
-    /// The cell holding `q`; `None` outside the grid.
-    fn index(&self, q: [f32; 3]) -> Option<usize> {
-        let res = self.grid.resolution;
-        let mut index = 0;
-        for a in (0..3).rev() {
-            let k = ((q[a] + self.grid.bound) / self.cell).floor();
-            if !(0.0..res as f32).contains(&k) {
-                return None;
-            }
-            index = index * res + k as usize;
-        }
-        Some(index)
     }
 }
 
@@ -134,11 +120,14 @@ mod tests {
     /// and all occupied, the others empty but for `also` (occupied, no thickness).
     fn grid_with(wall: impl Fn([f32; 3]) -> bool, also: &[[f32; 3]]) -> (OccupancyGrid, f32) {
         let cell = 2.0 * BOUND / RES as f32;
-        let centre = |i: usize| {
-            [i % RES, (i / RES) % RES, i / (RES * RES)].map(|k| (k as f32 + 0.5) * cell - BOUND)
-        };
         let thickness: Vec<f32> = (0..RES.pow(3))
-            .map(|i| if wall(centre(i)) { 1.0 } else { 0.0 })
+            .map(|i| {
+                if wall(cell_centre(RES, BOUND, i)) {
+                    1.0
+                } else {
+                    0.0
+                }
+            })
             .collect();
         let mut occupied: Vec<bool> = thickness.iter().map(|&t| t > 0.0).collect();
         for &p in also {

@@ -121,6 +121,17 @@ pub fn ray_box(o: [f32; 3], d: [f32; 3], bound: f32, near: f32, far: f32) -> Opt
     (t0 < t1).then_some((t0, t1))
 }
 
+/// The centre of cell `i` (x fastest) of a `resolution^3` grid over `[-bound, bound]^3`.
+pub fn cell_centre(resolution: usize, bound: f32, i: usize) -> [f32; 3] {
+    let cell = 2.0 * bound / resolution as f32;
+    let c = [
+        i % resolution,
+        (i / resolution) % resolution,
+        i / (resolution * resolution),
+    ];
+    c.map(|k| (k as f32 + 0.5) * cell - bound)
+}
+
 impl OccupancyGrid {
     /// A grid with every cell occupied.
     pub fn new(resolution: usize, bound: f32) -> Self {
@@ -166,6 +177,20 @@ impl OccupancyGrid {
     #[inline]
     fn index(&self, c: [usize; 3]) -> usize {
         c[0] + self.resolution * (c[1] + self.resolution * c[2])
+    }
+
+    /// The cell holding `p` (x fastest); `None` outside the grid.
+    pub fn cell_index(&self, p: [f32; 3]) -> Option<usize> {
+        let (res, cell) = (self.resolution, self.cell_size());
+        let mut index = 0;
+        for a in (0..3).rev() {
+            let k = ((p[a] + self.bound) / cell).floor();
+            if !(0.0..res as f32).contains(&k) {
+                return None;
+            }
+            index = index * res + k as usize;
+        }
+        Some(index)
     }
 
     pub fn is_occupied(&self, p: [f32; 3]) -> bool {
@@ -683,9 +708,9 @@ mod tests {
         let check = |g: &OccupancyGrid, want: &[bool]| {
             for (i, &o) in want.iter().enumerate() {
                 assert_eq!(g.occupied_at(i), o, "cell {i}");
-                let c = [i % res, (i / res) % res, i / (res * res)];
-                let centre = c.map(|k| (k as f32 + 0.5) * g.cell_size() - g.bound);
+                let centre = cell_centre(res, g.bound, i);
                 assert_eq!(g.is_occupied(centre), o, "cell {i}");
+                assert_eq!(g.cell_index(centre), Some(i), "cell {i}");
             }
         };
         check(&g, &flags);
