@@ -179,6 +179,7 @@ impl<M: Model> Engine for CpuEngine<M> {
             DirtyStep {
                 scale: scale as f32,
                 lazy_end: rule.lazy_end,
+                table_decay: rule.table_decay,
                 weight_decay: rule.weight_decay,
                 group: rule.group_start.map(|at| (at, spec.camera_lr)),
             },

@@ -62,6 +62,10 @@ pub struct FastModelConfig {
     pub max_samples_per_ray: usize,
     /// L2 penalty on the MLP weights.
     pub weight_decay: f32,
+    /// L2 penalty on the hash tables' entries, on those a step touches (Adam updates the
+    /// tables lazily); 0: none, as in runs saved before it existed.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub table_decay: f32,
     /// Unbounded scenes: the field's box `[-B, B]^3` holds the world cube of half-extent
     /// `B / 2` as it is and all space beyond, contracted (see `render::contraction`).
     #[serde(default)]
@@ -108,6 +112,7 @@ impl Default for FastModelConfig {
             steps_per_diagonal: 1024.0,
             max_samples_per_ray: 1024,
             weight_decay: 1e-6,
+            table_decay: 0.0,
             contract: false,
             refine_cameras: None,
             distortion: 0.0,
@@ -121,11 +126,13 @@ impl Default for FastModelConfig {
 
 impl FastModelConfig {
     /// Few-view training from `photos` training photos: the space too few of them see
-    /// kept empty, and colour that changes only slowly with the view
-    /// ([`few_view::VIEW_HARMONICS`]).
+    /// kept empty, colour that changes only slowly with the view
+    /// ([`few_view::VIEW_HARMONICS`]) and the hash tables' entries pulled towards zero
+    /// ([`few_view::TABLE_DECAY`]).
     pub fn train_from_few_views(&mut self, photos: usize) {
         self.few_view = Some(FewView::new(photos));
         self.field.view_harmonics = few_view::VIEW_HARMONICS;
+        self.table_decay = few_view::TABLE_DECAY;
     }
 
     /// Turns anti-aliasing on for a scene seen by `cameras` in `space`, with their typical
@@ -811,6 +818,7 @@ impl Model for FastModel {
     fn update_rule(&self) -> UpdateRule {
         UpdateRule {
             lazy_end: self.field.mlp_range().start,
+            table_decay: self.config.table_decay,
             weight_decay: self.config.weight_decay,
             group_start: self.cameras_at,
         }

@@ -6,7 +6,10 @@
 //! surfaces hide from every photo empty too (`hidden_space`). And the colour network sees
 //! only the view direction's first [`VIEW_HARMONICS`] spherical harmonics: with a
 //! handful of photos, the finer ones let colour vary with the view enough to explain
-//! each photo's pixels without the right geometry.
+//! each photo's pixels without the right geometry. Last, the hash tables' entries decay
+//! towards zero ([`TABLE_DECAY`]): a few photos' pixels can be fitted exactly by fine
+//! features that only they constrain, and every other view shows those as speckle and
+//! ghosts; the decay keeps a feature only where the photos keep asking for it.
 
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -21,6 +24,11 @@ pub const FEW_VIEWS: usize = 16;
 /// The view direction's spherical harmonics (degrees 0 and 1) the colour network of a
 /// few-view run sees (`field::FastFieldConfig::view_harmonics`; 16 otherwise).
 pub const VIEW_HARMONICS: usize = 4;
+
+/// The L2 penalty on the hash tables' entries a step touches in a few-view run
+/// (`FastModelConfig::table_decay`; none otherwise): the best of the weights measured on
+/// 8-view lego (figures in `docs/benchmarks.md`).
+pub const TABLE_DECAY: f32 = 3e-6;
 
 /// Whether keeping unseen space empty applies to a scene marched in `space`, contracted
 /// or not: only to bounded scenes in world space, whose grid cells are places the photos

@@ -298,6 +298,8 @@ pub struct UpdateRule {
     /// Parameters before this index update lazily (hash tables: only entries with a
     /// gradient), the rest densely.
     pub lazy_end: usize,
+    /// L2 penalty on the lazily updated parameters, on the entries a step touches.
+    pub table_decay: f32,
     /// L2 penalty on the densely updated parameters.
     pub weight_decay: f32,
     /// Parameters from this index on form their own group (camera corrections): dense,

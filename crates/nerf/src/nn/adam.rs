@@ -140,9 +140,10 @@ fn update_slices_baseline(config: &AdamConfig, step: AdamStep, s: Slices, rule: 
 pub struct DirtyStep {
     /// Factor applied to every gradient value first.
     pub scale: f32,
-    /// Parameters before this index update lazily (hash tables), the rest densely with
-    /// `weight_decay` (MLP weights).
+    /// Parameters before this index update lazily (hash tables), with `table_decay` on
+    /// the entries the step touches; the rest densely with `weight_decay` (MLP weights).
     pub lazy_end: usize,
+    pub table_decay: f32,
     pub weight_decay: f32,
     /// A group of its own at the end of the vector, `(start, learning rate)`: updated
     /// densely, without weight decay, at its own learning rate (camera corrections).
@@ -164,6 +165,7 @@ impl Adam {
         let DirtyStep {
             scale,
             lazy_end,
+            table_decay,
             weight_decay,
             group,
         } = how;
@@ -183,7 +185,7 @@ impl Adam {
                     let own = group_start.clamp(base + split, base + r.end) - base;
                     let lazy = Rule {
                         lazy: true,
-                        weight_decay: 0.0,
+                        weight_decay: table_decay,
                         scale,
                     };
                     let dense = Rule {
@@ -236,7 +238,8 @@ pub struct Rule {
     /// Leave parameters whose gradient is exactly zero (and their moments) untouched: hash
     /// table entries no sample reached this step (as instant-ngp does).
     pub lazy: bool,
-    /// L2 penalty `weight_decay / 2 * p^2` added to the loss.
+    /// L2 penalty `weight_decay / 2 * p^2` added to the loss (with `lazy`, on the
+    /// parameters the step touches only).
     pub weight_decay: f32,
     /// Factor applied to each gradient first (1: none).
     pub scale: f32,
@@ -286,6 +289,49 @@ mod tests {
         assert!((p[1] - 0.9).abs() < 1e-5, "{p:?}");
     }
 
+    /// The tables' decay pulls the entries a step touches towards zero and leaves the
+    /// others (and the dense part) alone: a gradient too small to matter pushes every
+    /// touched entry up without decay and down with it.
+    #[test]
+    fn table_decay_pulls_touched_entries_only() {
+        let n = 8;
+        let step_with = |table_decay: f32| {
+            let mut adam = Adam::new(AdamConfig::default(), n);
+            let mut params = vec![1.0f32; n];
+            let mut grads = crate::nn::GradBuffer::new(n);
+            // Entries 0..4 are a table: 0 and 2 touched, 1 and 3 not.
+            grads
+                .values
+                .copy_from_slice(&[-1e-8, 0.0, -1e-8, 0.0, -1e-8, -1e-8, -1e-8, -1e-8]);
+            grads.mark(0..n);
+            let how = DirtyStep {
+                scale: 1.0,
+                lazy_end: 4,
+                table_decay,
+                weight_decay: 0.0,
+                group: None,
+            };
+            adam.step_dirty(&mut params, &mut grads, 0.1, how);
+            params
+        };
+        let plain = step_with(0.0);
+        let decayed = step_with(1.0);
+        for i in [0, 2] {
+            assert!(
+                plain[i] > 1.0 && decayed[i] < 0.95,
+                "entry {i}: {plain:?} {decayed:?}"
+            );
+        }
+        for i in [1, 3] {
+            assert_eq!((plain[i], decayed[i]), (1.0, 1.0), "untouched entry {i}");
+        }
+        assert_eq!(
+            plain[4..],
+            decayed[4..],
+            "the dense part takes its own decay only"
+        );
+    }
+
     #[test]
     fn minimises_a_quadratic() {
         let mut adam = Adam::new(AdamConfig::default(), 1);
@@ -321,6 +367,11 @@ mod tests {
             Rule {
                 weight_decay: 0.1,
                 scale: 0.37,
+                ..Rule::default()
+            },
+            Rule {
+                lazy: true,
+                weight_decay: 0.1,
                 ..Rule::default()
             },
         ];

@@ -313,8 +313,9 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
             few,
             &format!(
                 "few-view training: the space fewer than half of the {} training photos see, \
-                 and the space the scene hides from all of them, is kept empty and colour \
-                 varies with the view at degree 1 only (the default for runs on at most {} \
+                 and the space the scene hides from all of them, is kept empty, colour \
+                 varies with the view at degree 1 only and the hash tables' entries decay \
+                 towards zero (the default for runs on at most {} \
                  photos; --no-few-view turns it off)",
                 scene.train_views,
                 crate::model::few_view::FEW_VIEWS

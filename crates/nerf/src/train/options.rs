@@ -164,8 +164,8 @@ pub struct TrainOptions {
     pub no_bf16: bool,
     /// Fast: few-view training (the space fewer than half of the training photos see, and
     /// the space the scene hides from all of them, is kept empty; colour varies with the
-    /// view at degree 1 only), the default for runs on at most 16 training views of a
-    /// bounded scene.
+    /// view at degree 1 only; the hash tables' entries decay towards zero), the default
+    /// for runs on at most 16 training views of a bounded scene.
     /// The paper's model has `--preset freenerf` and `--preset regnerf` for few views.
     #[arg(long, conflicts_with = "no_few_view")]
     pub few_view: bool,

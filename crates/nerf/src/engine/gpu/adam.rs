@@ -3,8 +3,8 @@
 //! queued behind a device-side count of the step's non-finite values (`finite`) and does
 //! nothing where it is not zero, so the host need not wait for the count before queuing it. Hash-table
 //! entries (before `lazy_end`) update lazily: an exact-zero gradient leaves the entry and
-//! its moments alone, as the CPU's dirty-block path does; the MLP weights after it take
-//! the weight decay. (The CPU skips whole untouched blocks of MLP weights too; every MLP
+//! its moments alone, as the CPU's dirty-block path does, and a touched one takes the
+//! tables' decay; the MLP weights after it take the weight decay. (The CPU skips whole untouched blocks of MLP weights too; every MLP
 //! weight gets a gradient in a real step, so the two agree there.)
 
 use cubecl::prelude::*;
@@ -20,6 +20,7 @@ const GROUP: u32 = 256;
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
 struct Update {
     scale: f32,
+    table_decay: f32,
     weight_decay: f32,
     beta1: f32,
     beta2: f32,
@@ -49,7 +50,8 @@ fn adam_step(
         let grouped = (i as u32) >= u.group_start;
         let raw = grads[i] * u.scale;
         let keep = lazy && raw == 0.0;
-        let g = raw + select(lazy || grouped, 0.0, u.weight_decay) * p;
+        let dense_decay = select(grouped, 0.0, u.weight_decay);
+        let g = raw + select(lazy, u.table_decay, dense_decay) * p;
         let m_new = u.beta1 * m[i] + (1.0 - u.beta1) * g;
         let v_new = u.beta2 * v[i] + (1.0 - u.beta2) * g * g;
         let rate = select(grouped, u.group_lr_over_bc1, u.lr_over_bc1);
@@ -86,6 +88,7 @@ pub fn step(
     let group_start = how.group.map_or(n, |(start, _)| start.min(n));
     let update = UpdateLaunch::new(
         how.scale,
+        how.table_decay,
         how.weight_decay,
         config.beta1,
         config.beta2,
@@ -121,8 +124,8 @@ mod tests {
     use crate::rng::Rng;
 
     /// Three steps against the CPU's dirty-block Adam: a lazy region with untouched entries
-    /// and whole untouched blocks (different ones each step), a dense region with weight
-    /// decay, a group at its own rate. Parameters and both
+    /// and whole untouched blocks (different ones each step) and decay on the touched
+    /// ones, a dense region with weight decay, a group at its own rate. Parameters and both
     /// moments within 1e-6 relative, and the gradients cleared.
     #[test]
     fn adam_matches_the_cpu_dirty_block_update() {
@@ -138,6 +141,8 @@ mod tests {
         let how = DirtyStep {
             scale: 1.0 / 4096.0,
             lazy_end,
+            // Strong enough to move the touched entries as much as their gradients do.
+            table_decay: 1e-3,
             weight_decay: 1e-6,
             // Camera corrections at the end: dense, no decay, their own rate.
             group: Some((n - 600, 3e-3)),

@@ -70,6 +70,7 @@ impl DeviceParams {
             DirtyStep {
                 scale,
                 lazy_end: rule.lazy_end,
+                table_decay: rule.table_decay,
                 weight_decay: rule.weight_decay,
                 group: rule.group_start.map(|at| (at, group_lr)),
             },
