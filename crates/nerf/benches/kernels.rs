@@ -282,6 +282,7 @@ fn sparse_update(touched: f64) {
         let how = DirtyStep {
             scale: 1.0,
             lazy_end: n,
+            table_decay: 0.0,
             weight_decay: 0.0,
             group: None,
         };

@@ -4,8 +4,9 @@
 //! nothing where it is not zero, so the host need not wait for the count before queuing it. Hash-table
 //! entries (before `lazy_end`) update lazily: an exact-zero gradient leaves the entry and
 //! its moments alone, as the CPU's dirty-block path does, and a touched one takes the
-//! tables' decay; the MLP weights after it take the weight decay. (The CPU skips whole untouched blocks of MLP weights too; every MLP
-//! weight gets a gradient in a real step, so the two agree there.)
+//! tables' decay; the MLP weights after it take the weight decay. (The CPU skips whole
+//! untouched blocks of MLP weights too; every MLP weight gets a gradient in a real step,
+//! so the two agree there.)
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
