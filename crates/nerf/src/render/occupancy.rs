@@ -181,16 +181,11 @@ impl OccupancyGrid {
 
     /// The cell holding `p` (x fastest); `None` outside the grid.
     pub fn cell_index(&self, p: [f32; 3]) -> Option<usize> {
-        let (res, cell) = (self.resolution, self.cell_size());
-        let mut index = 0;
-        for a in (0..3).rev() {
-            let k = ((p[a] + self.bound) / cell).floor();
-            if !(0.0..res as f32).contains(&k) {
-                return None;
-            }
-            index = index * res + k as usize;
-        }
-        Some(index)
+        let (res, cell) = (self.resolution as f32, self.cell_size());
+        let k = p.map(|x| ((x + self.bound) / cell).floor());
+        k.iter()
+            .all(|k| (0.0..res).contains(k))
+            .then(|| self.index(k.map(|k| k as usize)))
     }
 
     pub fn is_occupied(&self, p: [f32; 3]) -> bool {
