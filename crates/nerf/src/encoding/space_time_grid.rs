@@ -42,7 +42,10 @@ impl Default for SpaceTimeConfig {
             levels: 8,
             log2_table_size: 18,
             base_resolution: 16,
-            max_resolution: 512,
+            // Coarser than the still grid's finest: one photo per moment sees a moving
+            // part, and finer space-time cells fit each photo's view of it instead of a
+            // shape the neighbouring moments share (the still grid keeps the fine detail).
+            max_resolution: 256,
             base_time_resolution: 4,
             max_time_resolution: 64,
         }
