@@ -45,6 +45,18 @@ pub const FEW_VIEW_DEPTH_SMOOTHNESS: f32 = 0.1;
 /// would take twice the time.
 pub const TIMED_SAMPLES_PER_STEP: usize = 1 << 17;
 
+/// The fast model's samples per step in a run scheduled by the clock, given the run's
+/// `untimed` samples per step: [`TIMED_SAMPLES_PER_STEP`], but a field of space and time
+/// keeps `untimed`. Such a field learns each moment from the few photos near it in time,
+/// and half the steps cost it more than the larger steps gain (jumpingjacks in 10
+/// minutes; figures in `docs/benchmarks.md`).
+pub fn timed_samples_per_step(dynamic: bool, untimed: usize) -> usize {
+    match dynamic {
+        true => untimed,
+        false => TIMED_SAMPLES_PER_STEP,
+    }
+}
+
 /// Appearance codes per photo when real captures get them by default.
 pub const DEFAULT_APPEARANCE_DIMS: u32 = 16;
 

@@ -124,7 +124,7 @@ pub struct TrainOptions {
     #[arg(long)]
     pub batch: Option<usize>,
     /// Fast: field samples per step; the number of rays adapts (default 65536, and 131072
-    /// for a run scheduled by the clock, --minutes alone).
+    /// for a run scheduled by the clock, --minutes alone, on a still scene).
     #[arg(long)]
     pub samples: Option<usize>,
     /// Fast: log2 of the hash-table entries per level (default 19).
@@ -331,12 +331,7 @@ impl TrainOptions {
                 if self.batch.is_some() || self.paper_pe {
                     return refuse("--batch and --paper-pe apply to --model vanilla only".into());
                 }
-                let timed = self.minutes.is_some() && self.steps.is_none();
-                let samples = match timed {
-                    true => defaults::TIMED_SAMPLES_PER_STEP,
-                    false => m.samples_per_step,
-                };
-                m.samples_per_step = self.samples.unwrap_or(samples);
+                m.samples_per_step = self.samples.unwrap_or(m.samples_per_step);
                 m.field.grid.log2_table_size =
                     self.table_log2.unwrap_or(m.field.grid.log2_table_size);
             }
@@ -419,6 +414,11 @@ impl TrainOptions {
                 let d = defaults::decide(self.device.device, &facts, &self.feature_flags());
                 for note in &d.notes {
                     on_notice(note);
+                }
+                let timed = self.minutes.is_some() && self.steps.is_none();
+                if timed && self.samples.is_none() {
+                    m.samples_per_step =
+                        defaults::timed_samples_per_step(d.dynamic, m.samples_per_step);
                 }
                 if d.antialias {
                     m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
@@ -1126,8 +1126,9 @@ mod tests {
         assert!(err.to_string().contains("world space"), "{err}");
     }
 
-    /// A run scheduled by the clock takes twice the samples per step unless told; a run
-    /// of steps, capped by minutes or not, keeps the default. `--bf16` and `--no-bf16`
+    /// A run scheduled by the clock takes twice the samples per step unless told (a still
+    /// scene; moving scenes are tested with their field); a run of steps, capped by
+    /// minutes or not, keeps the default. `--bf16` and `--no-bf16`
     /// reach the config (the default: where the CPU has the kernels), for the fast model
     /// only.
     #[test]
@@ -1164,7 +1165,8 @@ mod tests {
     }
 
     /// A scene whose photos have times trains a field of space and time unless asked not
-    /// to; `--time-smoothness` reaches it, and is refused where there is none.
+    /// to, in steps of the default size even when timed; `--time-smoothness` reaches it,
+    /// and is refused where there is none.
     #[test]
     fn moving_scenes_get_a_field_of_space_and_time() {
         let still = tiny_scene(8);
@@ -1185,6 +1187,19 @@ mod tests {
         };
         let m = fast(&["--device", "cpu"], moving.path());
         assert!(m.field.motion.is_some() && m.time_smoothness == 0.0);
+        // A timed run keeps the default step size on a moving scene, unless told.
+        let default = crate::model::FastModelConfig::default().samples_per_step;
+        assert_eq!(
+            fast(&["--minutes", "10"], moving.path()).samples_per_step,
+            default
+        );
+        let told = fast(&["--minutes", "10", "--samples", "4096"], moving.path());
+        assert_eq!(told.samples_per_step, 4096);
+        let still_timed = fast(&["--minutes", "10"], still.path());
+        assert_eq!(
+            still_timed.samples_per_step,
+            defaults::TIMED_SAMPLES_PER_STEP
+        );
         assert!(fast(&["--no-dynamic"], moving.path())
             .field
             .motion
