@@ -152,6 +152,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         distortion: opts.distortion.map_or(Choice::Default, Choice::On),
         few_view: Choice::Default,
         dynamic: Choice::Default,
+        time_smoothness: Choice::Default,
         depth_smoothness: Choice::Default,
         bf16: match opts.bf16 {
             Some(true) => Choice::On(()),
@@ -165,7 +166,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         multiscale: 1,
         contract: model.contract,
         train_views: data.views.len(),
-        dynamic: data.views.iter().any(|v| v.time.is_some()),
+        moments: crate::data::time::moments(data.views.iter().filter_map(|v| v.time)).len(),
     };
     let chosen = defaults::decide(opts.device, &facts, &flags);
     for note in chosen.notes {
@@ -174,7 +175,8 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
     let antialias = chosen.antialias;
     model.distortion = chosen.distortion;
     model.bf16_products = chosen.bf16_products;
-    model.field.motion = chosen.dynamic.then(Default::default);
+    model.field.motion = chosen.motion;
+    model.time_smoothness = chosen.time_smoothness;
     if chosen.few_view {
         model.train_from_few_views(data.views.len());
     }

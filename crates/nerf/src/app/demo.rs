@@ -127,7 +127,7 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         multiscale: 1,
         contract: opened.contract,
         train_views: opened.train.len(),
-        dynamic: opened.is_dynamic(),
+        moments: opened.moments(Split::Train).len(),
     };
     let flags = crate::train::defaults::Flags::default();
     let chosen = crate::train::defaults::decide(opts.device.device, &facts, &flags);
@@ -143,7 +143,8 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         if chosen.few_view {
             m.train_from_few_views(opened.train.len());
         }
-        m.field.motion = chosen.dynamic.then(Default::default);
+        m.field.motion = chosen.motion;
+        m.time_smoothness = chosen.time_smoothness;
     }
     let run_options = RunOptions {
         out: run_dir.clone(),

@@ -52,6 +52,28 @@ impl Default for SpaceTimeConfig {
     }
 }
 
+/// The most cells along time a run gets from its moments ([`SpaceTimeConfig::for_moments`]):
+/// more than the 200 moments of the longest scene measured, few enough that the finest
+/// level's cells stay in a hash table of `2^18` entries without colliding everywhere.
+pub const MAX_TIME_CELLS: usize = 256;
+
+impl SpaceTimeConfig {
+    /// The grid for a scene whose training photos show `moments` distinct moments: a
+    /// finest time cell per moment (at most [`MAX_TIME_CELLS`], at least the coarsest
+    /// level's), so a photo's moment is not blended with its neighbours' at the finest
+    /// level; the prior of smoothness in time (`model::FastModelConfig::time_smoothness`)
+    /// then shares what the neighbouring moments agree on. A fast motion needs the fine
+    /// cells, a slow one the prior: together they measured better on both (figures in
+    /// `docs/benchmarks.md`).
+    pub fn for_moments(moments: usize) -> Self {
+        let base = SpaceTimeConfig::default();
+        SpaceTimeConfig {
+            max_time_resolution: moments.clamp(base.base_time_resolution, MAX_TIME_CELLS),
+            ..base
+        }
+    }
+}
+
 /// One level: its resolutions and where its table sits in the parameter vector.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SpaceTimeLevel {
@@ -224,6 +246,29 @@ mod tests {
             &mut layout,
         );
         (grid, layout)
+    }
+
+    #[test]
+    fn a_run_gets_a_finest_time_cell_per_moment_within_bounds() {
+        let base = SpaceTimeConfig::default();
+        for (moments, cells) in [
+            (0, base.base_time_resolution),
+            (3, base.base_time_resolution),
+            (150, 150),
+            (200, 200),
+            (5000, MAX_TIME_CELLS),
+        ] {
+            let c = SpaceTimeConfig::for_moments(moments);
+            assert_eq!(c.max_time_resolution, cells, "{moments} moments");
+            // Only the time axis follows the moments.
+            assert_eq!(
+                SpaceTimeConfig {
+                    max_time_resolution: base.max_time_resolution,
+                    ..c
+                },
+                base
+            );
+        }
     }
 
     #[test]

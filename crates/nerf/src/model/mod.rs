@@ -149,8 +149,13 @@ impl ModelConfig {
             ModelConfig::Fast(m) => {
                 let g = &m.field.grid;
                 let motion = m.field.motion.map_or(String::new(), |t| {
+                    let smooth = match m.time_smoothness {
+                        w if w > 0.0 => format!(", smooth in time x {w}"),
+                        _ => String::new(),
+                    };
                     format!(
-                        ", space-time grid {} levels x 2^{} entries ({}..{} cells, {}..{} moments)",
+                        ", space-time grid {} levels x 2^{} entries ({}..{} cells, {}..{} along \
+                         time{smooth})",
                         t.levels,
                         t.log2_table_size,
                         t.base_resolution,

@@ -20,7 +20,9 @@
 //! 6. a field of space and time: on for moving scenes (every photo has a time), which then
 //!    get no appearance codes or camera refinement by default (on a moving subject they
 //!    would absorb the motion). A still field would average the motion into a blur, so
-//!    with `--device auto` a moving scene trains where this field runs;
+//!    with `--device auto` a moving scene trains where this field runs. Its finest time
+//!    cells follow the training photos' moments (`SpaceTimeConfig::for_moments`), with
+//!    the prior of smoothness in time at [`TIME_SMOOTHNESS`];
 //! 7. the networks' products in bfloat16 (`f32` sums): on where the CPU engine runs on a
 //!    CPU with AVX-512 BF16, where they train at the same PSNR in less time.
 //!
@@ -29,6 +31,7 @@
 //! GPU, a run that asks for a feature only the CPU engine runs goes to the CPU, and says so.
 
 use crate::camera::ray_space::RaySpace;
+use crate::encoding::space_time_grid::SpaceTimeConfig;
 use crate::engine::caps::{EngineKind, Feature};
 use crate::engine::Device;
 
@@ -36,6 +39,13 @@ use crate::engine::Device;
 /// weights measured on 8-view lego and chair, where it gained little; on the
 /// forward-facing rug from 3 photos it gained 2.4 dB (figures in `docs/benchmarks.md`).
 pub const FEW_VIEW_DEPTH_SMOOTHNESS: f32 = 0.1;
+
+/// The weight of the prior of smoothness in time for a field of space and time with a
+/// finest time cell per moment, over every `field::fast::SMOOTH_STRIDE`-th (16th) sample:
+/// 0.1 over every fourth, the best of the weights measured on jumpingjacks and standup at
+/// 100x100, where without it the cell per moment fits each photo's view of a moving part
+/// on its own (figures in `docs/benchmarks.md`).
+pub const TIME_SMOOTHNESS: f32 = 0.4;
 
 /// The fast model's samples per step in a run scheduled by the clock (`--minutes` alone):
 /// twice the default, since a step's fixed costs (Adam, the gradients' reduction, the
@@ -126,6 +136,8 @@ pub struct Flags {
     pub dynamic: Choice,
     /// With the loss's weight.
     pub depth_smoothness: Choice<f32>,
+    /// With the prior's weight (a field of space and time only).
+    pub time_smoothness: Choice<f32>,
     pub bf16: Choice,
 }
 
@@ -141,11 +153,16 @@ pub struct SceneFacts {
     pub contract: bool,
     /// The photos the run trains on.
     pub train_views: usize,
-    /// The photos show moments of a moving scene (each has a time).
-    pub dynamic: bool,
+    /// The distinct moments the training photos show: 0 for a still scene (no times).
+    pub moments: usize,
 }
 
 impl SceneFacts {
+    /// The photos show moments of a moving scene (each has a time).
+    pub fn dynamic(&self) -> bool {
+        self.moments > 0
+    }
+
     /// Forward-facing: marched in NDC.
     pub fn forward_facing(&self) -> bool {
         self.space != RaySpace::World
@@ -154,7 +171,7 @@ impl SceneFacts {
     /// A real capture that learns per-photo corrections by default (a still one: on a
     /// moving subject the corrections would absorb the motion).
     pub fn real_capture(&self) -> bool {
-        !self.blender && !self.forward_facing() && self.multiscale == 1 && !self.dynamic
+        !self.blender && !self.forward_facing() && self.multiscale == 1 && !self.dynamic()
     }
 }
 
@@ -171,12 +188,21 @@ pub struct Defaults {
     pub few_view: bool,
     /// RegNeRF's depth smoothness weight (0: off).
     pub depth_smoothness: f32,
-    /// A field of space and time.
-    pub dynamic: bool,
+    /// A field of space and time: its grid.
+    pub motion: Option<SpaceTimeConfig>,
+    /// The weight of its prior of smoothness in time (0: off, as for a still field).
+    pub time_smoothness: f32,
     /// The networks' products in bfloat16.
     pub bf16_products: bool,
     /// What the user should hear: each default that turned a feature on or left one off.
     pub notes: Vec<String>,
+}
+
+impl Defaults {
+    /// A field of space and time.
+    pub fn dynamic(&self) -> bool {
+        self.motion.is_some()
+    }
 }
 
 /// The engine a run of `scene` on `device` will be on: the CPU for `cpu` and for `auto`
@@ -203,7 +229,7 @@ pub fn engine_for(
                 (flags.depth_smoothness.asked(), Feature::DepthSmoothness),
                 (flags.bf16.asked(), Feature::Bf16Products),
                 (
-                    flags.dynamic.asked() || (scene.dynamic && flags.dynamic == Choice::Default),
+                    flags.dynamic.asked() || (scene.dynamic() && flags.dynamic == Choice::Default),
                     Feature::Dynamic,
                 ),
             ];
@@ -351,16 +377,31 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
             )
         });
 
+    // Asked for or not, the prior's weight is told with the field it belongs to.
+    let time_weight = flags.time_smoothness.weight(TIME_SMOOTHNESS, || true);
     let dynamic = match flags.dynamic {
         Choice::On(()) => true,
         Choice::Off => false,
-        Choice::Default => by_default(
-            Feature::Dynamic,
-            scene.dynamic,
-            "the photos show a moving scene: training a field of space and time (the default \
-             when every photo has a time; --no-dynamic trains a still one)",
-        ),
+        Choice::Default => {
+            by_default(
+                Feature::Dynamic,
+                scene.dynamic(),
+                &format!(
+                    "the photos show a moving scene: training a field of space and time (the \
+                 default when every photo has a time; --no-dynamic trains a still one), a \
+                 finest time cell for each of its {} moments, {}",
+                    scene.moments,
+                    if time_weight == 0.0 {
+                        "no prior of smoothness in time".to_string()
+                    } else {
+                        format!("smooth in time (weight {time_weight}; --no-time-smoothness turns it off)")
+                    }
+                ),
+            )
+        }
     };
+    let motion = dynamic.then(|| SpaceTimeConfig::for_moments(scene.moments));
+    let time_smoothness = if dynamic { time_weight } else { 0.0 };
 
     // A speed setting, not a look: on wherever it runs, off without a word elsewhere.
     let bf16_products = match flags.bf16 {
@@ -379,7 +420,8 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         distortion,
         few_view,
         depth_smoothness,
-        dynamic,
+        motion,
+        time_smoothness,
         bf16_products,
         notes,
     }
@@ -396,7 +438,7 @@ mod tests {
             multiscale: 1,
             contract: false,
             train_views: 100,
-            dynamic: false,
+            moments: 0,
         }
     }
 
@@ -510,18 +552,35 @@ mod tests {
     #[test]
     fn moving_scenes_get_a_field_of_space_and_time_and_no_corrections() {
         let capture = SceneFacts {
-            dynamic: true,
+            moments: 50,
             ..facts(false, RaySpace::World)
         };
         let d = fast_defaults(&capture, CPU, &Flags::default());
-        assert!(d.dynamic && !d.refine_cameras && d.appearance.is_none());
+        assert!(d.dynamic() && !d.refine_cameras && d.appearance.is_none());
         assert!(d.notes.iter().any(|n| n.contains("space and time")));
+        // A finest time cell per moment, and the prior that shares them between moments.
+        assert_eq!(d.motion.map(|m| m.max_time_resolution), Some(50));
+        assert_eq!(d.time_smoothness, TIME_SMOOTHNESS);
+        assert!(d.notes.iter().any(|n| n.contains("50 moments")));
+        let unsmoothed = Flags {
+            time_smoothness: Choice::Off,
+            ..Flags::default()
+        };
+        let d = fast_defaults(&capture, CPU, &unsmoothed);
+        assert!(d.dynamic() && d.time_smoothness == 0.0);
+        assert!(d.notes.iter().any(|n| n.contains("no prior of smoothness")));
+        let still_field = Flags {
+            dynamic: Choice::Off,
+            ..Flags::default()
+        };
+        let d = fast_defaults(&capture, CPU, &still_field);
+        assert!(d.motion.is_none() && d.time_smoothness == 0.0);
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &Flags::default());
-        assert!(!d.dynamic);
+        assert!(!d.dynamic());
         // Where the engine lacks it, it is off and said.
         if !EngineKind::Gpu.runs(Feature::Dynamic) {
             let d = fast_defaults(&capture, EngineKind::Gpu, &Flags::default());
-            assert!(!d.dynamic);
+            assert!(!d.dynamic());
             assert!(d.notes.iter().any(|n| n.contains("--no-dynamic")));
         }
     }
@@ -539,7 +598,7 @@ mod tests {
             bf16: Choice::On(()),
         };
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
-        assert!(d.dynamic && d.bf16_products);
+        assert!(d.dynamic() && d.bf16_products);
         assert_eq!(d.depth_smoothness, 0.1);
         assert!(!d.antialias && d.refine_cameras && d.refine_asked && d.few_view);
         assert_eq!((d.appearance, d.distortion), (Some(8), 0.01));
@@ -558,7 +617,7 @@ mod tests {
             ..facts(false, NDC)
         };
         let d = fast_defaults(&few, CPU, &off);
-        assert!(d.antialias && !d.few_view && !d.dynamic && !d.bf16_products);
+        assert!(d.antialias && !d.few_view && !d.dynamic() && !d.bf16_products);
         assert_eq!(
             (d.appearance, d.refine_cameras, d.distortion),
             (None, false, 0.0)
@@ -631,7 +690,7 @@ mod tests {
         assert_eq!(engine_for(Device::Cpu, true, &still, &none), (CPU, None));
         // A moving scene goes where its field runs, unless a still field is asked for.
         let moving = SceneFacts {
-            dynamic: true,
+            moments: 50,
             ..still
         };
         let (kind, note) = engine_for(Device::Auto, true, &moving, &none);

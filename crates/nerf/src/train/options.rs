@@ -180,9 +180,14 @@ pub struct TrainOptions {
     #[arg(long)]
     pub no_dynamic: bool,
     /// Fast, moving scenes: weight of a prior that the space-time features change smoothly
-    /// over time (per ray; default 0, as it measured no better: docs/benchmarks.md).
-    #[arg(long, value_parser = crate::args::positive, allow_negative_numbers = true)]
+    /// over time (per ray, over one finest time cell). Default: 0.4, with a finest time
+    /// cell per moment (docs/benchmarks.md, "Moving scenes").
+    #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive,
+          allow_negative_numbers = true, conflicts_with = "no_time_smoothness")]
     pub time_smoothness: Option<f32>,
+    /// Fast, moving scenes: no prior of smoothness in time.
+    #[arg(long)]
+    pub no_time_smoothness: bool,
     /// Fast: weight of RegNeRF's depth smoothness, on 16 patches of 4x4 rays
     /// per step rendered from poses between the training cameras, against geometry that
     /// only looks right from where the photos were taken. Default: 0.1 for forward-facing
@@ -266,6 +271,7 @@ impl TrainOptions {
             few_view: Choice::from_flags(self.few_view, self.no_few_view),
             dynamic: Choice::from_flags(self.dynamic, self.no_dynamic),
             depth_smoothness: Choice::from_value(self.depth_smoothness, self.no_depth_smoothness),
+            time_smoothness: Choice::from_value(self.time_smoothness, self.no_time_smoothness),
             bf16: Choice::from_flags(self.bf16, self.no_bf16),
         }
     }
@@ -389,10 +395,16 @@ impl TrainOptions {
                             .into(),
                     );
                 }
-                let photos = match self.train_views.as_ref().or(c.train_views.as_ref()) {
-                    Some(v) => v.indices(scene.train.len())?.len(),
-                    None => scene.train.len(),
+                let chosen = match self.train_views.as_ref().or(c.train_views.as_ref()) {
+                    Some(v) => v.indices(scene.train.len())?,
+                    None => (0..scene.train.len()).collect(),
                 };
+                let photos = chosen.len();
+                let moments = crate::data::time::moments(chosen.iter().filter_map(|&k| {
+                    let frame = scene.train.get(k).and_then(|&i| scene.frames.get(i));
+                    frame.and_then(|f| f.time)
+                }))
+                .len();
                 if self.bf16 && Precision::bf16().is_none() {
                     return refuse(NO_BF16.into());
                 }
@@ -409,7 +421,7 @@ impl TrainOptions {
                     multiscale: c.multiscale,
                     contract: m.contract,
                     train_views: photos,
-                    dynamic: scene.is_dynamic(),
+                    moments,
                 };
                 let d = defaults::decide(self.device.device, &facts, &self.feature_flags());
                 for note in &d.notes {
@@ -418,22 +430,22 @@ impl TrainOptions {
                 let timed = self.minutes.is_some() && self.steps.is_none();
                 if timed && self.samples.is_none() {
                     m.samples_per_step =
-                        defaults::timed_samples_per_step(d.dynamic, m.samples_per_step);
+                        defaults::timed_samples_per_step(d.dynamic(), m.samples_per_step);
                 }
                 if d.antialias {
                     m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
                 }
                 m.distortion = d.distortion;
                 m.bf16_products = d.bf16_products;
-                if self.time_smoothness.is_some() && !d.dynamic {
+                if (self.time_smoothness.is_some() || self.no_time_smoothness) && !d.dynamic() {
                     return refuse(
-                        "--time-smoothness applies to a field of space and time (a scene whose \
+                        "--time-smoothness and --no-time-smoothness apply to a field of space and time (a scene whose \
                          photos have times, or --dynamic)"
                             .into(),
                     );
                 }
-                if d.dynamic {
-                    m.time_smoothness = self.time_smoothness.unwrap_or(0.0);
+                if d.dynamic() {
+                    m.time_smoothness = d.time_smoothness;
                     if d.refine_cameras {
                         return refuse(
                             "--refine-cameras cannot be combined with a field of space and \
@@ -447,7 +459,7 @@ impl TrainOptions {
                              at moment 0, so the field learns a still scene",
                         );
                     }
-                    m.field.motion = Some(Default::default());
+                    m.field.motion = d.motion;
                 }
                 if d.few_view {
                     m.train_from_few_views(photos);
@@ -544,8 +556,14 @@ impl TrainOptions {
                         .into(),
                 );
             }
-            ModelConfig::Vanilla(_) if self.dynamic || self.time_smoothness.is_some() => {
-                return refuse("--dynamic and --time-smoothness apply to --model fast only".into());
+            ModelConfig::Vanilla(_)
+                if self.dynamic || self.time_smoothness.is_some() || self.no_time_smoothness =>
+            {
+                return refuse(
+                    "--dynamic, --time-smoothness and --no-time-smoothness apply to --model \
+                     fast only"
+                        .into(),
+                );
             }
             ModelConfig::Vanilla(_)
                 if self.appearance.is_some()
@@ -764,6 +782,7 @@ impl TrainOptions {
             || self.dynamic
             || self.no_dynamic
             || self.time_smoothness.is_some()
+            || self.no_time_smoothness
             || self.depth_smoothness.is_some()
             || self.no_depth_smoothness
             || self.bf16
@@ -773,7 +792,7 @@ impl TrainOptions {
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
                  --antialias / --no-antialias / --distortion / --no-distortion / --few-view / \
                  --no-few-view / --dynamic / --no-dynamic / --time-smoothness / \
-                 --depth-smoothness / --no-depth-smoothness / --bf16 (set when the run was \
+                 --no-time-smoothness / --depth-smoothness / --no-depth-smoothness / --bf16 (set when the run was \
                  made)"
                     .into(),
             );
@@ -1186,7 +1205,11 @@ mod tests {
             ModelConfig::Vanilla(_) => panic!("fast model expected"),
         };
         let m = fast(&["--device", "cpu"], moving.path());
-        assert!(m.field.motion.is_some() && m.time_smoothness == 0.0);
+        // The three training photos' moments, each a finest time cell (the coarsest
+        // level's four at least), smooth in time.
+        let motion = m.field.motion.expect("a field of space and time");
+        assert_eq!(motion.max_time_resolution, motion.base_time_resolution);
+        assert_eq!(m.time_smoothness, defaults::TIME_SMOOTHNESS);
         // A timed run keeps the default step size on a moving scene, unless told.
         let default = crate::model::FastModelConfig::default().samples_per_step;
         assert_eq!(
@@ -1207,6 +1230,8 @@ mod tests {
         assert!(fast(&[], still.path()).field.motion.is_none());
         let m = fast(&["--time-smoothness", "0.01"], moving.path());
         assert_eq!(m.time_smoothness, 0.01);
+        let m = fast(&["--no-time-smoothness"], moving.path());
+        assert_eq!(m.time_smoothness, 0.0);
         let err = config(&["--time-smoothness", "0.01"], still.path()).expect_err("still");
         assert!(err.to_string().contains("space and time"), "{err}");
         let err = config(&["--refine-cameras"], moving.path()).expect_err("refine");

@@ -155,7 +155,7 @@ mod tests {
     use crate::engine::gpu::device::{test_gpu, worst};
     use crate::engine::gpu::field::tests::small_moving_field;
     use crate::engine::gpu::field::{DeviceInput, DeviceMoments, GpuFastField};
-    use crate::field::fast::FastWorkspace;
+    use crate::field::fast::{FastWorkspace, SMOOTH_STRIDE};
     use crate::nn::GradBuffer;
     use crate::rng::Rng;
     use crate::stage::{Field, FieldInput};
@@ -174,8 +174,9 @@ mod tests {
         let pos: Vec<f32> = (0..n * 3).map(|_| rng.range(-1.4, 1.4)).collect();
         let dirs = rng.unit_directions(n);
         let mut times: Vec<f32> = (0..n).map(|_| rng.uniform()).collect();
-        times[8] = 1.0;
-        times[12] = 0.95;
+        // Paired samples at and near the last moment, whose pairs look back in time.
+        times[2 * SMOOTH_STRIDE] = 1.0;
+        times[3 * SMOOTH_STRIDE] = 0.95;
         let (weight, input) = (
             0.7,
             FieldInput {
