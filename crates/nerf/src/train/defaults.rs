@@ -595,11 +595,12 @@ mod tests {
             few_view: Choice::On(()),
             dynamic: Choice::On(()),
             depth_smoothness: Choice::On(0.1),
+            time_smoothness: Choice::On(0.02),
             bf16: Choice::On(()),
         };
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
         assert!(d.dynamic() && d.bf16_products);
-        assert_eq!(d.depth_smoothness, 0.1);
+        assert_eq!((d.depth_smoothness, d.time_smoothness), (0.1, 0.02));
         assert!(!d.antialias && d.refine_cameras && d.refine_asked && d.few_view);
         assert_eq!((d.appearance, d.distortion), (Some(8), 0.01));
         let off = Flags {
@@ -610,6 +611,7 @@ mod tests {
             few_view: Choice::Off,
             dynamic: Choice::Off,
             depth_smoothness: Choice::Off,
+            time_smoothness: Choice::Off,
             bf16: Choice::Off,
         };
         let few = SceneFacts {
