@@ -172,10 +172,15 @@ impl Scene {
 
     /// The distinct moments of `split`'s photos, in order (none in a static scene).
     pub fn moments(&self, split: Split) -> Vec<f32> {
-        let times = self
-            .indices(split)
-            .iter()
-            .filter_map(|&i| self.frames.get(i).and_then(|f| f.time));
+        self.moments_of(self.indices(split).iter().copied())
+    }
+
+    /// The distinct moments of the photos `frames` (indices into [`Scene::frames`]), in
+    /// order (none in a static scene).
+    pub fn moments_of(&self, frames: impl IntoIterator<Item = usize>) -> Vec<f32> {
+        let times = frames
+            .into_iter()
+            .filter_map(|i| self.frames.get(i).and_then(|f| f.time));
         super::time::moments(times)
     }
 

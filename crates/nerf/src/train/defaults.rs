@@ -383,19 +383,19 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
         Choice::On(()) => true,
         Choice::Off => false,
         Choice::Default => {
+            let prior = if time_weight == 0.0 {
+                "no prior of smoothness in time".to_string()
+            } else {
+                format!("smooth in time (weight {time_weight}; --no-time-smoothness turns it off)")
+            };
             by_default(
                 Feature::Dynamic,
                 scene.dynamic(),
                 &format!(
                     "the photos show a moving scene: training a field of space and time (the \
-                 default when every photo has a time; --no-dynamic trains a still one), a \
-                 finest time cell for each of its {} moments, {}",
-                    scene.moments,
-                    if time_weight == 0.0 {
-                        "no prior of smoothness in time".to_string()
-                    } else {
-                        format!("smooth in time (weight {time_weight}; --no-time-smoothness turns it off)")
-                    }
+                     default when every photo has a time; --no-dynamic trains a still one), a \
+                     finest time cell for each of its {} moments, {prior}",
+                    scene.moments
                 ),
             )
         }

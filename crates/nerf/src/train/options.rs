@@ -400,11 +400,9 @@ impl TrainOptions {
                     None => (0..scene.train.len()).collect(),
                 };
                 let photos = chosen.len();
-                let moments = crate::data::time::moments(chosen.iter().filter_map(|&k| {
-                    let frame = scene.train.get(k).and_then(|&i| scene.frames.get(i));
-                    frame.and_then(|f| f.time)
-                }))
-                .len();
+                let moments = scene
+                    .moments_of(chosen.iter().filter_map(|&k| scene.train.get(k).copied()))
+                    .len();
                 if self.bf16 && Precision::bf16().is_none() {
                     return refuse(NO_BF16.into());
                 }
@@ -439,8 +437,8 @@ impl TrainOptions {
                 m.bf16_products = d.bf16_products;
                 if (self.time_smoothness.is_some() || self.no_time_smoothness) && !d.dynamic() {
                     return refuse(
-                        "--time-smoothness and --no-time-smoothness apply to a field of space and time (a scene whose \
-                         photos have times, or --dynamic)"
+                        "--time-smoothness and --no-time-smoothness apply to a field of space \
+                         and time (a scene whose photos have times, or --dynamic)"
                             .into(),
                     );
                 }
@@ -792,8 +790,8 @@ impl TrainOptions {
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
                  --antialias / --no-antialias / --distortion / --no-distortion / --few-view / \
                  --no-few-view / --dynamic / --no-dynamic / --time-smoothness / \
-                 --no-time-smoothness / --depth-smoothness / --no-depth-smoothness / --bf16 (set when the run was \
-                 made)"
+                 --no-time-smoothness / --depth-smoothness / --no-depth-smoothness / --bf16 \
+                 (set when the run was made)"
                     .into(),
             );
         }
