@@ -63,8 +63,9 @@ impl SpaceTimeConfig {
     /// level's), so a photo's moment is not blended with its neighbours' at the finest
     /// level; the prior of smoothness in time (`model::FastModelConfig::time_smoothness`)
     /// then shares what the neighbouring moments agree on. A fast motion needs the fine
-    /// cells, a slow one the prior: together they measured better on both (figures in
-    /// `docs/benchmarks.md`).
+    /// cells, a slow one the prior: together they measured better on both at small sizes,
+    /// and at full size reach a fast motion's figure sooner, level with coarser time
+    /// cells in long runs (figures in `docs/benchmarks.md`).
     pub fn for_moments(moments: usize) -> Self {
         let base = SpaceTimeConfig::default();
         SpaceTimeConfig {
