@@ -169,21 +169,12 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         moments: crate::data::time::moments(data.views.iter().filter_map(|v| v.time)).len(),
     };
     let chosen = defaults::decide(opts.device, &facts, &flags);
-    for note in chosen.notes {
-        say(note);
+    for note in &chosen.notes {
+        say(note.clone());
     }
     let antialias = chosen.antialias;
-    model.distortion = chosen.distortion;
-    model.bf16_products = chosen.bf16_products;
-    model.field.motion = chosen.motion;
-    model.time_smoothness = chosen.time_smoothness;
-    if chosen.few_view {
-        model.train_from_few_views(data.views.len());
-    }
-    if antialias {
-        let cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
-        model.antialias_for(&cameras, &data.space);
-    }
+    let cameras: Vec<Camera> = data.views.iter().map(|v| v.camera.clone()).collect();
+    chosen.apply_to(&mut model, &cameras, &data.space, cameras.len());
     let mut config = TrainConfig::fast("(in memory)".into());
     let distortion = model.distortion;
     let bf16_products = model.bf16_products;

@@ -135,16 +135,8 @@ pub fn run(opts: &DemoOptions, hooks: &mut dyn DemoHooks) -> Result<DemoReport> 
         hooks.say(note);
     }
     if let crate::model::ModelConfig::Fast(m) = &mut config.model {
-        if chosen.antialias {
-            m.antialias_for(&opened.cameras(Split::Train), &opened.space);
-        }
-        m.distortion = chosen.distortion;
-        m.bf16_products = chosen.bf16_products;
-        if chosen.few_view {
-            m.train_from_few_views(opened.train.len());
-        }
-        m.field.motion = chosen.motion;
-        m.time_smoothness = chosen.time_smoothness;
+        let cameras = opened.cameras(Split::Train);
+        chosen.apply_to(m, &cameras, &opened.space, cameras.len());
     }
     let run_options = RunOptions {
         out: run_dir.clone(),

@@ -1,6 +1,7 @@
 //! A run's defaults: the one function that turns what a scene is, the engine the run will
 //! be on and the user's flags into the fast model's quality features. `nerf train`, the
-//! demo and `nerf bench` all take their features from [`fast_defaults`].
+//! demo and `nerf bench` all take their features from [`fast_defaults`] and write them
+//! into the model with [`Defaults::apply_to`].
 //!
 //! The rules, in order (each feature as the user asked when they asked; otherwise):
 //! 1. anti-aliasing: on, but for forward-facing (NDC) scenes, where it measured worse on
@@ -31,9 +32,11 @@
 //! GPU, a run that asks for a feature only the CPU engine runs goes to the CPU, and says so.
 
 use crate::camera::ray_space::RaySpace;
+use crate::camera::Camera;
 use crate::encoding::space_time_grid::SpaceTimeConfig;
 use crate::engine::caps::{EngineKind, Feature};
 use crate::engine::Device;
+use crate::model::fast::FastModelConfig;
 
 /// The depth smoothness weight of forward-facing runs on few photos: the best of the
 /// weights measured on 8-view lego and chair, where it gained little; on the
@@ -202,6 +205,44 @@ impl Defaults {
     /// A field of space and time.
     pub fn dynamic(&self) -> bool {
         self.motion.is_some()
+    }
+
+    /// Writes the features into `model`, whose bound must already be the scene's (the
+    /// anti-aliasing footprints are measured against it). `cameras` are the training
+    /// photos' cameras in `space` (anti-aliasing's typical footprint; the first one's
+    /// width spaces depth smoothness's patches) and `photos` how many of them the run
+    /// trains on. Camera refinement is left to the caller: its rates follow flags that
+    /// are not defaults.
+    pub fn apply_to(
+        &self,
+        model: &mut FastModelConfig,
+        cameras: &[Camera],
+        space: &RaySpace,
+        photos: usize,
+    ) {
+        if self.antialias {
+            model.antialias_for(cameras, space);
+        }
+        model.distortion = self.distortion;
+        model.bf16_products = self.bf16_products;
+        model.field.motion = self.motion;
+        model.time_smoothness = self.time_smoothness;
+        if self.few_view {
+            model.train_from_few_views(photos);
+        }
+        if self.depth_smoothness > 0.0 {
+            use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
+            let width = cameras.first().map_or(0, |c| c.width);
+            model.depth_smoothness = Some(DepthSmoothness {
+                weight: self.depth_smoothness,
+                patches: PATCHES,
+                stride: stride_for(width),
+            });
+        }
+        if let Some(dims) = self.appearance {
+            model.field.appearance_dims = dims as usize;
+            model.field.appearance_images = photos;
+        }
     }
 }
 
@@ -624,6 +665,46 @@ mod tests {
             (d.appearance, d.refine_cameras, d.distortion),
             (None, false, 0.0)
         );
+    }
+
+    #[test]
+    fn apply_to_writes_each_feature_into_the_model() {
+        use crate::model::unseen_patches::stride_for;
+        let pose = crate::camera::look_at([0.0, -4.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]);
+        let cameras = vec![Camera::from_fov_x(64, 48, 0.7, pose); 3];
+        let every = Flags {
+            antialias: Choice::Off,
+            appearance: Choice::On(8),
+            refine_cameras: Choice::Off,
+            distortion: Choice::On(0.01),
+            few_view: Choice::On(()),
+            dynamic: Choice::On(()),
+            depth_smoothness: Choice::On(0.1),
+            time_smoothness: Choice::On(0.02),
+            bf16: Choice::On(()),
+        };
+        let scene = SceneFacts {
+            moments: 3,
+            ..facts(true, RaySpace::World)
+        };
+        let mut m = FastModelConfig::default();
+        let d = fast_defaults(&scene, CPU, &every);
+        d.apply_to(&mut m, &cameras, &RaySpace::World, 2);
+        assert!(m.field.antialias.is_none() && m.bf16_products && m.few_view.is_some());
+        assert_eq!(m.field.motion, d.motion);
+        assert!(m.field.motion.is_some());
+        assert_eq!((m.distortion, m.time_smoothness), (0.01, 0.02));
+        let smooth = m.depth_smoothness.expect("depth smoothness asked for");
+        assert_eq!((smooth.weight, smooth.stride), (0.1, stride_for(64)));
+        assert_eq!((m.field.appearance_dims, m.field.appearance_images), (8, 2));
+        // A still Blender scene's defaults: anti-aliasing and nothing else.
+        let mut m = FastModelConfig::default();
+        let d = fast_defaults(&facts(true, RaySpace::World), CPU, &Flags::default());
+        d.apply_to(&mut m, &cameras, &RaySpace::World, 3);
+        assert!(m.field.antialias.is_some() && m.field.motion.is_none());
+        assert!(m.few_view.is_none() && m.depth_smoothness.is_none());
+        assert_eq!((m.distortion, m.time_smoothness), (0.0, 0.0));
+        assert_eq!(m.field.appearance_dims, 0);
     }
 
     /// On the GPU engine each default it cannot run is left off and said, by name; the

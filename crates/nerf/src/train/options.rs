@@ -430,11 +430,6 @@ impl TrainOptions {
                     m.samples_per_step =
                         defaults::timed_samples_per_step(d.dynamic(), m.samples_per_step);
                 }
-                if d.antialias {
-                    m.antialias_for(&scene.cameras(crate::data::Split::Train), &scene.space);
-                }
-                m.distortion = d.distortion;
-                m.bf16_products = d.bf16_products;
                 if (self.time_smoothness.is_some() || self.no_time_smoothness) && !d.dynamic() {
                     return refuse(
                         "--time-smoothness and --no-time-smoothness apply to a field of space \
@@ -443,7 +438,6 @@ impl TrainOptions {
                     );
                 }
                 if d.dynamic() {
-                    m.time_smoothness = d.time_smoothness;
                     if d.refine_cameras {
                         return refuse(
                             "--refine-cameras cannot be combined with a field of space and \
@@ -457,27 +451,13 @@ impl TrainOptions {
                              at moment 0, so the field learns a still scene",
                         );
                     }
-                    m.field.motion = d.motion;
                 }
-                if d.few_view {
-                    m.train_from_few_views(photos);
-                }
-                if d.depth_smoothness > 0.0 {
-                    use crate::model::unseen_patches::{stride_for, DepthSmoothness, PATCHES};
-                    let width = scene
-                        .cameras(crate::data::Split::Train)
-                        .first()
-                        .map_or(0, |c| c.width);
-                    m.depth_smoothness = Some(DepthSmoothness {
-                        weight: d.depth_smoothness,
-                        patches: PATCHES,
-                        stride: stride_for(width),
-                    });
-                }
-                if let Some(dims) = d.appearance {
-                    m.field.appearance_dims = dims as usize;
-                    m.field.appearance_images = photos;
-                }
+                d.apply_to(
+                    m,
+                    &scene.cameras(crate::data::Split::Train),
+                    &scene.space,
+                    photos,
+                );
                 let asked = d.refine_asked;
                 if d.refine_cameras {
                     let mut r = crate::model::camera_refine::CameraRefinement::new(photos);
