@@ -483,6 +483,21 @@ mod tests {
         }
     }
 
+    /// Every default overridden: each feature asked on, but anti-aliasing (on by default) off.
+    fn every_default_overridden() -> Flags {
+        Flags {
+            antialias: Choice::Off,
+            appearance: Choice::On(8),
+            refine_cameras: Choice::On(()),
+            distortion: Choice::On(0.01),
+            few_view: Choice::On(()),
+            dynamic: Choice::On(()),
+            depth_smoothness: Choice::On(0.1),
+            time_smoothness: Choice::On(0.02),
+            bf16: Choice::On(()),
+        }
+    }
+
     const CPU: EngineKind = EngineKind::Cpu;
     const NDC: RaySpace = RaySpace::Ndc(crate::camera::ray_space::Ndc {
         ax: 1.5,
@@ -628,17 +643,7 @@ mod tests {
 
     #[test]
     fn flags_win_over_every_rule() {
-        let flags = Flags {
-            antialias: Choice::Off,
-            appearance: Choice::On(8),
-            refine_cameras: Choice::On(()),
-            distortion: Choice::On(0.01),
-            few_view: Choice::On(()),
-            dynamic: Choice::On(()),
-            depth_smoothness: Choice::On(0.1),
-            time_smoothness: Choice::On(0.02),
-            bf16: Choice::On(()),
-        };
+        let flags = every_default_overridden();
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
         assert!(d.dynamic() && d.bf16_products);
         assert_eq!((d.depth_smoothness, d.time_smoothness), (0.1, 0.02));
@@ -672,16 +677,10 @@ mod tests {
         use crate::model::unseen_patches::stride_for;
         let pose = crate::camera::look_at([0.0, -4.0, 1.0], [0.0; 3], [0.0, 0.0, 1.0]);
         let cameras = vec![Camera::from_fov_x(64, 48, 0.7, pose); 3];
+        // Refinement is the caller's to write.
         let every = Flags {
-            antialias: Choice::Off,
-            appearance: Choice::On(8),
             refine_cameras: Choice::Off,
-            distortion: Choice::On(0.01),
-            few_view: Choice::On(()),
-            dynamic: Choice::On(()),
-            depth_smoothness: Choice::On(0.1),
-            time_smoothness: Choice::On(0.02),
-            bf16: Choice::On(()),
+            ..every_default_overridden()
         };
         let scene = SceneFacts {
             moments: 3,
