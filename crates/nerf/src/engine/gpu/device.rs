@@ -59,6 +59,39 @@ pub const GRID_RUN: usize = 8;
 /// Threads a warp (plane) as the tensor-core kernel takes them.
 pub const WARP: u32 = 32;
 
+/// Kernels CubeCL's wgpu runtime queues before it hands them to the device in one
+/// submission (its own default is 32). Smaller batches start the device sooner while the
+/// host is still queueing a step's later kernels: the fastest of 4, 8, 16, 32 and 128 on a
+/// data-centre GPU (docs/benchmarks.md). `CUBECL_WGPU_MAX_TASKS` overrides, for measuring.
+pub const TASKS_PER_SUBMISSION: usize = 8;
+
+/// Opens the wgpu runtime on `device` with [`TASKS_PER_SUBMISSION`] (or the environment's
+/// count), unless a client for it is open already, which keeps the options it opened with.
+fn open_wgpu(device: &cubecl::wgpu::WgpuDevice) {
+    use cubecl::wgpu::{try_init_setup_async, AutoGraphicsApi, RuntimeOptions};
+    use std::collections::HashSet;
+    use std::sync::{Mutex, OnceLock};
+    // Each adapter is opened once a process: a second attempt would make a device only
+    // to find the client there.
+    static OPENED: OnceLock<Mutex<HashSet<cubecl::wgpu::WgpuDevice>>> = OnceLock::new();
+    let mut opened = OPENED
+        .get_or_init(Default::default)
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner());
+    if !opened.insert(device.clone()) {
+        return;
+    }
+    let options = match std::env::var_os("CUBECL_WGPU_MAX_TASKS") {
+        Some(_) => RuntimeOptions::try_default(),
+        None => RuntimeOptions::with_tasks_max(Some(TASKS_PER_SUBMISSION)),
+    };
+    if let Ok(options) = options {
+        // An error is a client opened elsewhere, or an adapter that cannot open, which
+        // `device.client()` then reports.
+        let _ = cubecl::future::block_on(try_init_setup_async::<AutoGraphicsApi>(device, options));
+    }
+}
+
 /// See [`Gpu::tensor_cores`].
 fn has_tensor_cores(client: &Client) -> bool {
     let props = client.properties();
@@ -84,6 +117,9 @@ impl Gpu {
 
     /// The client of an opened CubeCL device, described.
     fn from_device(device: cubecl::Device, runtime: &str) -> Gpu {
+        if let cubecl::Device::Wgpu(wgpu_device) = &device {
+            open_wgpu(wgpu_device);
+        }
         let client = device.client();
         let f32_atomic = Type::atomic(ElemType::Float(FloatKind::F32));
         let float_atomics = client
