@@ -28,6 +28,7 @@ use super::params::{
 };
 use super::rays::GpuViews;
 use super::space_time_grid::per_sample;
+use super::trace::{self, Phase, StepTrace};
 use super::{antialias, depth_smoothness, distortion, loss, pose_grad, rays, render, volume};
 use crate::data::pixels::{PixelChoice, TrainingRays};
 use crate::data::Dataset;
@@ -188,6 +189,8 @@ pub struct GpuEngine {
     /// kept.
     rays: TrainingRays,
     last_rays: usize,
+    /// Where the host's time goes in training steps (`NERF_GPU_TRACE`).
+    trace: StepTrace,
 }
 
 impl GpuEngine {
@@ -225,6 +228,7 @@ impl GpuEngine {
             views: None,
             rays: TrainingRays::default(),
             last_rays: 0,
+            trace: StepTrace::default(),
         }
     }
 
@@ -276,9 +280,11 @@ impl GpuEngine {
                 backgrounds,
             } = self.draw_rays(data, spec, &marcher, want, cameras);
             let counted = self.marcher.count(&self.gpu, &on_device);
+            self.trace.mark(Phase::Drawing);
             let cut =
                 self.marcher
                     .cut_in_blocks(&self.gpu, &counted, want, (budget, max_rays), block)?;
+            self.trace.mark(Phase::Cut);
             if cut.found || want >= max_rays {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
@@ -692,6 +698,7 @@ impl Engine for GpuEngine {
 
     fn train_step(&mut self, data: &Dataset, spec: &StepSpec) -> Result<StepStats> {
         let step = spec.sampling.step;
+        self.trace.begin();
         // Few-view training marks the space its cameras see once, on the host grid; the
         // device's grid follows it from then on.
         let marked = self.model.grid.possible.is_some();
@@ -704,6 +711,7 @@ impl Engine for GpuEngine {
         self.field
             .set_level_scale(&self.gpu, &self.model.field.level_weights);
         let cameras = self.camera_steps(data)?;
+        self.trace.mark(Phase::Prepare);
         let clock = step_clock::start(Stage::Marching);
         let StepRays {
             cut,
@@ -793,7 +801,9 @@ impl Engine for GpuEngine {
             &d_rgb,
         );
         if let Some(frame) = &frame {
+            self.trace.mark(Phase::Queueing);
             self.add_camera_gradients(&cameras, &acts, &inputs, &samples, &dirs, frame)?;
+            self.trace.mark(Phase::Cameras);
         }
         if config.time_smoothness > 0.0 {
             // The step's gradient is scaled by 1 / (3 rays) (see `render::loss`): 3 times
@@ -822,6 +832,7 @@ impl Engine for GpuEngine {
         let rule = self.model.update_rule();
         // A frozen field is a learning rate of zero, as on the CPU engine.
         let field_lr = if spec.frozen_field { 0.0 } else { spec.lr };
+        self.trace.mark(Phase::Queueing);
         let clock = step_clock::start(Stage::Adam);
         // The per-ray errors summed in ray order in f64: the CPU engine's loss to rounding.
         let sse = self.state.finish_step(
@@ -835,6 +846,7 @@ impl Engine for GpuEngine {
         )?;
         let loss = (sse * scale) as f32;
         gpu.stage_done(clock);
+        self.trace.mark(Phase::End);
         check_device(
             gpu,
             &check,
@@ -849,6 +861,8 @@ impl Engine for GpuEngine {
         if !spec.frozen_field {
             self.refresh_occupancy(step + 1, spec.sampling.seed);
         }
+        self.trace.mark(Phase::Refresh);
+        self.trace.step_done();
         Ok(StepStats {
             step: step + 1,
             loss,
@@ -946,7 +960,7 @@ impl Engine for GpuEngine {
             }
             Err(e) => fail_rays(&e, out),
         }
-        if render::tracing() {
+        if trace::tracing() {
             let ms = |d: std::time::Duration| d.as_secs_f64() * 1e3;
             eprintln!(
                 "gpu view: {} pixels in {:.1} ms: casting {:.1}, rendering and writing {:.1}",

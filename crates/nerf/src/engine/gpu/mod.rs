@@ -70,6 +70,7 @@ pub mod rays;
 pub mod render;
 pub mod space_time_grid;
 pub mod time_smoothness;
+pub mod trace;
 pub mod trunk;
 pub mod vanilla;
 pub mod vanilla_net;

@@ -385,6 +385,14 @@ pub fn camera_rays(
     })
 }
 
+/// Most floats the training views' images (or lens tables) may take on `gpu`: the
+/// adapter's largest storage buffer (128 MiB on some, such as lavapipe and WebGPU's
+/// defaults), and never past `MAX_FLOATS`.
+fn max_floats(gpu: &Gpu) -> usize {
+    let buffer = gpu.client.properties().memory.max_page_size / 4;
+    usize::try_from(buffer).map_or(MAX_FLOATS, |b| b.min(MAX_FLOATS))
+}
+
 /// The training views of one dataset on the device.
 pub struct GpuViews {
     meta: Handle,
@@ -396,8 +404,13 @@ pub struct GpuViews {
 
 impl GpuViews {
     /// Uploads `data`'s images, cameras and lens tables; `None` when they would pass
-    /// `MAX_FLOATS` (the host draws the rays then).
+    /// what one of the adapter's buffers holds (the host draws the rays then).
     pub fn upload(gpu: &Gpu, data: &Dataset) -> Option<GpuViews> {
+        GpuViews::upload_within(gpu, data, max_floats(gpu))
+    }
+
+    /// [`upload`](Self::upload) with at most `limit` floats of images and lens tables.
+    fn upload_within(gpu: &Gpu, data: &Dataset, limit: usize) -> Option<GpuViews> {
         let pixels: usize = data
             .views
             .iter()
@@ -407,7 +420,7 @@ impl GpuViews {
         let mut tables: Vec<f32> = Vec::new();
         // Distinct distorted lenses and where their tables start.
         let mut lenses: Vec<(Camera, usize)> = Vec::new();
-        if 4 * pixels > MAX_FLOATS {
+        if 4 * pixels > limit {
             return None;
         }
         images.reserve(4 * pixels);
@@ -421,7 +434,7 @@ impl GpuViews {
                     Some((_, at)) => *at,
                     None => {
                         let at = tables.len();
-                        if 4 * pixels + at + 2 * cam.width * cam.height > MAX_FLOATS {
+                        if 4 * pixels + at + 2 * cam.width * cam.height > limit {
                             return None;
                         }
                         tables.extend(lens_table(cam));
@@ -430,7 +443,7 @@ impl GpuViews {
                     }
                 }
             };
-            // Below MAX_FLOATS (checked above), every offset fits the kernel's u32.
+            // Below the limit (checked above), every offset fits the kernel's u32.
             let image_at = images.len();
             meta.extend([cam.width as u32, image_at as u32, table as u32]);
             cams.extend([cam.fx, cam.fy, cam.cx, cam.cy]);
@@ -607,6 +620,18 @@ mod tests {
                 (0..n).map(|k| PixelChoice::draw(data, &how, k)).collect();
             let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
             let views = GpuViews::upload(&gpu, data).expect("small enough");
+            // One float short of the images, the rays are the host's.
+            let pixels: usize = data
+                .views
+                .iter()
+                .map(|v| v.image.width * v.image.height)
+                .sum();
+            assert!(GpuViews::upload_within(&gpu, data, 4 * pixels - 1).is_none());
+            assert!(
+                max_floats(&gpu) >= 4 * pixels,
+                "the adapter holds {} floats",
+                max_floats(&gpu)
+            );
             let (got, targets, backgrounds) =
                 views.generate(&gpu, &data.space, &marcher, grid.bound, &choices, &jitter);
 

@@ -19,6 +19,7 @@ use super::field::{DeviceInput, DeviceMoments};
 use super::launch::grid;
 use super::march::{Counted, Cut, GpuMarcher, GpuRays, PendingCut, RoundState, STATE_WORDS};
 use super::space_time_grid::per_sample;
+use super::trace::tracing;
 use crate::error::Result;
 use crate::math::length;
 use crate::render::march::Marcher;
@@ -267,11 +268,6 @@ struct Trace {
     samples: usize,
     waiting: Duration,
     rounds_done: Duration,
-}
-
-/// Whether `NERF_GPU_TRACE` asks for the renderer's timings.
-pub fn tracing() -> bool {
-    std::env::var_os("NERF_GPU_TRACE").is_some()
 }
 
 impl Trace {
