@@ -32,6 +32,12 @@ fn unit(v: u8) -> f32 {
     v as f32 / 255.0
 }
 
+/// Each byte value's channel value as [`RgbaImage::pixel`] reads it (`v / 255`), so that
+/// another reader of [`RgbaImage::straight_bytes`] (the GPU engine) makes the same floats.
+pub fn unit_values() -> [f32; 256] {
+    std::array::from_fn(|v| unit(v as u8))
+}
+
 impl RgbaImage {
     /// Reads an 8- or 16-bit PNG (or any format the `image` crate decodes); images without
     /// alpha are opaque.
@@ -100,6 +106,16 @@ impl RgbaImage {
                 let p = &f[index * 4..][..4];
                 [p[0], p[1], p[2], p[3]]
             }
+        }
+    }
+
+    /// The pixels as read from an 8-bit file, straight (not premultiplied) RGBA, 4 bytes a
+    /// pixel; `None` for an image held as floats (16-bit files, downscaled or rendered
+    /// images). [`pixel`](Self::pixel) turns each byte `v` into `unit_values()[v]`.
+    pub fn straight_bytes(&self) -> Option<&[u8]> {
+        match &self.texels {
+            Texels::Bytes(b) => Some(b),
+            Texels::Floats(_) => None,
         }
     }
 

@@ -21,6 +21,7 @@ use super::march::GpuRays;
 use crate::camera::footprint::PIXEL_RADIUS;
 use crate::camera::ray_space::RaySpace;
 use crate::camera::Camera;
+use crate::data::image::unit_values;
 use crate::data::pixels::PixelChoice;
 use crate::data::Dataset;
 use crate::render::march::Marcher;
@@ -182,6 +183,8 @@ fn generate(
     cams: &[f32],
     tables: &[f32],
     images: &[f32],
+    packed_images: &[u32],
+    units: &[f32],
     origins: &mut [f32],
     dirs: &mut [f32],
     views: &mut [f32],
@@ -190,6 +193,7 @@ fn generate(
     targets: &mut [f32],
     rays: u32,
     p: RayGenParams,
+    #[comptime] packed: bool,
 ) {
     let r = ABSOLUTE_POS;
     if r < rays as usize {
@@ -212,12 +216,26 @@ fn generate(
         cast(
             cams, c, u, w, jitter[r], r, origins, dirs, views, start, end, p,
         );
+        // The pixel, premultiplied: from its four bytes as the host reads them
+        // (`RgbaImage::pixel`), or from its floats.
+        let (red, green, blue, alpha) = if packed {
+            let word = packed_images[image + pix as usize];
+            let a = units[(word >> 24) as usize];
+            (
+                units[(word & 255) as usize] * a,
+                units[((word >> 8) & 255) as usize] * a,
+                units[((word >> 16) & 255) as usize] * a,
+                a,
+            )
+        } else {
+            let q = image + 4 * pix as usize;
+            (images[q], images[q + 1], images[q + 2], images[q + 3])
+        };
         let k = 3 * r;
-        let q = image + 4 * pix as usize;
-        let clear = 1.0 - images[q + 3];
-        targets[k] = images[q] + backgrounds[k] * clear;
-        targets[k + 1] = images[q + 1] + backgrounds[k + 1] * clear;
-        targets[k + 2] = images[q + 2] + backgrounds[k + 2] * clear;
+        let clear = 1.0 - alpha;
+        targets[k] = red + backgrounds[k] * clear;
+        targets[k + 1] = green + backgrounds[k + 1] * clear;
+        targets[k + 2] = blue + backgrounds[k + 2] * clear;
     }
 }
 
@@ -385,7 +403,8 @@ pub fn camera_rays(
     })
 }
 
-/// Most floats the training views' images (or lens tables) may take on `gpu`: the
+/// Most words (floats, or pixels of four bytes) the training views' images or lens tables
+/// may take on `gpu`: the
 /// adapter's largest storage buffer (128 MiB on some, such as lavapipe and WebGPU's
 /// defaults), and never past `MAX_FLOATS`.
 fn max_floats(gpu: &Gpu) -> usize {
@@ -398,7 +417,12 @@ pub struct GpuViews {
     meta: Handle,
     cams: Handle,
     tables: Handle,
+    /// Every view's pixels: four bytes a pixel in one word (`packed`: every photo was read
+    /// from an 8-bit file), else four premultiplied floats.
     images: Handle,
+    packed: bool,
+    /// [`unit_values`]: what the kernel turns a byte into.
+    units: Handle,
     lens: [usize; 4],
 }
 
@@ -409,21 +433,31 @@ impl GpuViews {
         GpuViews::upload_within(gpu, data, max_floats(gpu))
     }
 
-    /// [`upload`](Self::upload) with at most `limit` floats of images and lens tables.
+    /// [`upload`](Self::upload) with at most `limit` words of images and of lens tables.
     fn upload_within(gpu: &Gpu, data: &Dataset, limit: usize) -> Option<GpuViews> {
         let pixels: usize = data
             .views
             .iter()
             .map(|v| v.image.width * v.image.height)
             .sum();
-        let (mut meta, mut cams, mut images) = (Vec::new(), Vec::new(), Vec::new());
+        let packed = data
+            .views
+            .iter()
+            .all(|v| v.image.straight_bytes().is_some());
+        let words = if packed { pixels } else { 4 * pixels };
+        let (mut meta, mut cams) = (Vec::new(), Vec::new());
+        let (mut images, mut packed_images): (Vec<f32>, Vec<u32>) = (Vec::new(), Vec::new());
         let mut tables: Vec<f32> = Vec::new();
         // Distinct distorted lenses and where their tables start.
         let mut lenses: Vec<(Camera, usize)> = Vec::new();
-        if 4 * pixels > limit {
+        if words > limit {
             return None;
         }
-        images.reserve(4 * pixels);
+        if packed {
+            packed_images.reserve(words);
+        } else {
+            images.reserve(words);
+        }
         for view in &data.views {
             let cam = &view.camera;
             let table = if cam.distortion.is_pinhole() {
@@ -434,7 +468,7 @@ impl GpuViews {
                     Some((_, at)) => *at,
                     None => {
                         let at = tables.len();
-                        if 4 * pixels + at + 2 * cam.width * cam.height > limit {
+                        if at + 2 * cam.width * cam.height > limit {
                             return None;
                         }
                         tables.extend(lens_table(cam));
@@ -444,20 +478,33 @@ impl GpuViews {
                 }
             };
             // Below the limit (checked above), every offset fits the kernel's u32.
-            let image_at = images.len();
+            let image_at = images.len() + packed_images.len();
             meta.extend([cam.width as u32, image_at as u32, table as u32]);
             cams.extend([cam.fx, cam.fy, cam.cx, cam.cy]);
             cams.extend(cam.c2w.iter().flatten());
-            images.extend(view.image.premultiplied());
+            match view.image.straight_bytes() {
+                Some(bytes) if packed => packed_images.extend(
+                    bytes
+                        .chunks_exact(4)
+                        .map(|p| u32::from_le_bytes([p[0], p[1], p[2], p[3]])),
+                ),
+                _ => images.extend(view.image.premultiplied()),
+            }
         }
         // Pinhole views read (and ignore) the first two values.
         tables.extend([0.0, 0.0]);
+        let image_words = images.len() + packed_images.len();
         Some(GpuViews {
-            lens: [meta.len(), cams.len(), tables.len(), images.len()],
+            lens: [meta.len(), cams.len(), tables.len(), image_words],
             meta: gpu.upload_u32(&meta),
             cams: gpu.upload(&cams),
             tables: gpu.upload(&tables),
-            images: gpu.upload(&images),
+            images: match packed {
+                true => gpu.upload_u32(&packed_images),
+                false => gpu.upload(&images),
+            },
+            packed,
+            units: gpu.upload(&unit_values()),
         })
     }
 
@@ -504,7 +551,11 @@ impl GpuViews {
                     BufferArg::from_raw_parts(self.meta.clone(), meta),
                     BufferArg::from_raw_parts(self.cams.clone(), cams),
                     BufferArg::from_raw_parts(self.tables.clone(), tables),
+                    // The images as floats or as words: the kernel reads the one `packed`
+                    // names (the other is the same buffer, unread).
                     BufferArg::from_raw_parts(self.images.clone(), images),
+                    BufferArg::from_raw_parts(self.images.clone(), images),
+                    BufferArg::from_raw_parts(self.units.clone(), 256),
                     BufferArg::from_raw_parts(origins.clone(), 3 * n),
                     BufferArg::from_raw_parts(dirs.clone(), 3 * n),
                     BufferArg::from_raw_parts(unit_views.clone(), 3 * n),
@@ -513,6 +564,7 @@ impl GpuViews {
                     BufferArg::from_raw_parts(targets.clone(), 3 * n),
                     n as u32,
                     params,
+                    self.packed,
                 );
             }
         }
@@ -587,6 +639,23 @@ mod tests {
                 p: [0.002, -0.001],
             };
         }
+        // The same photos as an 8-bit file gives them: packed on the device, four bytes a
+        // pixel.
+        let mut bytes = pinhole.clone();
+        for v in &mut bytes.views {
+            let (w, h) = (v.image.width, v.image.height);
+            let straight: Vec<u8> = v
+                .image
+                .premultiplied()
+                .chunks_exact(4)
+                .flat_map(|p| {
+                    let a = p[3];
+                    let c = |x: f32| (x / a.max(1e-6) * 255.0).round().clamp(0.0, 255.0) as u8;
+                    [c(p[0]), c(p[1]), c(p[2]), (a * 255.0).round() as u8]
+                })
+                .collect();
+            v.image = crate::data::RgbaImage::from_straight_bytes(w, h, straight);
+        }
         let mut ndc = pinhole.clone();
         ndc.space = RaySpace::Ndc(Ndc {
             ax: 2.0,
@@ -604,6 +673,7 @@ mod tests {
         let n = 600;
         for (name, data, contract) in [
             ("pinhole", &pinhole, None),
+            ("bytes", &bytes, None),
             ("distorted", &distorted, None),
             ("ndc", &ndc, None),
             ("contracted", &pinhole, Some(0.75)),
@@ -620,16 +690,19 @@ mod tests {
                 (0..n).map(|k| PixelChoice::draw(data, &how, k)).collect();
             let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
             let views = GpuViews::upload(&gpu, data).expect("small enough");
-            // One float short of the images, the rays are the host's.
+            // One word short of the images, the rays are the host's; photos of bytes take
+            // a word a pixel, others four.
             let pixels: usize = data
                 .views
                 .iter()
                 .map(|v| v.image.width * v.image.height)
                 .sum();
-            assert!(GpuViews::upload_within(&gpu, data, 4 * pixels - 1).is_none());
+            let words = if name == "bytes" { pixels } else { 4 * pixels };
+            assert_eq!(views.packed, name == "bytes", "{name}");
+            assert!(GpuViews::upload_within(&gpu, data, words - 1).is_none());
             assert!(
-                max_floats(&gpu) >= 4 * pixels,
-                "the adapter holds {} floats",
+                max_floats(&gpu) >= words,
+                "the adapter holds {} words",
                 max_floats(&gpu)
             );
             let (got, targets, backgrounds) =
