@@ -12,7 +12,7 @@
 # `run` prints, with the adapter's name: training samples/s at 65,536 and 262,144 samples
 # and where a step's host time goes (NERF_GPU_TRACE), lego_400 in 60 s with the defaults
 # (test PSNR on 25 views, the GPU's peak memory), 800x800 frames/s, the paper model's step,
-# and ngp_fox's 2000 steps with the real-capture defaults. DATA (default ../shared/data)
+# and ngp_fox's 2000 steps with the real-capture defaults (with the step trace's last line). DATA (default ../shared/data)
 # holds the scenes when packing; ffmpeg and python3 are needed there.
 set -euo pipefail
 
@@ -82,8 +82,9 @@ run() {
   [ -n "${FOX_CPU:-}" ] && devices="$gpu cpu"
   for device in $devices; do
     echo "== ngp_fox (downscaled 4x), ${FOX_STEPS:-2000} steps, the real-capture defaults, $device"
-    "$nerf" train --data "$dir/fox4" --steps "${FOX_STEPS:-2000}" --seed 0 --device "$device" --val-every 0 \
-      --out "$runs/fox_$device" 2>&1 | grep -E "stopped after|rror"
+    NERF_GPU_TRACE=1 "$nerf" train --data "$dir/fox4" --steps "${FOX_STEPS:-2000}" --seed 0 \
+      --device "$device" --val-every 0 --out "$runs/fox_$device" 2>&1 |
+      grep -E "stopped after|gpu training|rror" | tail -2
   done
   "$nerf" eval --run "$runs/fox_$gpu" --device "$gpu" 2>&1 | grep -E "mean PSNR|rror"
   rm -rf "$runs"
