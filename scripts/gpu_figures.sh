@@ -12,8 +12,9 @@
 # `run` prints, with the adapter's name: training samples/s at 65,536 and 262,144 samples
 # and where a step's host time goes (NERF_GPU_TRACE), lego_400 in 60 s with the defaults
 # (test PSNR on 25 views, the GPU's peak memory), 800x800 frames/s, the paper model's step,
-# and ngp_fox's 2000 steps with the real-capture defaults (with the step trace's last line). DATA (default ../shared/data)
-# holds the scenes when packing; ffmpeg and python3 are needed there.
+# and ngp_fox's 2000 steps with the real-capture defaults (and the step trace's last
+# report). DATA (default ../shared/data) holds the scenes when packing; ffmpeg and python3
+# are needed there.
 set -euo pipefail
 
 pack() {
@@ -93,5 +94,5 @@ run() {
 case "${1:-}" in
   pack) pack "${2:?a folder to pack into}" ;;
   run) run "${2:?the packed folder}" ;;
-  *) sed -n '2,16p' "$0"; exit 2 ;;
+  *) sed -n '2,17p' "$0"; exit 2 ;;
 esac
