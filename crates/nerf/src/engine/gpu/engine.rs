@@ -267,7 +267,9 @@ impl GpuEngine {
             None => 1,
         };
         let mut want = (self.last_rays + self.last_rays / 4 + 16).clamp(64, max_rays);
-        if !matches!(&self.views, Some((key, _)) if *key == GpuViews::key_of(data)) {
+        // Refined cameras' rays are drawn and corrected on the host: their photos stay there.
+        let uploaded = matches!(&self.views, Some((key, _)) if *key == GpuViews::key_of(data));
+        if cameras.is_empty() && !uploaded {
             self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
         }
         loop {
