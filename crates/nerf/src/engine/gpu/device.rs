@@ -61,8 +61,9 @@ pub const WARP: u32 = 32;
 
 /// Kernels CubeCL's wgpu runtime queues before it hands them to the device in one
 /// submission (its own default is 32). Smaller batches start the device sooner while the
-/// host is still queueing a step's later kernels: the fastest of 4, 8, 16, 32 and 128 on a
-/// data-centre GPU (docs/benchmarks.md). `CUBECL_WGPU_MAX_TASKS` overrides, for measuring.
+/// host is still queueing a step's later kernels: with 16, the fastest of 4, 8, 16, 32 and
+/// 128 on a data-centre GPU (docs/benchmarks.md). `CUBECL_WGPU_MAX_TASKS` overrides, for
+/// measuring.
 pub const TASKS_PER_SUBMISSION: usize = 8;
 
 /// Opens the wgpu runtime on `device` with [`TASKS_PER_SUBMISSION`] (or the environment's
