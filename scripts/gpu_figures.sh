@@ -14,7 +14,7 @@
 # (test PSNR on 25 views, the GPU's peak memory), 800x800 frames/s, the paper model's step,
 # and ngp_fox's 2000 steps with the real-capture defaults (and the step trace's last
 # report). DATA (default ../shared/data) holds the scenes when packing; ffmpeg and python3
-# are needed there.
+# are needed there. The GPU machine needs a Vulkan loader (libvulkan1) beside its driver.
 set -euo pipefail
 
 pack() {
@@ -94,5 +94,5 @@ run() {
 case "${1:-}" in
   pack) pack "${2:?a folder to pack into}" ;;
   run) run "${2:?the packed folder}" ;;
-  *) sed -n '2,17p' "$0"; exit 2 ;;
+  *) sed -n '2,18p' "$0"; exit 2 ;;
 esac
