@@ -94,5 +94,5 @@ run() {
 case "${1:-}" in
   pack) pack "${2:?a folder to pack into}" ;;
   run) run "${2:?the packed folder}" ;;
-  *) sed -n '2,18p' "$0"; exit 2 ;;
+  *) sed -n '2,17p' "$0"; exit 2 ;;
 esac
