@@ -404,10 +404,9 @@ pub fn camera_rays(
 }
 
 /// Most words (floats, or pixels of four bytes) the training views' images or lens tables
-/// may take on `gpu`: the
-/// adapter's largest storage buffer (128 MiB on some, such as lavapipe and WebGPU's
-/// defaults), and never past `MAX_FLOATS`.
-fn max_floats(gpu: &Gpu) -> usize {
+/// may take on `gpu`: the adapter's largest storage buffer (128 MiB on some, such as
+/// lavapipe and WebGPU's defaults), and never past `MAX_FLOATS`.
+fn max_words(gpu: &Gpu) -> usize {
     let buffer = gpu.client.properties().memory.max_page_size / 4;
     usize::try_from(buffer).map_or(MAX_FLOATS, |b| b.min(MAX_FLOATS))
 }
@@ -430,7 +429,7 @@ impl GpuViews {
     /// Uploads `data`'s images, cameras and lens tables; `None` when they would pass
     /// what one of the adapter's buffers holds (the host draws the rays then).
     pub fn upload(gpu: &Gpu, data: &Dataset) -> Option<GpuViews> {
-        GpuViews::upload_within(gpu, data, max_floats(gpu))
+        GpuViews::upload_within(gpu, data, max_words(gpu))
     }
 
     /// [`upload`](Self::upload) with at most `limit` words of images and of lens tables.
@@ -701,9 +700,9 @@ mod tests {
             assert_eq!(views.packed, name == "bytes", "{name}");
             assert!(GpuViews::upload_within(&gpu, data, words - 1).is_none());
             assert!(
-                max_floats(&gpu) >= words,
+                max_words(&gpu) >= words,
                 "the adapter holds {} words",
-                max_floats(&gpu)
+                max_words(&gpu)
             );
             let (got, targets, backgrounds) =
                 views.generate(&gpu, &data.space, &marcher, grid.bound, &choices, &jitter);

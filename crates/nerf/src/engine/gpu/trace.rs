@@ -33,15 +33,17 @@ pub enum Phase {
     Refresh,
 }
 
-const PHASES: [(Phase, &str); 7] = [
-    (Phase::Prepare, "preparing"),
-    (Phase::Drawing, "drawing rays"),
-    (Phase::Cut, "waiting for the cut"),
-    (Phase::Queueing, "queueing"),
-    (Phase::Cameras, "camera gradients"),
-    (Phase::End, "Adam and waiting for the end"),
-    (Phase::Refresh, "refresh"),
+/// Each phase's name in a report, in [`Phase`]'s order (a phase's index is `phase as usize`).
+const PHASES: [&str; 7] = [
+    "preparing",
+    "drawing rays",
+    "waiting for the cut",
+    "queueing",
+    "camera gradients",
+    "Adam and waiting for the end",
+    "refresh",
 ];
+const _: () = assert!(Phase::Refresh as usize + 1 == PHASES.len());
 
 /// A training step's host time by phase, summed over the steps since the last report.
 pub struct StepTrace {
@@ -79,8 +81,7 @@ impl StepTrace {
     pub fn mark(&mut self, phase: Phase) {
         if self.on {
             let now = Instant::now();
-            let slot = PHASES.iter().position(|(p, _)| *p == phase).unwrap_or(0);
-            self.spent[slot] += now - self.last;
+            self.spent[phase as usize] += now - self.last;
             self.last = now;
         }
     }
@@ -107,7 +108,7 @@ impl StepTrace {
             .iter()
             .zip(&self.spent)
             .filter(|(_, d)| !d.is_zero())
-            .map(|((_, name), d)| format!("{name} {:.2}", per_step(*d)))
+            .map(|(name, d)| format!("{name} {:.2}", per_step(*d)))
             .collect();
         let line = format!(
             "gpu training, mean of {} steps: {:.2} ms a step: {}",
