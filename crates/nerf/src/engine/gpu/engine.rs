@@ -17,6 +17,7 @@
 use cubecl::server::Handle;
 use rayon::prelude::*;
 
+use super::camera_poses::DevicePoses;
 use super::codes::SampleCodes;
 use super::depth_smoothness::LastStep;
 use super::device::Gpu;
@@ -150,6 +151,9 @@ struct StepRays {
     backgrounds: Handle,
     /// The rays' world origins and unit directions, where cameras are refined.
     frame: Option<(Handle, Handle)>,
+    /// The rays' unit world directions and views, where cameras are corrected on the
+    /// device.
+    pose_rays: Option<(Handle, Handle)>,
     /// Each sample's moment, for a moving field.
     times: Option<Handle>,
 }
@@ -158,7 +162,8 @@ struct StepRays {
 /// field reads of each besides its samples.
 struct DrawnRays {
     rays: GpuRays,
-    /// The index of each one's view (its appearance code), for a field with codes.
+    /// The index of each one's view (its appearance code): for a field with codes, and
+    /// wherever the rays are made on the device.
     of_view: Option<Handle>,
     /// Cone radii, for an anti-aliased field.
     radii: Option<Handle>,
@@ -166,6 +171,18 @@ struct DrawnRays {
     times: Option<Handle>,
     targets: Handle,
     backgrounds: Handle,
+}
+
+/// Where a training step's cameras come from.
+enum StepCameras {
+    /// As given: the run does not refine them.
+    Given,
+    /// Each corrected by its step on the host, which draws the rays (the views are not on
+    /// the device).
+    Host(Vec<CameraStep>),
+    /// Corrected on the device (`camera_poses`): the corrected cameras, as
+    /// `GpuViews::cameras` lays them out.
+    Device(Handle),
 }
 
 /// The fast model on one GPU.
@@ -253,7 +270,7 @@ impl GpuEngine {
         &mut self,
         data: &Dataset,
         spec: &StepSpec,
-        cameras: &[CameraStep],
+        cameras: &StepCameras,
     ) -> Result<StepRays> {
         let marcher = self.model.marcher(data.near, data.far);
         let budget = self.model.config.samples_per_step;
@@ -267,11 +284,6 @@ impl GpuEngine {
             None => 1,
         };
         let mut want = (self.last_rays + self.last_rays / 4 + 16).clamp(64, max_rays);
-        // Refined cameras' rays are drawn and corrected on the host: their photos stay there.
-        let uploaded = matches!(&self.views, Some((key, _)) if *key == GpuViews::key_of(data));
-        if cameras.is_empty() && !uploaded {
-            self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
-        }
         loop {
             let DrawnRays {
                 rays: on_device,
@@ -291,7 +303,7 @@ impl GpuEngine {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
                     self.marcher.write(&self.gpu, &on_device, &counted, cut);
-                let codes = match &of_view {
+                let codes = match of_view.as_ref().filter(|_| self.field.has_codes()) {
                     Some(of_view) => SampleCodes::of_rays(
                         &self.gpu,
                         of_view,
@@ -313,8 +325,14 @@ impl GpuEngine {
                         cut.samples,
                     )
                 });
-                let frame = (!cameras.is_empty())
-                    .then(|| (on_device.origins.clone(), on_device.dirs.clone()));
+                let refined = !matches!(cameras, StepCameras::Given);
+                let frame = refined.then(|| (on_device.origins.clone(), on_device.dirs.clone()));
+                let pose_rays = match (cameras, of_view) {
+                    (StepCameras::Device(_), Some(of_view)) => {
+                        Some((on_device.views.clone(), of_view))
+                    }
+                    _ => None,
+                };
                 let times = times.map(|per_ray| {
                     per_sample(&self.gpu, &per_ray, &samples.offsets, cut.rays, cut.samples)
                 });
@@ -328,6 +346,7 @@ impl GpuEngine {
                     targets,
                     backgrounds,
                     frame,
+                    pose_rays,
                     times,
                 });
             }
@@ -336,23 +355,28 @@ impl GpuEngine {
     }
 
     /// Rays `0..want` of the step on the device, with what the field reads of each, their
-    /// targets and backgrounds: made there from the pixels the host picks (`rays`), or
-    /// drawn whole on the host where the views are not on the device or the cameras are
-    /// refined (each ray corrected by its camera's step in `cameras`, as the CPU engine
-    /// corrects it).
+    /// targets and backgrounds: made there from the pixels the host picks (`rays`), from
+    /// the cameras corrected there where they are refined, or drawn whole on the host
+    /// where the views are not on the device (each ray corrected by its camera's step in
+    /// `cameras`, as the CPU engine corrects it).
     fn draw_rays(
         &mut self,
         data: &Dataset,
         spec: &StepSpec,
         marcher: &Marcher,
         want: usize,
-        cameras: &[CameraStep],
+        cameras: &StepCameras,
     ) -> DrawnRays {
         let footprints = self.model.config.field.antialias.is_some();
         let codes = self.field.has_codes();
         let moving = self.field.is_moving();
         let gpu = &self.gpu;
-        if let (Some((_, Some(views))), true) = (&self.views, cameras.is_empty()) {
+        let empty = Vec::new();
+        let host_steps = match cameras {
+            StepCameras::Host(steps) => Some(steps),
+            _ => None,
+        };
+        if let (Some(views), None) = (self.device_views(), host_steps) {
             let mut choices: Vec<PixelChoice> = (0..want as u64)
                 .into_par_iter()
                 .map(|k| PixelChoice::draw(data, &spec.sampling, k))
@@ -361,10 +385,6 @@ impl GpuEngine {
             // `FastModel::march_block`.
             let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
             let bound = self.model.grid.bound;
-            let of_view = codes.then(|| {
-                let of_view: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
-                gpu.upload_u32(&of_view)
-            });
             // The cone radii as the host's rays carry them (`data::pixels`).
             let radii = footprints.then(|| {
                 let radii: Vec<f32> = choices
@@ -388,11 +408,27 @@ impl GpuEngine {
                     .collect();
                 gpu.upload(&times)
             });
-            let (rays, targets, backgrounds) =
-                views.generate(gpu, &data.space, marcher, bound, &choices, &jitter);
+            let corrected = match cameras {
+                StepCameras::Device(cams) => Some(cams),
+                _ => None,
+            };
+            let rays::GeneratedRays {
+                rays,
+                targets,
+                backgrounds,
+                of_ray,
+            } = views.generate(
+                gpu,
+                &data.space,
+                marcher,
+                bound,
+                &choices,
+                &jitter,
+                corrected,
+            );
             return DrawnRays {
                 rays,
-                of_view,
+                of_view: Some(of_ray),
                 radii,
                 times,
                 targets,
@@ -401,7 +437,7 @@ impl GpuEngine {
         }
         let rays = &mut self.rays;
         rays.draw_parallel(data, &spec.sampling, 0..want as u64);
-        correct_drawn_rays(&mut rays.rays, cameras);
+        correct_drawn_rays(&mut rays.rays, host_steps.unwrap_or(&empty));
         let jitter: Vec<f32> = rays.rngs.iter_mut().map(|r| r.uniform()).collect();
         let on_device = GpuRays::new(gpu, marcher, &self.model.grid, &rays.rays, &jitter);
         let targets = gpu.upload(rays.targets.as_flattened());
@@ -534,33 +570,68 @@ impl GpuEngine {
         Ok(())
     }
 
-    /// This step's correction of every training camera, from the corrections on the device
-    /// (none where cameras are not refined).
-    fn camera_steps(&self, data: &Dataset) -> Result<Vec<CameraStep>> {
-        let (Some(at), Some(refinement)) =
-            (self.model.cameras_at(), self.model.config.refine_cameras)
-        else {
-            return Ok(Vec::new());
+    /// Uploads `data`'s training views unless they are on the device already.
+    fn upload_views(&mut self, data: &Dataset) {
+        let uploaded = matches!(&self.views, Some((key, _)) if *key == GpuViews::key_of(data));
+        if !uploaded {
+            self.views = Some((GpuViews::key_of(data), GpuViews::upload(&self.gpu, data)));
+        }
+    }
+
+    /// The training views on the device (`None` where they do not fit: the host draws the
+    /// rays then).
+    fn device_views(&self) -> Option<&GpuViews> {
+        self.views.as_ref().and_then(|(_, views)| views.as_ref())
+    }
+
+    /// How the run's corrections act on the device (`None` where cameras are not refined).
+    fn device_poses(&self) -> Option<DevicePoses> {
+        let at = self.model.cameras_at()?;
+        let refinement = self.model.config.refine_cameras?;
+        Some(DevicePoses {
+            at,
+            cameras: refinement.cameras,
+            frame: refinement.frame,
+        })
+    }
+
+    /// This step's cameras: as given, corrected on the device from the corrections there,
+    /// or, where the views are not on the device, each camera's step read back for the
+    /// host to draw its rays with.
+    fn step_cameras(&mut self, data: &Dataset) -> Result<StepCameras> {
+        let Some(poses) = self.device_poses() else {
+            return Ok(StepCameras::Given);
         };
+        if let Some(views) = self.device_views() {
+            let (cams, count) = views.cameras();
+            let corrected = poses.correct(&self.gpu, cams, &self.state.values, count);
+            return Ok(StepCameras::Device(corrected));
+        }
         let corrections =
             self.gpu
-                .read_range(&self.state.values, at, refinement.cameras * PER_CAMERA)?;
-        Ok(self.model.camera_steps_of(&corrections, data))
+                .read_range(&self.state.values, poses.at, poses.cameras * PER_CAMERA)?;
+        Ok(StepCameras::Host(
+            self.model.camera_steps_of(&corrections, data),
+        ))
     }
 
     /// Camera refinement's share of the step's backward, as the CPU engine's
     /// (`FastModel::camera_gradients`): the samples' position and direction gradients on
-    /// the device, summed per ray there, and carried by the host through each ray's
-    /// correction into its camera's gradient, added to the device's gradients.
+    /// the device, summed per ray there, and carried through each ray's correction into
+    /// its camera's gradient, added to the device's gradients: on the device where it
+    /// corrected the cameras (`pose_rays`: the rays' unit world directions and views), else
+    /// by the host.
     #[allow(clippy::too_many_arguments)]
     fn add_camera_gradients(
         &self,
-        cameras: &[CameraStep],
+        data: &Dataset,
+        cameras: &StepCameras,
         acts: &Activations,
         inputs: &InputGradients,
         samples: &volume::GpuSamples,
         dirs: &Handle,
         (origins, units): &(Handle, Handle),
+        pose_rays: Option<&(Handle, Handle)>,
     ) -> Result<()> {
         let Some(at) = self.model.cameras_at() else {
             return Ok(());
@@ -592,6 +663,28 @@ impl GpuEngine {
         let contract = self.model.marcher(0.0, 1.0).contract;
         let per_ray =
             pose_grad::ray_gradients(gpu, samples, &d_points, &d_dirs, origins, units, contract);
+        let cameras = match (cameras, pose_rays, self.device_poses(), self.device_views()) {
+            (StepCameras::Host(steps), ..) => steps,
+            (
+                StepCameras::Device(corrected),
+                Some((views, of_ray)),
+                Some(poses),
+                Some(on_device),
+            ) => {
+                let (cams, count) = on_device.cameras();
+                poses.add_gradients(
+                    gpu,
+                    (&self.state.values, &self.state.grads),
+                    &data.space,
+                    (&per_ray, views, of_ray),
+                    samples.rays,
+                    (cams, corrected),
+                    count,
+                );
+                return Ok(());
+            }
+            _ => return Ok(()),
+        };
         let g = gpu.read(&per_ray, samples.rays * pose_grad::RAY_WORDS)?;
         let rays = &self.rays.rays;
         let mut grad = vec![0.0f32; cameras.len() * PER_CAMERA];
@@ -712,7 +805,8 @@ impl Engine for GpuEngine {
         self.model.set_progress(spec.progress);
         self.field
             .set_level_scale(&self.gpu, &self.model.field.level_weights);
-        let cameras = self.camera_steps(data)?;
+        self.upload_views(data);
+        let cameras = self.step_cameras(data)?;
         self.trace.mark(Phase::Prepare);
         let clock = step_clock::start(Stage::Marching);
         let StepRays {
@@ -725,6 +819,7 @@ impl Engine for GpuEngine {
             targets,
             backgrounds,
             frame,
+            pose_rays,
             times,
         } = self.march_step(data, spec, &cameras)?;
         let (rays, n) = (cut.rays, cut.samples);
@@ -804,7 +899,16 @@ impl Engine for GpuEngine {
         );
         if let Some(frame) = &frame {
             self.trace.mark(Phase::Queueing);
-            self.add_camera_gradients(&cameras, &acts, &inputs, &samples, &dirs, frame)?;
+            self.add_camera_gradients(
+                data,
+                &cameras,
+                &acts,
+                &inputs,
+                &samples,
+                &dirs,
+                frame,
+                pose_rays.as_ref(),
+            )?;
             self.trace.mark(Phase::Cameras);
         }
         if config.time_smoothness > 0.0 {

@@ -23,7 +23,7 @@
 //!   view direction's spherical harmonics; [`space_time_grid`]: a moving field's encoding
 //!   of space and time, and [`time_smoothness`]: its prior of smooth change in time;
 //!   [`pose_grad`]: the samples' gradients carried back to their rays, for camera
-//!   refinement;
+//!   refinement, and [`camera_poses`]: the corrected cameras and each camera's gradient;
 //! * [`volume`]: compositing over packed samples, forward and backward, one thread per ray;
 //! * [`render`]: rendering in rounds (march, field, accumulate) with early termination;
 //! * [`loss`]: the squared error per ray and its gradient; [`distortion`]: the distortion
@@ -43,6 +43,7 @@
 
 pub mod adam;
 pub mod antialias;
+pub mod camera_poses;
 pub mod codes;
 pub mod deformation;
 pub mod depth_smoothness;

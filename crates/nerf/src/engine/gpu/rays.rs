@@ -28,7 +28,7 @@ use crate::render::march::Marcher;
 
 const GROUP: u32 = 64;
 /// Floats per camera: fx, fy, cx, cy, then the 3x4 camera-to-world matrix by rows.
-const CAM_WORDS: usize = 16;
+pub const CAM_WORDS: usize = 16;
 /// Words per view: image width, first float of its image, first float of its lens table.
 const META_WORDS: usize = 3;
 /// "No lens table": a pinhole view.
@@ -513,8 +513,16 @@ impl GpuViews {
         (data.views.as_ptr() as usize, data.views.len())
     }
 
+    /// The views' cameras as uploaded ([`CAM_WORDS`] floats a view, one per view).
+    pub fn cameras(&self) -> (&Handle, usize) {
+        (&self.cams, self.lens[1] / CAM_WORDS)
+    }
+
     /// The rays of `choices` (with their lattice jitters) through `marcher` and a grid of
-    /// half-extent `bound`, and their targets and backgrounds (`rays x 3` each).
+    /// half-extent `bound`, cast from the views' cameras or from `cams` (as
+    /// [`cameras`](Self::cameras) lays them out: the corrected cameras of a run that
+    /// refines them), with their targets and backgrounds.
+    #[allow(clippy::too_many_arguments)]
     pub fn generate(
         &self,
         gpu: &Gpu,
@@ -523,9 +531,11 @@ impl GpuViews {
         bound: f32,
         choices: &[PixelChoice],
         jitter: &[f32],
-    ) -> (GpuRays, Handle, Handle) {
+        cams: Option<&Handle>,
+    ) -> GeneratedRays {
         let n = choices.len();
         let views: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
+        let of_ray = gpu.upload_u32(&views);
         let pixels: Vec<u32> = choices.iter().map(|c| c.pixel as u32).collect();
         let backgrounds: Vec<f32> = choices.iter().flat_map(|c| c.background).collect();
         let backgrounds = gpu.upload(&backgrounds);
@@ -533,6 +543,7 @@ impl GpuViews {
         let (start, end, targets) = (gpu.floats(n), gpu.floats(n), gpu.floats(3 * n));
         if n > 0 {
             let params = gen_params(space, marcher, bound);
+            let cameras = cams;
             let [meta, cams, tables, images] = self.lens;
             // SAFETY: every buffer holds the length given with it; views and pixels index
             // the uploaded views and their images (drawn from this dataset), and a view's
@@ -543,12 +554,12 @@ impl GpuViews {
                     &gpu.client,
                     c,
                     d,
-                    BufferArg::from_raw_parts(gpu.upload_u32(&views), n),
+                    BufferArg::from_raw_parts(of_ray.clone(), n),
                     BufferArg::from_raw_parts(gpu.upload_u32(&pixels), n),
                     BufferArg::from_raw_parts(backgrounds.clone(), 3 * n),
                     BufferArg::from_raw_parts(gpu.upload(jitter), n),
                     BufferArg::from_raw_parts(self.meta.clone(), meta),
-                    BufferArg::from_raw_parts(self.cams.clone(), cams),
+                    BufferArg::from_raw_parts(cameras.unwrap_or(&self.cams).clone(), cams),
                     BufferArg::from_raw_parts(self.tables.clone(), tables),
                     // The images as floats or as words: the kernel reads the one `packed`
                     // names (the other is the same buffer, unread).
@@ -575,8 +586,23 @@ impl GpuViews {
             end,
             len: n,
         };
-        (rays, targets, backgrounds)
+        GeneratedRays {
+            rays,
+            targets,
+            backgrounds,
+            of_ray,
+        }
     }
+}
+
+/// Training rays made on the device ([`GpuViews::generate`]).
+pub struct GeneratedRays {
+    pub rays: GpuRays,
+    /// Each ray's target colour and background (`rays x 3` each).
+    pub targets: Handle,
+    pub backgrounds: Handle,
+    /// Each ray's view (`u32`).
+    pub of_ray: Handle,
 }
 
 /// Whether two cameras undistort every pixel alike.
@@ -704,8 +730,25 @@ mod tests {
                 "the adapter holds {} words",
                 max_words(&gpu)
             );
-            let (got, targets, backgrounds) =
-                views.generate(&gpu, &data.space, &marcher, grid.bound, &choices, &jitter);
+            let GeneratedRays {
+                rays: got,
+                targets,
+                backgrounds,
+                of_ray,
+            } = views.generate(
+                &gpu,
+                &data.space,
+                &marcher,
+                grid.bound,
+                &choices,
+                &jitter,
+                None,
+            );
+            let of_ray = gpu.read_u32(&of_ray, n as usize).expect("read");
+            assert!(of_ray
+                .iter()
+                .zip(&choices)
+                .all(|(&v, c)| v as usize == c.view));
 
             let mut host = TrainingRays::default();
             host.draw(data, &how, 0..n);
