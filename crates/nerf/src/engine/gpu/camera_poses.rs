@@ -598,6 +598,7 @@ mod tests {
                     &choices,
                     &jitter,
                     Some(&corrected),
+                    false,
                 );
                 // The rays are the host's corrected rays.
                 let steps = steps(data, &values, frame);

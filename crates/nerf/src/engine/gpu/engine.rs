@@ -385,21 +385,6 @@ impl GpuEngine {
             // `FastModel::march_block`.
             let jitter: Vec<f32> = choices.iter_mut().map(|c| c.rng.uniform()).collect();
             let bound = self.model.grid.bound;
-            // The cone radii as the host's rays carry them (`data::pixels`).
-            let radii = footprints.then(|| {
-                let radii: Vec<f32> = choices
-                    .par_iter()
-                    .map(|c| {
-                        let view = &data.views[c.view];
-                        let w = view.image.width;
-                        let (x, y) = ((c.pixel % w) as f32 + 0.5, (c.pixel / w) as f32 + 0.5);
-                        let dir = view.camera.ray_at(x, y).dir;
-                        data.space
-                            .footprint_radius(view.camera.cone_radius(x, y), dir)
-                    })
-                    .collect();
-                gpu.upload(&radii)
-            });
             // A moving scene's photos each have a moment (`Scene::is_dynamic`).
             let times = moving.then(|| {
                 let times: Vec<f32> = choices
@@ -417,6 +402,7 @@ impl GpuEngine {
                 targets,
                 backgrounds,
                 of_ray,
+                radii,
             } = views.generate(
                 gpu,
                 &data.space,
@@ -425,6 +411,7 @@ impl GpuEngine {
                 &choices,
                 &jitter,
                 corrected,
+                footprints,
             );
             return DrawnRays {
                 rays,

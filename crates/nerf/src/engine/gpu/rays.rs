@@ -170,8 +170,10 @@ fn cast(
     norm
 }
 
-/// One thread per ray: see the module docs. Outputs as `GpuRays` holds them and the
-/// target colour (`rays x 3`).
+/// One thread per ray: see the module docs. Outputs as `GpuRays` holds them, the target
+/// colour (`rays x 3`) and, with `footprints`, the footprint radius (`Camera::cone_radius`
+/// then `RaySpace::footprint_radius`) of the view's given camera `given` (`cams` may be
+/// corrected: a refined run's footprints are its given cameras', as on the host).
 #[cube(launch_unchecked)]
 #[allow(clippy::too_many_arguments)]
 fn generate(
@@ -181,6 +183,7 @@ fn generate(
     jitter: &[f32],
     meta: &[u32],
     cams: &[f32],
+    given: &[f32],
     tables: &[f32],
     images: &[f32],
     packed_images: &[u32],
@@ -191,9 +194,11 @@ fn generate(
     start: &mut [f32],
     end: &mut [f32],
     targets: &mut [f32],
+    radii: &mut [f32],
     rays: u32,
     p: RayGenParams,
     #[comptime] packed: bool,
+    #[comptime] footprints: bool,
 ) {
     let r = ABSOLUTE_POS;
     if r < rays as usize {
@@ -210,12 +215,47 @@ fn generate(
         let pinhole_u = (f32::cast_from(i) + 0.5 - cams[c + 2]) / cams[c];
         let pinhole_w = (f32::cast_from(j) + 0.5 - cams[c + 3]) / cams[c + 1];
         let lens = table != NO_TABLE;
-        let at = select(lens, table as usize + 2 * pix as usize, 0usize);
+        // Lens tables have a column and a row past the image, for the footprints.
+        let stride = width as usize + 1;
+        let entry = table as usize + 2 * (j as usize * stride + i as usize);
+        let at = select(lens, entry, 0usize);
         let u = select(lens, tables[at], pinhole_u);
         let w = select(lens, tables[at + 1], pinhole_w);
+        let ndc = p.ndc;
+        let ndc_area = p.ax * p.ay;
         cast(
             cams, c, u, w, jitter[r], r, origins, dirs, views, start, end, p,
         );
+        if footprints {
+            // The pixel's neighbours to the right and below, as `Camera::cone_radius`.
+            let right = select(lens, entry + 2, 0usize);
+            let below = select(lens, entry + 2 * stride, 0usize);
+            let next_u = (f32::cast_from(i + 1) + 0.5 - cams[c + 2]) / cams[c];
+            let next_w = (f32::cast_from(j + 1) + 0.5 - cams[c + 3]) / cams[c + 1];
+            let across = unit_apart(
+                world_dir(
+                    given,
+                    c,
+                    select(lens, tables[right], next_u),
+                    select(lens, tables[right + 1], pinhole_w),
+                ),
+                world_dir(given, c, u, w),
+            );
+            let down = unit_apart(
+                world_dir(
+                    given,
+                    c,
+                    select(lens, tables[below], pinhole_u),
+                    select(lens, tables[below + 1], next_w),
+                ),
+                world_dir(given, c, u, w),
+            );
+            let cone = PIXEL_RADIUS * f32::sqrt(across * down);
+            let here = world_dir(given, c, u, w);
+            let len = f32::sqrt(here.x * here.x + here.y * here.y + here.z * here.z);
+            let ndc_cone = f32::sqrt(ndc_area) * cone * len / f32::max(f32::abs(here.z), 1e-6);
+            radii[r] = select(ndc == 1, ndc_cone, cone);
+        }
         // The pixel, premultiplied: from its four bytes as the host reads them
         // (`RgbaImage::pixel`), or from its floats.
         let (red, green, blue, alpha) = if packed {
@@ -467,7 +507,7 @@ impl GpuViews {
                     Some((_, at)) => *at,
                     None => {
                         let at = tables.len();
-                        if at + 2 * cam.width * cam.height > limit {
+                        if at + 2 * (cam.width + 1) * (cam.height + 1) > limit {
                             return None;
                         }
                         tables.extend(lens_table(cam));
@@ -521,7 +561,8 @@ impl GpuViews {
     /// The rays of `choices` (with their lattice jitters) through `marcher` and a grid of
     /// half-extent `bound`, cast from the views' cameras or from `cams` (as
     /// [`cameras`](Self::cameras) lays them out: the corrected cameras of a run that
-    /// refines them), with their targets and backgrounds.
+    /// refines them), with their targets and backgrounds, and with `footprints` their
+    /// footprint radii.
     #[allow(clippy::too_many_arguments)]
     pub fn generate(
         &self,
@@ -532,6 +573,7 @@ impl GpuViews {
         choices: &[PixelChoice],
         jitter: &[f32],
         cams: Option<&Handle>,
+        footprints: bool,
     ) -> GeneratedRays {
         let n = choices.len();
         let views: Vec<u32> = choices.iter().map(|c| c.view as u32).collect();
@@ -541,6 +583,7 @@ impl GpuViews {
         let backgrounds = gpu.upload(&backgrounds);
         let (origins, dirs, unit_views) = (gpu.floats(3 * n), gpu.floats(3 * n), gpu.floats(3 * n));
         let (start, end, targets) = (gpu.floats(n), gpu.floats(n), gpu.floats(3 * n));
+        let radii = gpu.floats(n.max(1));
         if n > 0 {
             let params = gen_params(space, marcher, bound);
             let cameras = cams;
@@ -560,6 +603,7 @@ impl GpuViews {
                     BufferArg::from_raw_parts(gpu.upload(jitter), n),
                     BufferArg::from_raw_parts(self.meta.clone(), meta),
                     BufferArg::from_raw_parts(cameras.unwrap_or(&self.cams).clone(), cams),
+                    BufferArg::from_raw_parts(self.cams.clone(), cams),
                     BufferArg::from_raw_parts(self.tables.clone(), tables),
                     // The images as floats or as words: the kernel reads the one `packed`
                     // names (the other is the same buffer, unread).
@@ -572,9 +616,11 @@ impl GpuViews {
                     BufferArg::from_raw_parts(start.clone(), n),
                     BufferArg::from_raw_parts(end.clone(), n),
                     BufferArg::from_raw_parts(targets.clone(), 3 * n),
+                    BufferArg::from_raw_parts(radii.clone(), n),
                     n as u32,
                     params,
                     self.packed,
+                    footprints,
                 );
             }
         }
@@ -591,6 +637,7 @@ impl GpuViews {
             targets,
             backgrounds,
             of_ray,
+            radii: footprints.then_some(radii),
         }
     }
 }
@@ -603,6 +650,8 @@ pub struct GeneratedRays {
     pub backgrounds: Handle,
     /// Each ray's view (`u32`).
     pub of_ray: Handle,
+    /// Each ray's footprint radius, where asked for.
+    pub radii: Option<Handle>,
 }
 
 /// Whether two cameras undistort every pixel alike.
@@ -611,11 +660,13 @@ fn same_lens(a: &Camera, b: &Camera) -> bool {
         == (b.width, b.height, b.fx, b.fy, b.cx, b.cy, b.distortion)
 }
 
-/// Every pixel centre's undistorted normalised coordinates, as `Camera::ray` computes them.
+/// Every pixel centre's undistorted normalised coordinates, as `Camera::ray` computes
+/// them, with a column and a row past the image (the last pixels' neighbours, which
+/// footprints read), `width + 1` a row.
 fn lens_table(cam: &Camera) -> Vec<f32> {
-    let mut table = Vec::with_capacity(2 * cam.width * cam.height);
-    for j in 0..cam.height {
-        for i in 0..cam.width {
+    let mut table = Vec::with_capacity(2 * (cam.width + 1) * (cam.height + 1));
+    for j in 0..=cam.height {
+        for i in 0..=cam.width {
             let (x, y) = (i as f32 + 0.5, j as f32 + 0.5);
             let (u, v) = cam
                 .distortion
@@ -735,6 +786,7 @@ mod tests {
                 targets,
                 backgrounds,
                 of_ray,
+                radii,
             } = views.generate(
                 &gpu,
                 &data.space,
@@ -743,6 +795,7 @@ mod tests {
                 &choices,
                 &jitter,
                 None,
+                true,
             );
             let of_ray = gpu.read_u32(&of_ray, n as usize).expect("read");
             assert!(of_ray
@@ -770,6 +823,15 @@ mod tests {
             // Some rays hit the box, some miss it (empty spans agree above).
             let end = read(&want.end, n);
             assert!(end.iter().any(|&e| e > 0.0), "{name}: no ray hits the box");
+            // Radii are small (about a thousandth): compared relative to their size.
+            let radii = read(&radii.expect("asked for"), n);
+            let rel = radii
+                .iter()
+                .zip(&host.rays.radii)
+                .map(|(a, b)| (a - b).abs() / b.abs())
+                .fold(0.0f32, f32::max);
+            eprintln!("{name} radii: worst relative difference {rel:.1e}");
+            assert!(rel < 1e-3, "{name} radii: {rel}");
             let t = read(&targets, 3 * n);
             assert_eq!(t, host.targets.as_flattened(), "{name} targets");
             let bg = read(&backgrounds, 3 * n);
