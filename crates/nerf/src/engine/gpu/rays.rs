@@ -3,9 +3,11 @@
 //! ray's random choices ([`PixelChoice`]: view, pixel, background, jitter; 6 words a ray),
 //! and one thread per ray casts the camera ray (`Camera::ray`), warps it into the scene's
 //! ray space (`RaySpace::warp`, NDC included), clips it to the marcher's span
-//! (`Marcher::span`), and gathers its target colour over its background
-//! (`RgbaImage::composite_pixel`): the rays `data::pixels` draws on the host, made where
-//! the marcher reads them.
+//! (`Marcher::span`), gathers its target colour over its background
+//! (`RgbaImage::composite_pixel`) and, for anti-aliased fields, measures its footprint
+//! (`Camera::cone_radius`): the rays `data::pixels` draws on the host, made where the
+//! marcher reads them. A run that refines its cameras casts them from its corrected
+//! cameras (`camera_poses`).
 //!
 //! Lens distortion has no closed-form inverse (`camera::distortion`: Newton steps in
 //! `f64`), so a view with a distorted lens reads its undistorted image coordinates from a
