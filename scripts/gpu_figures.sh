@@ -4,7 +4,7 @@
 #
 #   scripts/gpu_figures.sh pack DIR     # here: binary (stripped), lego_400's training views and
 #                                       # every 8th test view, ngp_fox downscaled 4x (about 50 MB)
-#   DIR/gpu_figures.sh run DIR          # there: about 4 minutes on an H200
+#   DIR/gpu_figures.sh run DIR          # there: about 4.5 minutes on an H200
 #   FOX_CPU=1 DIR/gpu_figures.sh run DIR  # fox on the CPU engine too (+90 s on 16 cores)
 #   SAMPLES=4096 STEPS=16 WARMUP=2 MINUTES=0.05 SIZE=64 FRAMES=2 FOX_STEPS=20 \
 #     DEVICE=cpu DIR/gpu_figures.sh run DIR   # a smoke test of the script, on the CPU engine
@@ -13,8 +13,9 @@
 # and where a step's host time goes (NERF_GPU_TRACE), lego_400 in 60 s with the defaults
 # (test PSNR on 25 views, the GPU's peak memory), 800x800 frames/s, the paper model's step,
 # and ngp_fox's 2000 steps with the real-capture defaults (and the step trace's last
-# report). DATA (default ../shared/data) holds the scenes when packing; ffmpeg and python3
-# are needed there. The GPU machine needs a Vulkan loader (libvulkan1) beside its driver.
+# report), then without camera refinement. DATA (default ../shared/data) holds the scenes
+# when packing; ffmpeg and python3 are needed there. The GPU machine needs a Vulkan loader
+# (libvulkan1) beside its driver.
 set -euo pipefail
 
 pack() {
@@ -88,11 +89,16 @@ run() {
       grep -E "stopped after|gpu training|rror" | tail -2
   done
   "$nerf" eval --run "$runs/fox_$gpu" --device "$gpu" 2>&1 | grep -E "mean PSNR|rror"
+  # What refinement still costs a GPU step: the same run with the cameras as given.
+  echo "== ngp_fox as above, --no-refine-cameras, $gpu"
+  NERF_GPU_TRACE=1 "$nerf" train --data "$dir/fox4" --steps "${FOX_STEPS:-2000}" --seed 0 \
+    --device "$gpu" --no-refine-cameras --val-every 0 --out "$runs/fox_given" 2>&1 |
+    grep -E "stopped after|gpu training|rror" | tail -2
   rm -rf "$runs"
 }
 
 case "${1:-}" in
   pack) pack "${2:?a folder to pack into}" ;;
   run) run "${2:?the packed folder}" ;;
-  *) sed -n '2,17p' "$0"; exit 2 ;;
+  *) sed -n '2,18p' "$0"; exit 2 ;;
 esac
