@@ -585,7 +585,7 @@ impl GpuEngine {
     /// This step's cameras: as given, corrected on the device from the corrections there,
     /// or, where the views are not on the device, each camera's step read back for the
     /// host to draw its rays with.
-    fn step_cameras(&mut self, data: &Dataset) -> Result<StepCameras> {
+    fn step_cameras(&self, data: &Dataset) -> Result<StepCameras> {
         let Some(poses) = self.device_poses() else {
             return Ok(StepCameras::Given);
         };
