@@ -371,7 +371,6 @@ impl GpuEngine {
         let codes = self.field.has_codes();
         let moving = self.field.is_moving();
         let gpu = &self.gpu;
-        let empty = Vec::new();
         let host_steps = match cameras {
             StepCameras::Host(steps) => Some(steps),
             _ => None,
@@ -424,7 +423,9 @@ impl GpuEngine {
         }
         let rays = &mut self.rays;
         rays.draw_parallel(data, &spec.sampling, 0..want as u64);
-        correct_drawn_rays(&mut rays.rays, host_steps.unwrap_or(&empty));
+        if let Some(steps) = host_steps {
+            correct_drawn_rays(&mut rays.rays, steps);
+        }
         let jitter: Vec<f32> = rays.rngs.iter_mut().map(|r| r.uniform()).collect();
         let on_device = GpuRays::new(gpu, marcher, &self.model.grid, &rays.rays, &jitter);
         let targets = gpu.upload(rays.targets.as_flattened());

@@ -234,29 +234,21 @@ fn generate(
             let below = select(lens, entry + 2 * stride, 0usize);
             let next_u = (f32::cast_from(i + 1) + 0.5 - cams[c + 2]) / cams[c];
             let next_w = (f32::cast_from(j + 1) + 0.5 - cams[c + 3]) / cams[c + 1];
-            let across = unit_apart(
-                world_dir(
-                    given,
-                    c,
+            radii[r] = footprint(
+                given,
+                c,
+                (u, w),
+                (
                     select(lens, tables[right], next_u),
                     select(lens, tables[right + 1], pinhole_w),
                 ),
-                world_dir(given, c, u, w),
-            );
-            let down = unit_apart(
-                world_dir(
-                    given,
-                    c,
+                (
                     select(lens, tables[below], pinhole_u),
                     select(lens, tables[below + 1], next_w),
                 ),
-                world_dir(given, c, u, w),
+                ndc,
+                ndc_area,
             );
-            let cone = PIXEL_RADIUS * f32::sqrt(across * down);
-            let here = world_dir(given, c, u, w);
-            let len = f32::sqrt(here.x * here.x + here.y * here.y + here.z * here.z);
-            let ndc_cone = f32::sqrt(ndc_area) * cone * len / f32::max(f32::abs(here.z), 1e-6);
-            radii[r] = select(ndc == 1, ndc_cone, cone);
         }
         // The pixel, premultiplied: from its four bytes as the host reads them
         // (`RgbaImage::pixel`), or from its floats.
@@ -325,20 +317,46 @@ fn cast_camera_rays(
             cams, 0usize, u, w, 0.5f32, r, origins, dirs, views, start, end, p,
         );
         inv_norm[r] = 1.0 / norm;
-        let across = unit_apart(
-            world_dir(cams, 0usize, u + 1.0 / fx, w),
-            world_dir(cams, 0usize, u, w),
+        radii[r] = footprint(
+            cams,
+            0usize,
+            (u, w),
+            (u + 1.0 / fx, w),
+            (u, w + 1.0 / fy),
+            ndc,
+            ndc_area,
         );
-        let down = unit_apart(
-            world_dir(cams, 0usize, u, w + 1.0 / fy),
-            world_dir(cams, 0usize, u, w),
-        );
-        let here = world_dir(cams, 0usize, u, w);
-        let cone = PIXEL_RADIUS * f32::sqrt(across * down);
-        let len = f32::sqrt(here.x * here.x + here.y * here.y + here.z * here.z);
-        let ndc_cone = f32::sqrt(ndc_area) * cone * len / f32::max(f32::abs(here.z), 1e-6);
-        radii[r] = select(ndc == 1, ndc_cone, cone);
     }
+}
+
+/// The footprint radius of camera `c`'s (in `cams`) pixel at normalised, undistorted
+/// image coordinates `here`, from its neighbours' to the right and below
+/// (`Camera::cone_radius`), in the ray space (`RaySpace::footprint_radius`: `ndc` 1 for
+/// NDC, `ndc_area` its `ax * ay`).
+#[cube]
+fn footprint(
+    cams: &[f32],
+    c: usize,
+    here: (f32, f32),
+    right: (f32, f32),
+    below: (f32, f32),
+    ndc: u32,
+    ndc_area: f32,
+) -> f32 {
+    let (u, w) = here;
+    let across = unit_apart(
+        world_dir(cams, c, right.0, right.1),
+        world_dir(cams, c, u, w),
+    );
+    let down = unit_apart(
+        world_dir(cams, c, below.0, below.1),
+        world_dir(cams, c, u, w),
+    );
+    let dir = world_dir(cams, c, u, w);
+    let cone = PIXEL_RADIUS * f32::sqrt(across * down);
+    let len = f32::sqrt(dir.x * dir.x + dir.y * dir.y + dir.z * dir.z);
+    let ndc_cone = f32::sqrt(ndc_area) * cone * len / f32::max(f32::abs(dir.z), 1e-6);
+    select(ndc == 1, ndc_cone, cone)
 }
 
 /// Where a ray `o + t d` (one axis) enters the slab `-b..b`, and where it leaves it

@@ -16,8 +16,8 @@ pub const STEPS: u32 = 100;
 /// The phases of a training step, in the order a step runs them.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Phase {
-    /// The schedule's weights, and the cameras' corrections read back where they are
-    /// refined.
+    /// The schedule's weights, and the cameras corrected where they are refined (read
+    /// back only where the photos are not on the device).
     Prepare,
     /// Choosing the step's pixels, making their rays and queueing their marching count.
     Drawing,
@@ -25,7 +25,8 @@ pub enum Phase {
     Cut,
     /// Queueing the samples, the field, the loss and the backward.
     Queueing,
-    /// Camera refinement's per-ray gradients: read back and carried to the cameras.
+    /// Camera refinement's per-ray gradients carried to the cameras (read back only where
+    /// the photos are not on the device).
     Cameras,
     /// Queueing Adam, then waiting for the step's errors.
     End,
