@@ -1,16 +1,38 @@
 //! Progress bars for long work, and the training display.
 
-use std::time::Instant;
+use std::io::{IsTerminal, Write};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
 
-use indicatif::{ProgressBar, ProgressStyle};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle, TermLike};
 use nerf::model::ModelConfig;
 use nerf::train::run::Event;
 
-/// A bar counting `total` items of `what`, with rate and ETA.
+/// Seconds between the lines that stand for a bar where there is no terminal to draw it
+/// in (a log, CI): often enough to show long work is moving, rarely enough to read.
+const LOG_EVERY: Duration = Duration::from_secs(30);
+
+/// A bar counting `total` items of `what`, with rate and ETA. Where stderr is not a
+/// terminal, the bar's line is written there every [`LOG_EVERY`] instead.
 pub fn bar(total: u64, what: &str) -> ProgressBar {
+    let pb = styled_bar(total, what);
+    if !std::io::stderr().is_terminal() {
+        let log = LogLines::new(Box::new(std::io::stderr()), LOG_EVERY);
+        pb.set_draw_target(ProgressDrawTarget::term_like_with_hz(Box::new(log), 1));
+    }
+    pb
+}
+
+/// [`bar`] without the log lines (hidden where there is no terminal), for a display that
+/// writes its own; the spinner only on a terminal, where it moves.
+fn styled_bar(total: u64, what: &str) -> ProgressBar {
     let pb = ProgressBar::new(total);
+    let spinner = match std::io::stderr().is_terminal() {
+        true => "{spinner} ",
+        false => "",
+    };
     let template =
-        format!("{{spinner}} {what} [{{bar:30}}] {{pos}}/{{len}} {{rate}} ETA {{eta}} {{msg}}");
+        format!("{spinner}{what} [{{bar:30}}] {{pos}}/{{len}} {{rate}} ETA {{eta}} {{msg}}");
     if let Ok(style) = ProgressStyle::with_template(&template) {
         let style = style.with_key(
             "rate",
@@ -31,6 +53,80 @@ fn seconds_bar(seconds: u64) -> ProgressBar {
         pb.set_style(style.progress_chars("=> "));
     }
     pb
+}
+
+/// A bar's stand-in terminal for logs: it keeps what the bar draws and writes the line out
+/// at most once every `every`, as a line of its own (no cursor moves, no redraws in place).
+struct LogLines {
+    out: Mutex<Box<dyn Write + Send>>,
+    every: Duration,
+    /// The line being drawn, and when a line was last written out.
+    state: Mutex<(String, Instant)>,
+}
+
+impl std::fmt::Debug for LogLines {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("LogLines")
+            .field("every", &self.every)
+            .finish()
+    }
+}
+
+impl LogLines {
+    /// The first line is written `every` after this, so short work leaves no lines.
+    fn new(out: Box<dyn Write + Send>, every: Duration) -> Self {
+        LogLines {
+            out: Mutex::new(out),
+            every,
+            state: Mutex::new((String::new(), Instant::now())),
+        }
+    }
+}
+
+impl TermLike for LogLines {
+    fn width(&self) -> u16 {
+        120
+    }
+    fn move_cursor_up(&self, _: usize) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn move_cursor_down(&self, _: usize) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn move_cursor_right(&self, _: usize) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn move_cursor_left(&self, _: usize) -> std::io::Result<()> {
+        Ok(())
+    }
+    fn write_line(&self, s: &str) -> std::io::Result<()> {
+        self.write_str(s)
+    }
+    fn write_str(&self, s: &str) -> std::io::Result<()> {
+        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        state.0.push_str(s.trim_start_matches('\r'));
+        Ok(())
+    }
+    fn clear_line(&self) -> std::io::Result<()> {
+        self.state
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .0
+            .clear();
+        Ok(())
+    }
+    fn flush(&self) -> std::io::Result<()> {
+        let mut state = self.state.lock().unwrap_or_else(|e| e.into_inner());
+        let line = std::mem::take(&mut state.0);
+        let line = line.trim();
+        if line.is_empty() || state.1.elapsed() < self.every {
+            return Ok(());
+        }
+        state.1 = Instant::now();
+        let mut out = self.out.lock().unwrap_or_else(|e| e.into_inner());
+        writeln!(out, "{line}")?;
+        out.flush()
+    }
 }
 
 /// A rate in the one format every command prints: three significant figures at most
@@ -160,7 +256,7 @@ impl TrainProgress {
                         p
                     }
                     None => {
-                        let p = bar(config.steps, "train");
+                        let p = styled_bar(config.steps, "train");
                         p.set_position(resumed_from.unwrap_or(0));
                         p
                     }
@@ -190,7 +286,7 @@ impl TrainProgress {
                     s.psnr,
                     rate(self.rays.per_second, "rays")
                 ));
-                if p.is_hidden() && self.last_line.elapsed().as_secs_f64() >= 30.0 {
+                if p.is_hidden() && self.last_line.elapsed() >= LOG_EVERY {
                     println!(
                         "step {}: loss {:.4}, batch PSNR {:.2} dB, {}",
                         s.step,
@@ -274,5 +370,66 @@ mod tests {
             lowest = lowest.min(r.per_second);
         }
         assert!(lowest > 8000.0, "dropped to {lowest}");
+    }
+
+    /// A `Write` whose bytes the test can read after the bar has taken it.
+    #[derive(Clone, Default)]
+    struct Shared(std::sync::Arc<Mutex<Vec<u8>>>);
+
+    impl Write for Shared {
+        fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+            self.0
+                .lock()
+                .expect("the test's buffer")
+                .extend_from_slice(b);
+            Ok(b.len())
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl Shared {
+        fn lines(&self) -> Vec<String> {
+            let bytes = self.0.lock().expect("the test's buffer").clone();
+            String::from_utf8(bytes)
+                .expect("a bar writes UTF-8")
+                .lines()
+                .map(str::to_string)
+                .collect()
+        }
+    }
+
+    /// Where there is no terminal, a bar leaves whole lines with its count (no carriage
+    /// returns or cursor moves), and none before its interval has passed.
+    #[test]
+    fn a_bar_without_a_terminal_writes_plain_lines_when_due() {
+        let draw = |every: Duration| {
+            let out = Shared::default();
+            let pb = styled_bar(10, "eval test rays");
+            let log = LogLines::new(Box::new(out.clone()), every);
+            pb.set_draw_target(ProgressDrawTarget::term_like(Box::new(log)));
+            for k in 1..=3 {
+                pb.set_position(k);
+                pb.tick();
+            }
+            pb.finish_and_clear();
+            out.lines()
+        };
+        let lines = draw(Duration::ZERO);
+        assert!(!lines.is_empty());
+        assert!(
+            lines
+                .iter()
+                .any(|l| l.contains("eval test rays") && l.contains("3/10")),
+            "{lines:?}"
+        );
+        assert!(
+            lines
+                .iter()
+                .all(|l| !l.contains('\r') && !l.contains('\x1b')),
+            "{lines:?}"
+        );
+        assert_eq!(draw(Duration::from_secs(3600)), Vec::<String>::new());
     }
 }
