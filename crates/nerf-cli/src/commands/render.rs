@@ -60,8 +60,9 @@ pub fn print_report(report: &FramesReport, out: &std::path::Path) {
         println!("video: {}", v.path.display());
     }
     println!(
-        "rendered {} frames in {:.1} s ({:.2} frames/s) to {}",
+        "rendered {} frame{} in {:.1} s ({:.2} frames/s) to {}",
         report.frames,
+        if report.frames == 1 { "" } else { "s" },
         report.seconds,
         report.frames as f64 / report.seconds.max(1e-9),
         out.display()

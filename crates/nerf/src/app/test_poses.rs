@@ -121,7 +121,7 @@ pub fn refine_test_poses(
         params.extend(rows);
         fit_model.field.appearance_images = data.views.len();
     }
-    let config = ModelConfig::Fast(fit_model);
+    let config = ModelConfig::Fast(fit_model).for_inference();
     // On the run's own kind of engine (camera refinement runs on both).
     let device = match run.engine.kind() {
         crate::engine::caps::EngineKind::Cpu => crate::engine::Device::Cpu,

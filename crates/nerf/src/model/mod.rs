@@ -78,6 +78,20 @@ impl ModelConfig {
         }
     }
 
+    /// The model as a trained run is used (rendering, evaluation, meshes, fitting test
+    /// cameras): without training's speed settings. The networks' products in bfloat16
+    /// speed up the CPU's training steps only (every engine renders in `f32`), so a run
+    /// trained with them opens on every engine.
+    pub fn for_inference(&self) -> ModelConfig {
+        match self {
+            ModelConfig::Fast(m) => ModelConfig::Fast(fast::FastModelConfig {
+                bf16_products: false,
+                ..m.clone()
+            }),
+            ModelConfig::Vanilla(_) => self.clone(),
+        }
+    }
+
     /// Whether the model is a field of space and time (a moving scene: `--dynamic`, or
     /// `--preset dnerf`).
     pub fn is_dynamic(&self) -> bool {

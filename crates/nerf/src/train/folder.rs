@@ -44,8 +44,8 @@ impl LoadedRun {
             }
             config.data = std::fs::canonicalize(data).unwrap_or_else(|_| data.clone());
         }
-        let mut engine =
-            engine::open_on(device, &config.model, config.engine_options(), config.seed)?;
+        let model = config.model.for_inference();
+        let mut engine = engine::open_on(device, &model, config.engine_options(), config.seed)?;
         let ckpt = load_checkpoint(&dir.join(CHECKPOINT_FILE), engine.as_mut())?;
         Ok(LoadedRun {
             config,

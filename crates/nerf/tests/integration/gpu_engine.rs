@@ -796,6 +796,15 @@ fn checkpoints_move_between_devices() {
         on_gpu.engine.state(),
         "the same checkpoint"
     );
+    // A run trained with bfloat16 products (the CPU's default where it has them) opens on
+    // the GPU too: the setting speeds up training steps, and rendering is f32 everywhere.
+    let path = out.join("config.json");
+    let mut json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&path).expect("config")).expect("json");
+    json["model"]["bf16_products"] = serde_json::Value::Bool(true);
+    std::fs::write(&path, json.to_string()).expect("write config");
+    let bf16 = LoadedRun::open_on(&out, Device::Wgpu).expect("a bfloat16 run on the GPU");
+    assert_eq!(bf16.engine.state(), on_gpu.engine.state());
     let a = crate::common::eval_test(&on_cpu, 2, &dir.path().join("ea"));
     let b = crate::common::eval_test(&on_gpu, 2, &dir.path().join("eb"));
     eprintln!(
