@@ -11,7 +11,8 @@
 #
 # `run` prints, with the adapter's name: training samples/s at 65,536 and 262,144 samples
 # and where a step's host time goes (NERF_GPU_TRACE), lego_400 in 60 s with the defaults
-# (test PSNR on 25 views, the GPU's peak memory), 800x800 frames/s, the paper model's step,
+# (test PSNR on 25 views, the GPU's peak memory), 800x800 frames/s through the layers and
+# through the fused field, the paper model's step,
 # and ngp_fox's 2000 steps with the real-capture defaults (and the step trace's last
 # report), then without camera refinement. DATA (default ../shared/data) holds the scenes
 # when packing; ffmpeg and python3 are needed there. The GPU machine needs a Vulkan loader
@@ -78,6 +79,9 @@ run() {
   "$nerf" eval --run "$runs/lego" --device "$gpu" 2>&1 | grep -E "mean PSNR|rror"
   echo "== rendering ${SIZE:-800} wide"
   "$nerf" render --run "$runs/lego" --device "$gpu" --size "${SIZE:-800}" --frames "${FRAMES:-40}" 2>&1 | grep -E "frames/s|rror"
+  echo "== the same, the fused field (NERF_GPU_FIELD=fused)"
+  NERF_GPU_FIELD=fused "$nerf" render --run "$runs/lego" --device "$gpu" --size "${SIZE:-800}" \
+    --frames "${FRAMES:-40}" --out "$runs/fused_frames" 2>&1 | grep -E "frames/s|rror"
   echo "== the paper model's step"
   "$nerf" bench --model vanilla --device "$gpu" --steps 10 2>&1 | grep -E "median|rror" | tail -2
   local devices=$gpu
@@ -100,5 +104,5 @@ run() {
 case "${1:-}" in
   pack) pack "${2:?a folder to pack into}" ;;
   run) run "${2:?the packed folder}" ;;
-  *) sed -n '2,18p' "$0"; exit 2 ;;
+  *) sed -n '2,19p' "$0"; exit 2 ;;
 esac

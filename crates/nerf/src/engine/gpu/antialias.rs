@@ -28,6 +28,15 @@ fn erf_positive(x: f32) -> f32 {
     1.0f32 - poly * f32::exp(-x * x)
 }
 
+/// The weight of hash-grid level `l` (of the table `levels`) for a footprint of `sigma`
+/// (in the unit cube's units).
+#[cube]
+pub(super) fn level_weight(levels: &[u32], l: usize, sigma: f32) -> f32 {
+    let x = sigma * f32::cast_from(levels[4 * l]);
+    let x = 8.0f32 * x * x;
+    select(x <= 0.0, 1.0f32, erf_positive(1.0f32 / f32::sqrt(x)))
+}
+
 /// Footprints of the samples of rays `r < rays` (CSR `offsets`, depths `t` along the unit
 /// `dirs` from `origins`): `radius` times the depth (cones) or not (`cylinders`), times
 /// contraction's scale at the world point where `contract` is set.
@@ -92,9 +101,7 @@ fn weigh_levels(
             footprints[s % footprints.len()],
             reference,
         ) * to_unit;
-        let x = sigma * f32::cast_from(levels[4 * l]);
-        let x = 8.0f32 * x * x;
-        let w = select(x <= 0.0, 1.0f32, erf_positive(1.0f32 / f32::sqrt(x)));
+        let w = level_weight(levels, l, sigma);
         weights[idx] = w;
         enc[2 * idx] *= w;
         enc[2 * idx + 1] *= w;

@@ -64,7 +64,7 @@ impl SampleCodes {
         }
     }
 
-    fn len(&self, n: usize) -> usize {
+    pub(super) fn len(&self, n: usize) -> usize {
         if self.per_sample {
             n
         } else {
@@ -176,6 +176,28 @@ pub struct GpuCodes {
 }
 
 impl GpuCodes {
+    /// The mean of the photos' codes (`dims` floats), the code of
+    /// [`MEAN_APPEARANCE`](crate::stage::MEAN_APPEARANCE).
+    pub fn mean(&self, gpu: &Gpu, params: &Handle, n_params: usize) -> Handle {
+        let mean = gpu.floats(self.dims);
+        let (count, dim) = grid(self.dims, GROUP);
+        // SAFETY: the codes sit inside the parameter vector (`offset + images x dims <=
+        // n_params`), `mean` holds `dims` floats; the kernel bounds-checks its entry.
+        unsafe {
+            mean_code::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(params.clone(), n_params),
+                BufferArg::from_raw_parts(mean.clone(), self.dims),
+                self.offset as u32,
+                self.dims as u32,
+                self.images as u32,
+            );
+        }
+        mean
+    }
+
     /// Writes the codes of `codes` into columns `first..first + dims` of the `n` rows of
     /// `colour_in` (`ci` wide); `params` holds `n_params` floats.
     #[allow(clippy::too_many_arguments)]
@@ -192,23 +214,12 @@ impl GpuCodes {
         if n == 0 {
             return;
         }
-        let mean = gpu.floats(self.dims);
+        let mean = self.mean(gpu, params, n_params);
         // SAFETY: the codes sit inside the parameter vector (`offset + images x dims <=
         // n_params`), `mean` holds `dims` floats, `index` one or `n` indices as
-        // `per_sample` says, `colour_in` `n x ci` with the code columns inside a row; each
+        // `per_sample` says, `colour_in` `n x ci` with the code columns inside a row; the
         // kernel bounds-checks its thread index.
         unsafe {
-            let (count, dim) = grid(self.dims, GROUP);
-            mean_code::launch_unchecked(
-                &gpu.client,
-                count,
-                dim,
-                BufferArg::from_raw_parts(params.clone(), n_params),
-                BufferArg::from_raw_parts(mean.clone(), self.dims),
-                self.offset as u32,
-                self.dims as u32,
-                self.images as u32,
-            );
             let (count, dim) = grid(n * self.dims, GROUP);
             write_codes::launch_unchecked(
                 &gpu.client,

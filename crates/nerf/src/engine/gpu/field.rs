@@ -10,7 +10,7 @@ use cubecl::server::Handle;
 use super::antialias::LevelWeights;
 use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
-use super::fused::FusedShape;
+use super::fused::{FusedInput, FusedMotion, FusedShape};
 use super::harmonics::sh4_at;
 use super::hash_grid::{GpuHashGrid, Scatter};
 use super::launch::grid;
@@ -168,6 +168,16 @@ impl<'a> DeviceMoments<'a> {
     pub fn each_if_any(times: Option<&'a Handle>) -> Self {
         times.map_or(DeviceMoments::At(0.0), DeviceMoments::Each)
     }
+
+    /// The moments as the space-time kernels read them: a buffer (one a sample, or one
+    /// for all; unread for `Any`) and how to read it.
+    fn times(&self, gpu: &Gpu) -> (Handle, Moments) {
+        match *self {
+            DeviceMoments::Each(t) => (t.clone(), Moments::Each),
+            DeviceMoments::At(t) => (gpu.upload(&[t]), Moments::At),
+            DeviceMoments::Any => (gpu.floats(1), Moments::Any),
+        }
+    }
 }
 
 /// The field's activations for one batch, kept by the forward for the backward.
@@ -254,19 +264,36 @@ impl GpuFastField {
             field.colour_in_dims(),
         );
         let off = field.weight_offsets();
+        let codes = field.codes_offset().map(|offset| GpuCodes {
+            offset,
+            dims: field.appearance_dims(),
+            images: c.appearance_images,
+        });
         let shape = FusedShape {
             levels: field.grid.levels.len(),
             hidden: w,
             geo: g,
+            harmonics: field.view_harmonics(),
             weights: off,
             bound: c.bound,
+            antialias: c.antialias.map(|aa| aa.reference_footprint),
+            codes,
+            motion: field.motion.as_ref().zip(field.motion_weight_offset()).map(
+                |(grid, weight)| FusedMotion {
+                    levels: grid.levels.len(),
+                    weight,
+                },
+            ),
         };
-        // The fused kernel's colour input is the harmonics and the geometry features alone.
-        let plain = ci == SH_DIMS + g - 1
-            && c.antialias.is_none()
-            && field.motion.is_none()
-            && field.view_harmonics() == SH_DIMS;
-        let fused = (gpu.fused_field && plain && shape.fits(gpu)).then_some(shape);
+        let fused = (gpu.fused_field && shape.fits(gpu)).then_some(shape);
+        if gpu.fused_field && fused.is_none() {
+            eprintln!(
+                "NERF_GPU_FIELD=fused: this field's weights ({} KB) do not fit this adapter's \
+                 workgroup memory ({} KB); it renders layer by layer",
+                shape.staged_floats() * 4 / 1024,
+                gpu.client.properties().hardware.max_shared_memory_size / 1024
+            );
+        }
         let layer = |k: usize, inputs, outputs, relu| Dense {
             inputs,
             outputs,
@@ -294,11 +321,7 @@ impl GpuFastField {
                 Scatter::CompareAndSwap
             },
             fused,
-            codes: field.codes_offset().map(|offset| GpuCodes {
-                offset,
-                dims: field.appearance_dims(),
-                images: c.appearance_images,
-            }),
+            codes,
             antialias: c.antialias.map(|aa| LevelWeights {
                 reference: aa.reference_footprint,
                 bound: c.bound,
@@ -383,15 +406,24 @@ impl GpuFastField {
     /// fused kernel where it runs, else [`forward`](Self::forward).
     pub fn infer(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> (Handle, Handle) {
         match self.fused_now() {
-            Some(f) => f.infer(
-                gpu,
-                &self.grid,
-                params,
-                self.n_params,
-                input.positions,
-                Some(input.dirs),
-                input.n,
-            ),
+            Some(f) => {
+                let times = input.moments.times(gpu);
+                let fused = FusedInput {
+                    dirs: Some(input.dirs),
+                    footprints: input.footprints,
+                    codes: input.codes,
+                    times: (&times.0, times.1),
+                };
+                f.infer(
+                    gpu,
+                    self.grids(),
+                    params,
+                    self.n_params,
+                    input.positions,
+                    &fused,
+                    input.n,
+                )
+            }
             None => {
                 let acts = self.forward(gpu, params, input);
                 (acts.sigma, acts.rgb)
@@ -410,11 +442,25 @@ impl GpuFastField {
     ) -> Handle {
         match self.fused_now() {
             Some(f) => {
-                f.infer(gpu, &self.grid, params, self.n_params, positions, None, n)
+                let times = moments.times(gpu);
+                let codes = SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE);
+                let fused = FusedInput {
+                    dirs: None,
+                    footprints: None,
+                    codes: &codes,
+                    times: (&times.0, times.1),
+                };
+                let grids = self.grids();
+                f.infer(gpu, grids, params, self.n_params, positions, &fused, n)
                     .0
             }
             None => self.density(gpu, params, positions, None, moments, n).sigma,
         }
+    }
+
+    /// The hash grid, and the space-time grid of a moving field.
+    fn grids(&self) -> (&GpuHashGrid, Option<&GpuSpaceTimeGrid>) {
+        (&self.grid, self.motion.as_ref().map(|m| &m.grid))
     }
 
     /// Whether the field moves in time (reads its samples' moments).
@@ -517,11 +563,7 @@ impl GpuFastField {
             }
             Some(m) => {
                 let clock = step_clock::start(Stage::Encoding);
-                let (times, kind) = match moments {
-                    DeviceMoments::Each(t) => (t.clone(), Moments::Each),
-                    DeviceMoments::At(t) => (gpu.upload(&[t]), Moments::At),
-                    DeviceMoments::Any => (gpu.floats(1), Moments::Any),
-                };
+                let (times, kind) = moments.times(gpu);
                 let points = points_in_time(gpu, &acts.unit, (&times, kind), n);
                 let enc = gpu.floats(n * m.features);
                 m.grid.encode(gpu, (params, np), &points, n, &enc);

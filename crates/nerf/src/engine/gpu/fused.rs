@@ -1,5 +1,7 @@
-//! The fast field's inference in one kernel: one thread per sample runs the hash encoding,
-//! the density network, the spherical harmonics and the colour network, its activations in
+//! The fast field's inference in one kernel: one thread per sample runs the hash encoding
+//! (its levels weighed by the sample's footprint in an anti-aliased field), a moving
+//! field's space-time encoding, the density network, the spherical harmonics, the photo's
+//! appearance code and the colour network, its activations in
 //! registers and every network weight staged once per workgroup in workgroup memory. The
 //! layer-by-layer path (`field`) writes each layer's activations to device memory and reads
 //! them back in the next kernel; here nothing between a sample's position and its density
@@ -7,18 +9,26 @@
 //! it (they need no backward; `Gpu::fused_field` says whether they do); training keeps the
 //! layer-by-layer path, whose activations the backward reads.
 //!
-//! The shapes (levels, hidden width, geometry features) are compile-time constants of the
-//! kernel: each layer's outputs unroll into registers. The kernel runs
-//! where the networks' weights fit in one workgroup's memory (37 KB for the default
-//! field); [`FusedShape::fits`] says when they do.
+//! The shapes (levels, hidden width, geometry features, and which of those inputs the field
+//! has) are compile-time constants of the kernel: each layer's outputs unroll into
+//! registers, and a field without codes or motion compiles without their reads. The kernel
+//! runs where the networks' weights fit in one workgroup's memory (37 KB for the default
+//! field, 4 KB more for 16-wide codes or a moving field's first layer);
+//! [`FusedShape::fits`] says when they do.
 
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
+use super::antialias::level_weight;
+use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
 use super::harmonics::sh4;
 use super::hash_grid::{encode_level, GpuHashGrid, LEVEL_WORDS};
 use super::launch::grid;
+use super::space_time_grid::{
+    encode_level as encode_moving, moment_of_point, GpuSpaceTimeGrid, Moments,
+    LEVEL_WORDS as ST_WORDS,
+};
 use crate::encoding::hash_grid::FEATURES;
 use crate::encoding::spherical_harmonics::SH_DIMS;
 use crate::field::fast::LOG_SIGMA_MAX;
@@ -73,7 +83,8 @@ fn stage(src: &[f32], dst: &mut [f32], from: u32, #[comptime] to: usize, #[compt
     }
 }
 
-/// Where the five layers' weights sit in the parameter vector: density 0, 1, colour 0, 1, 2.
+/// Where the layers' weights sit in the parameter vector: density 0, 1, colour 0, 1, 2,
+/// and the space-time features' first-layer weights (moving fields; 0 otherwise).
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
 struct LayerOffsets {
     d0: u32,
@@ -81,20 +92,48 @@ struct LayerOffsets {
     c0: u32,
     c1: u32,
     c2: u32,
+    motion: u32,
+}
+
+/// What the networks take besides the hash grid's features, read where the field has it.
+#[derive(CubeType, CubeLaunch, Clone, Copy)]
+struct Feeds {
+    /// Anti-aliasing: 1 where `footprints` holds a footprint a sample, 0 where every sample
+    /// has the `reference` one; `to_unit` takes them into the unit cube's units.
+    has_footprints: u32,
+    reference: f32,
+    to_unit: f32,
+    /// Appearance codes: their offset in the parameter vector, how many photos have one,
+    /// and 1 where `code_index` holds an index a sample (0: one for every sample).
+    code_off: u32,
+    images: u32,
+    per_sample_codes: u32,
+    /// Moving fields: `Moments` as a number (0 each sample's from `times`, 1 all at
+    /// `times[0]`, 2 drawn from the point).
+    moments: u32,
 }
 
 /// Density (and, when `colour` is set, colour) of the first `n` samples: world `positions`
-/// and unit view `dirs` (`n x 3` each) into `sigma` (`n`) and `rgb` (`n x 3`).
+/// and unit view `dirs` (`n x 3` each) into `sigma` (`n`) and `rgb` (`n x 3`). The field's
+/// optional inputs are compiled in by their sizes: anti-aliased level weights
+/// (`antialias`), an appearance code of `code_dims` values, a space-time grid of
+/// `motion_levels` levels, and the first `harmonics` of the view direction's 16.
 #[cube(launch_unchecked)]
-#[allow(clippy::too_many_arguments)]
+#[allow(clippy::too_many_arguments, unused_assignments)]
 fn field_infer(
     params: &[f32],
     levels: &[u32],
     positions: &[f32],
     dirs: &[f32],
+    footprints: &[f32],
+    code_index: &[u32],
+    mean_code: &[f32],
+    motion_grid: &[u32],
+    times: &[f32],
     sigma: &mut [f32],
     rgb: &mut [f32],
     at: LayerOffsets,
+    feeds: Feeds,
     n: u32,
     bound: f32,
     log_max: f32,
@@ -102,17 +141,27 @@ fn field_infer(
     #[comptime] hidden: usize,
     #[comptime] geo: usize,
     #[comptime] colour: bool,
+    #[comptime] harmonics: usize,
+    #[comptime] antialias: bool,
+    #[comptime] code_dims: usize,
+    #[comptime] motion_levels: usize,
 ) {
     let e = n_levels * 2;
-    let ci = 16 + geo - 1;
-    // Workgroup-memory layout: density 0, 1, colour 0, 1, 2, back to back.
-    let w_d1 = e * hidden;
+    let md = motion_levels * 2;
+    let ci = 15 + geo + code_dims;
+    // Workgroup-memory layout: density 0, the moving features' weights, density 1, colour
+    // 0, 1, 2, back to back.
+    let w_m = e * hidden;
+    let w_d1 = w_m + md * hidden;
     let w_c0 = w_d1 + hidden * geo;
     let w_c1 = w_c0 + ci * hidden;
     let w_c2 = w_c1 + hidden * hidden;
     let total = w_c2 + hidden * 3;
     let mut w = Shared::<[f32]>::new_slice(total);
     stage(params, &mut w, at.d0, 0usize, e * hidden);
+    if motion_levels > 0 {
+        stage(params, &mut w, at.motion, w_m, md * hidden);
+    }
     stage(params, &mut w, at.d1, w_d1, hidden * geo);
     if colour {
         stage(params, &mut w, at.c0, w_c0, ci * hidden);
@@ -127,14 +176,51 @@ fn field_infer(
         let ux = (positions[3 * s] + bound) * scale;
         let uy = (positions[3 * s + 1] + bound) * scale;
         let uz = (positions[3 * s + 2] + bound) * scale;
+        let mut footprint = 0.0f32;
+        if antialias {
+            footprint = select(
+                feeds.has_footprints == 1,
+                footprints[s % footprints.len()],
+                feeds.reference,
+            ) * feeds.to_unit;
+        }
         let mut enc = Array::<f32>::new(e);
         for l in 0..n_levels {
             let (f0, f1) = encode_level(params, levels, l, ux, uy, uz);
-            enc[2 * l] = f0;
-            enc[2 * l + 1] = f1;
+            let mut weight = 1.0f32;
+            if antialias {
+                weight = level_weight(levels, l, footprint);
+            }
+            enc[2 * l] = f0 * weight;
+            enc[2 * l + 1] = f1 * weight;
         }
         let mut h = Array::<f32>::new(hidden);
-        dense(&enc, &mut h, &w, 0usize, e, hidden, true);
+        if motion_levels > 0 {
+            // The still and the moving features' products summed before the ReLU.
+            dense(&enc, &mut h, &w, 0usize, e, hidden, false);
+            let mut t = 0.0f32;
+            if feeds.moments == 0 {
+                t = times[s];
+            } else if feeds.moments == 1 {
+                t = times[0];
+            } else {
+                t = moment_of_point(ux, uy, uz);
+            }
+            let mut m = Array::<f32>::new(md);
+            for l in 0..motion_levels {
+                let (f0, f1) = encode_moving(params, motion_grid, l, ux, uy, uz, t);
+                m[2 * l] = f0;
+                m[2 * l + 1] = f1;
+            }
+            let mut hm = Array::<f32>::new(hidden);
+            dense(&m, &mut hm, &w, w_m, md, hidden, false);
+            #[unroll]
+            for o in 0..hidden {
+                h[o] = f32::max(h[o] + hm[o], 0.0);
+            }
+        } else {
+            dense(&enc, &mut h, &w, 0usize, e, hidden, true);
+        }
         let mut g = Array::<f32>::new(geo);
         dense(&h, &mut g, &w, w_d1, hidden, geo, false);
         sigma[s] = f32::exp(f32::min(g[0], log_max));
@@ -142,12 +228,25 @@ fn field_infer(
             let mut c_in = Array::<f32>::new(ci);
             let sh = sh4(dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]);
             #[unroll]
-            for k in 0..16usize {
+            for k in 0..harmonics {
                 c_in[k] = sh[k];
+            }
+            #[unroll]
+            for k in harmonics..16usize {
+                c_in[k] = 0.0;
             }
             #[unroll]
             for j in 1..geo {
                 c_in[15 + j] = g[j];
+            }
+            if code_dims > 0 {
+                let i = code_index[select(feeds.per_sample_codes == 1, s, 0usize)];
+                let images = feeds.images;
+                let row = feeds.code_off as usize + (i % images) as usize * code_dims;
+                #[unroll]
+                for j in 0..code_dims {
+                    c_in[15 + geo + j] = select(i < images, params[row + j], mean_code[j]);
+                }
             }
             let mut c1 = Array::<f32>::new(hidden);
             dense(&c_in, &mut c1, &w, w_c0, ci, hidden, true);
@@ -163,24 +262,56 @@ fn field_infer(
     }
 }
 
+/// A moving field's space-time grid, as the fused kernel reads it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct FusedMotion {
+    pub levels: usize,
+    /// Offset of its first-layer weights (`levels x 2` by the hidden width).
+    pub weight: usize,
+}
+
 /// The shapes the fused kernel is compiled for, and where its weights sit.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct FusedShape {
     pub levels: usize,
     pub hidden: usize,
     pub geo: usize,
+    /// How many of the view direction's 16 harmonics the colour network is fed.
+    pub harmonics: usize,
     /// Offsets of the five layers' weights (density 0, 1, colour 0, 1, 2).
     pub weights: [usize; 5],
     /// Half the side of the field's box (positions map to the unit cube through it).
     pub bound: f32,
+    /// Anti-aliased fields: the footprint of samples that carry none.
+    pub antialias: Option<f32>,
+    /// Per-photo appearance codes.
+    pub codes: Option<GpuCodes>,
+    /// Moving fields.
+    pub motion: Option<FusedMotion>,
+}
+
+/// What one fused call evaluates beyond positions: the samples' directions (colour), their
+/// footprints (anti-aliased fields; `None`: the reference footprint), codes and moments
+/// (fields that read them).
+pub struct FusedInput<'a> {
+    pub dirs: Option<&'a Handle>,
+    pub footprints: Option<&'a Handle>,
+    pub codes: &'a SampleCodes,
+    pub times: (&'a Handle, Moments),
 }
 
 impl FusedShape {
+    /// The appearance code's width (0 without codes).
+    fn code_dims(&self) -> usize {
+        self.codes.map_or(0, |c| c.dims)
+    }
+
     /// Floats of workgroup memory the colour kernel stages.
     pub fn staged_floats(&self) -> usize {
         let (e, w, g) = (self.levels * FEATURES, self.hidden, self.geo);
-        let ci = SH_DIMS + g - 1;
-        e * w + w * g + ci * w + w * w + w * 3
+        let md = self.motion.map_or(0, |m| m.levels * FEATURES);
+        let ci = SH_DIMS + g - 1 + self.code_dims();
+        e * w + md * w + w * g + ci * w + w * w + w * 3
     }
 
     /// Whether the weights fit in one workgroup's memory on `gpu`.
@@ -189,35 +320,60 @@ impl FusedShape {
         self.staged_floats() * 4 <= limit
     }
 
-    /// Densities (`n`) and, when `colour` is set, colours (`n x 3`; an empty buffer
-    /// otherwise) of `n` world `positions` seen along unit `dirs` (`n x 3` each; ignored
-    /// without `colour`), with the parameter vector `params` (`n_params` floats).
+    /// Densities (`n`) and, where `input.dirs` is given, colours (`n x 3`; an empty buffer
+    /// otherwise) of `n` world `positions`, with the parameter vector `params` (`n_params`
+    /// floats), the field's hash grid and, for a moving field, its space-time grid.
     #[allow(clippy::too_many_arguments)]
     pub fn infer(
         &self,
         gpu: &Gpu,
-        hash: &GpuHashGrid,
+        (hash, moving): (&GpuHashGrid, Option<&GpuSpaceTimeGrid>),
         params: &Handle,
         n_params: usize,
         positions: &Handle,
-        dirs: Option<&Handle>,
+        input: &FusedInput,
         n: usize,
     ) -> (Handle, Handle) {
         let sigma = gpu.floats(n);
-        let colour = dirs.is_some();
+        let colour = input.dirs.is_some();
         let rgb = gpu.floats(if colour { n * 3 } else { 0 });
         if n == 0 {
             return (sigma, rgb);
         }
         let [d0, d1, c0, c1, c2] = self.weights.map(|o| o as u32);
-        let at = LayerOffsetsLaunch::new(d0, d1, c0, c1, c2);
+        let motion_weight = self.motion.map_or(0, |m| m.weight as u32);
+        let at = LayerOffsetsLaunch::new(d0, d1, c0, c1, c2, motion_weight);
+        let (code_off, images) = self.codes.map_or((0, 0), |c| (c.offset, c.images));
+        let feeds = FeedsLaunch::new(
+            u32::from(input.footprints.is_some()),
+            self.antialias.unwrap_or(0.0),
+            0.5 / self.bound,
+            code_off as u32,
+            images as u32,
+            u32::from(input.codes.per_sample),
+            input.times.1 as u32,
+        );
+        let one = gpu.floats(1);
+        let mean = match &self.codes {
+            Some(c) => c.mean(gpu, params, n_params),
+            None => one.clone(),
+        };
+        let footprints = input.footprints.map_or((&one, 1), |f| (f, n));
+        let times_len = match input.times.1 {
+            Moments::Each => n,
+            Moments::At | Moments::Any => 1,
+        };
+        let no_grid = gpu.zeros_u32(1);
+        let motion_grid = moving.map_or((&no_grid, 1), |g| (&g.levels, g.n_levels * ST_WORDS));
         let (count, dim) = grid(n, GROUP);
-        let dirs = dirs.unwrap_or(positions);
+        let dirs = input.dirs.unwrap_or(positions);
         // SAFETY: `positions` and `dirs` hold `3n` floats, `sigma` `n` and `rgb` `3n` when
         // `colour` is set (it is not written otherwise); the parameter vector holds every
-        // layer at its offset and every hash level's table; the kernel reads and writes
-        // sample slots below `n` only, and stages at most the workgroup memory `fits`
-        // checked.
+        // layer, code and table at its offset; `footprints` and `times` hold one float a
+        // sample where their flags say so (else one, read at index 0 only), the code
+        // indices one or `n` as `per_sample` says, `mean` the code's width where the field
+        // has codes; the kernel reads and writes sample slots below `n` only, and stages at
+        // most the workgroup memory `fits` checked.
         unsafe {
             field_infer::launch_unchecked(
                 &gpu.client,
@@ -227,9 +383,15 @@ impl FusedShape {
                 BufferArg::from_raw_parts(hash.levels.clone(), hash.n_levels * LEVEL_WORDS),
                 BufferArg::from_raw_parts(positions.clone(), n * 3),
                 BufferArg::from_raw_parts(dirs.clone(), n * 3),
+                BufferArg::from_raw_parts(footprints.0.clone(), footprints.1),
+                BufferArg::from_raw_parts(input.codes.index.clone(), input.codes.len(n)),
+                BufferArg::from_raw_parts(mean.clone(), self.code_dims().max(1)),
+                BufferArg::from_raw_parts(motion_grid.0.clone(), motion_grid.1),
+                BufferArg::from_raw_parts(input.times.0.clone(), times_len),
                 BufferArg::from_raw_parts(sigma.clone(), n),
                 BufferArg::from_raw_parts(rgb.clone(), if colour { n * 3 } else { 1 }),
                 at,
+                feeds,
                 n as u32,
                 self.bound,
                 LOG_SIGMA_MAX,
@@ -237,6 +399,10 @@ impl FusedShape {
                 self.hidden,
                 self.geo,
                 colour,
+                self.harmonics,
+                self.antialias.is_some(),
+                self.code_dims(),
+                self.motion.map_or(0, |m| m.levels),
             );
         }
         (sigma, rgb)
@@ -247,24 +413,38 @@ impl FusedShape {
 mod tests {
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst, Gpu};
-    use crate::engine::gpu::field::tests::small_field;
-    use crate::engine::gpu::field::{DeviceInput, GpuFastField};
-    use crate::field::fast::FastWorkspace;
+    use crate::engine::gpu::field::tests::{small_field, small_moving_field};
+    use crate::engine::gpu::field::{DeviceInput, DeviceMoments, GpuFastField};
+    use crate::field::fast::{Antialias, FastWorkspace};
     use crate::field::{FastField, FastFieldConfig};
     use crate::rng::Rng;
-    use crate::stage::{Field, FieldInput};
+    use crate::stage::{Field, FieldInput, MEAN_APPEARANCE};
 
-    /// The fused kernel against the CPU field on `n` random samples (positions a little
-    /// past the box, unit directions) with weights drawn from `±scale`: densities within
-    /// `1e-4` and colours within `1e-5` relative to `1 + |value|`, and the density-only
-    /// kernel equal to the colour kernel's densities.
-    fn matches_the_cpu_field(gpu: &Gpu, field: &FastField, scale: f32, n: usize) {
-        let gpu = &fused(gpu);
-        let device_field = GpuFastField::new(gpu, field);
+    /// What a check feeds the field besides positions and directions.
+    #[derive(Default)]
+    struct Feed {
+        /// A footprint a sample (anti-aliased fields), else the reference one.
+        footprints: bool,
+        /// Each sample's code index (fields with codes), else the mean code.
+        codes: Option<Vec<u32>>,
+        /// A moment a sample (moving fields), else moment 0.
+        moving: bool,
+    }
+
+    /// The fused kernel against the CPU field and against the layer-by-layer path on the
+    /// same device, on `n` random samples (positions a little past the box, unit
+    /// directions) with weights drawn from `±scale`: densities within `1e-4` and colours
+    /// within `1e-5` relative to `1 + |value|`; the density-only kernel equal to the colour
+    /// kernel's densities, and (at one moment, at any moment) to the layers' densities.
+    fn matches_the_cpu_field(gpu: &Gpu, field: &FastField, scale: f32, n: usize, feed: &Feed) {
+        let (fast, layers) = (fused(gpu), layered(gpu));
+        let device_field = GpuFastField::new(&fast, field);
         assert!(
             device_field.is_fused(),
             "the fused kernel does not run here"
         );
+        let layer_field = GpuFastField::new(&layers, field);
+        assert!(!layer_field.is_fused());
         let mut rng = Rng::new(5);
         let params: Vec<f32> = (0..field.num_params())
             .map(|_| rng.range(-scale, scale))
@@ -274,44 +454,86 @@ mod tests {
             .map(|_| rng.range(-1.05 * bound, 1.05 * bound))
             .collect();
         let dirs = rng.unit_directions(n);
+        let fp: Vec<f32> = match feed.footprints {
+            true => (0..n).map(|_| 10f32.powf(rng.range(-3.5, -0.5))).collect(),
+            false => Vec::new(),
+        };
+        let times: Vec<f32> = match feed.moving {
+            true => (0..n).map(|_| rng.uniform()).collect(),
+            false => Vec::new(),
+        };
+        let indices = feed.codes.clone().unwrap_or_default();
         let mut ws = FastWorkspace::default();
         let input = FieldInput {
             positions: &pos,
             dirs: &dirs,
             samples_per_dir: 1,
-            appearance: &[],
-            footprints: &[],
+            appearance: &indices,
+            footprints: &fp,
             variances: &[],
-            times: &[],
+            times: &times,
         };
         let want = field.forward(&params, input, &mut ws);
-        let p = gpu.upload(&params);
-        let codes = SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE);
-        let (pos_h, dirs_h) = (gpu.upload(&pos), gpu.upload(&dirs));
+        let p = fast.upload(&params);
+        let codes = match &feed.codes {
+            // All the same: the one-index form the renderer passes.
+            Some(a) if a.iter().all(|&i| i == a[0]) => SampleCodes::all(&fast, a[0]),
+            Some(a) => SampleCodes {
+                index: fast.upload_u32(a),
+                per_sample: true,
+            },
+            None => SampleCodes::all(&fast, MEAN_APPEARANCE),
+        };
+        let (pos_h, dirs_h) = (fast.upload(&pos), fast.upload(&dirs));
+        let fp_h = feed.footprints.then(|| fast.upload(&fp));
+        let times_h = fast.upload(&times);
         let input = DeviceInput {
             positions: &pos_h,
             dirs: &dirs_h,
             codes: &codes,
-            footprints: None,
-            moments: crate::engine::gpu::field::DeviceMoments::Any,
+            footprints: fp_h.as_ref(),
+            moments: match feed.moving {
+                true => DeviceMoments::Each(&times_h),
+                false => DeviceMoments::At(0.0),
+            },
             n,
         };
-        let (sigma, rgb) = device_field.infer(gpu, &p, &input);
-        let sigma = gpu.read(&sigma, n).expect("read");
-        let rgb = gpu.read(&rgb, n * 3).expect("read");
+        let (sigma, rgb) = device_field.infer(&fast, &p, &input);
+        let sigma = fast.read(&sigma, n).expect("read");
+        let rgb = fast.read(&rgb, n * 3).expect("read");
         let (e_sigma, e_rgb) = (worst(&sigma, want.sigma), worst(&rgb, want.rgb));
-        eprintln!("worst difference: sigma {e_sigma:.1e}, rgb {e_rgb:.1e}");
+        let (l_sigma, l_rgb) = layer_field.infer(&layers, &p, &input);
+        let l_sigma = layers.read(&l_sigma, n).expect("read");
+        let l_rgb = layers.read(&l_rgb, n * 3).expect("read");
+        let (f_sigma, f_rgb) = (worst(&sigma, &l_sigma), worst(&rgb, &l_rgb));
+        eprintln!(
+            "worst difference: against the CPU sigma {e_sigma:.1e}, rgb {e_rgb:.1e}; against \
+             the layers sigma {f_sigma:.1e}, rgb {f_rgb:.1e}"
+        );
         assert!(e_sigma < 1e-4, "sigma {e_sigma}");
         assert!(e_rgb < 1e-5, "rgb {e_rgb}");
+        assert!(f_sigma < 1e-4, "sigma against the layers {f_sigma}");
+        assert!(f_rgb < 1e-5, "rgb against the layers {f_rgb}");
         // Something to compare: densities over two orders of magnitude.
         let (lo, hi) = want
             .sigma
             .iter()
             .fold((f32::MAX, 0.0f32), |(lo, hi), &s| (lo.min(s), hi.max(s)));
         assert!(hi > 100.0 * lo, "densities from {lo} to {hi} only");
-        let any = crate::engine::gpu::field::DeviceMoments::Any;
-        let alone = device_field.infer_density(gpu, &p, &gpu.upload(&pos), any, n);
-        assert_eq!(gpu.read(&alone, n).expect("read"), sigma);
+        if fp_h.is_none() {
+            let alone = device_field.infer_density(&fast, &p, &pos_h, input.moments, n);
+            assert_eq!(fast.read(&alone, n).expect("read"), sigma);
+        }
+        for moments in [DeviceMoments::At(0.3), DeviceMoments::Any] {
+            let alone = device_field.infer_density(&fast, &p, &pos_h, moments, n);
+            let plain = layer_field.infer_density(&layers, &p, &pos_h, moments, n);
+            let (alone, plain) = (
+                fast.read(&alone, n).expect("read"),
+                layers.read(&plain, n).expect("read"),
+            );
+            let e = worst(&alone, &plain);
+            assert!(e < 1e-4, "density alone against the layers: {e}");
+        }
     }
 
     /// `gpu` with the fused path switched on.
@@ -322,15 +544,75 @@ mod tests {
         }
     }
 
+    /// `gpu` with the fused path switched off.
+    fn layered(gpu: &Gpu) -> Gpu {
+        Gpu {
+            fused_field: false,
+            ..gpu.clone()
+        }
+    }
+
     /// A small field over 1000 samples: several workgroups, the last one partly empty.
     #[test]
     fn the_fused_kernel_matches_the_cpu_field() {
         let Some(gpu) = test_gpu() else { return };
-        matches_the_cpu_field(&gpu, &small_field(), 1.5, 1000);
+        matches_the_cpu_field(&gpu, &small_field(), 1.5, 1000, &Feed::default());
     }
 
-    /// The default field's shapes (16 levels, 64 wide, 16 geometry features: 37 KB of
-    /// staged weights), where the adapter's workgroup memory holds them.
+    /// Every input a field can take, each on its own: anti-aliased level weights (a
+    /// footprint a sample, and the reference one), appearance codes (a code a sample with
+    /// the mean among them, one photo's for all, the mean for all), a moving field's
+    /// space-time features (a moment a sample), and four of the view direction's harmonics.
+    #[test]
+    fn the_fused_kernel_takes_every_input_the_field_takes() {
+        let Some(gpu) = test_gpu() else { return };
+        let small = small_field().config;
+        let antialiased = FastField::new(FastFieldConfig {
+            antialias: Some(Antialias {
+                reference_footprint: 0.02,
+            }),
+            ..small.clone()
+        });
+        for footprints in [true, false] {
+            let feed = Feed {
+                footprints,
+                ..Feed::default()
+            };
+            matches_the_cpu_field(&gpu, &antialiased, 1.5, 700, &feed);
+        }
+        let with_codes = FastField::new(FastFieldConfig {
+            appearance_dims: 3,
+            appearance_images: 5,
+            ..small.clone()
+        });
+        let mut rng = Rng::new(8);
+        let mixed: Vec<u32> = (0..700)
+            .map(|_| match (rng.uniform() * 6.0) as u32 {
+                5 => MEAN_APPEARANCE,
+                i => i,
+            })
+            .collect();
+        for codes in [mixed, vec![2; 700], vec![MEAN_APPEARANCE; 700]] {
+            let feed = Feed {
+                codes: Some(codes),
+                ..Feed::default()
+            };
+            matches_the_cpu_field(&gpu, &with_codes, 1.5, 700, &feed);
+        }
+        let moving = Feed {
+            moving: true,
+            ..Feed::default()
+        };
+        matches_the_cpu_field(&gpu, &small_moving_field(), 1.5, 700, &moving);
+        let four_harmonics = FastField::new(FastFieldConfig {
+            view_harmonics: 4,
+            ..small
+        });
+        matches_the_cpu_field(&gpu, &four_harmonics, 1.5, 700, &Feed::default());
+    }
+
+    /// The default field's shapes (16 levels, 64 wide, 16 geometry features, anti-aliased:
+    /// 37 KB of staged weights), where the adapter's workgroup memory holds them.
     #[test]
     fn the_fused_kernel_matches_the_cpu_field_at_the_default_size() {
         let Some(gpu) = test_gpu() else { return };
@@ -339,6 +621,9 @@ mod tests {
                 log2_table_size: 12,
                 ..FastFieldConfig::default().grid
             },
+            antialias: Some(Antialias {
+                reference_footprint: 0.003,
+            }),
             ..FastFieldConfig::default()
         });
         let device_field = GpuFastField::new(&fused(&gpu), &field);
@@ -350,18 +635,18 @@ mod tests {
         }
         // Weights in [-1, 1]: densities over six orders of magnitude at this depth and
         // width (in [-0.3, 0.3] they stay within 0.8 to 1.2).
-        matches_the_cpu_field(&gpu, &field, 1.0, 300);
+        let feed = Feed {
+            footprints: true,
+            ..Feed::default()
+        };
+        matches_the_cpu_field(&gpu, &field, 1.0, 300, &feed);
     }
 
     /// The switch (`NERF_GPU_FIELD`) chooses the path.
     #[test]
     fn the_switch_chooses_the_path() {
         let Some(gpu) = test_gpu() else { return };
-        let layers = Gpu {
-            fused_field: false,
-            ..gpu.clone()
-        };
-        assert!(!GpuFastField::new(&layers, &small_field()).is_fused());
+        assert!(!GpuFastField::new(&layered(&gpu), &small_field()).is_fused());
         assert!(GpuFastField::new(&fused(&gpu), &small_field()).is_fused());
     }
 }

@@ -19,7 +19,7 @@ const PRIME_T: u32 = 3_674_653_429;
 /// Threads per workgroup.
 const GROUP: u32 = 256;
 /// `u32`s describing one level: resolution, time resolution, entries, dense (0/1), offset.
-const LEVEL_WORDS: usize = 5;
+pub(super) const LEVEL_WORDS: usize = 5;
 
 /// Where a sample lies in one level: its cell's first corner and its fractions, per axis
 /// (`x, y, z`, then time).
@@ -29,21 +29,39 @@ struct Cell {
     f: Array<f32>,
 }
 
-/// The cell (first corner, per axis) and fractions of sample `s` in a level of `res`
-/// cells a side and `time_res` along time.
+/// The cell (first corner, per axis) and fractions of the point `(x, y, z, t)` (unit
+/// cube, then time) in a level of `res` cells a side and `time_res` along time.
 #[cube]
-fn cell_of(points: &[f32], s: usize, res: u32, time_res: u32) -> Cell {
+fn cell_at(x: f32, y: f32, z: f32, t: f32, res: u32, time_res: u32) -> Cell {
     let mut c = Array::<u32>::new(4usize);
     let mut f = Array::<f32>::new(4usize);
+    let mut p = Array::<f32>::new(4usize);
+    p[0] = x;
+    p[1] = y;
+    p[2] = z;
+    p[3] = t;
     #[unroll]
     for a in 0..4usize {
         let cells = select(a == 3, time_res, res);
-        let p = f32::clamp(points[4 * s + a], 0.0, 1.0) * f32::cast_from(cells);
-        let k = u32::min(u32::cast_from(p), cells - 1);
+        let q = f32::clamp(p[a], 0.0, 1.0) * f32::cast_from(cells);
+        let k = u32::min(u32::cast_from(q), cells - 1);
         c[a] = k;
-        f[a] = p - f32::cast_from(k);
+        f[a] = q - f32::cast_from(k);
     }
     Cell { c, f }
+}
+
+/// [`cell_at`] for sample `s` of `points` (`x, y, z, t` each).
+#[cube]
+fn cell_of(points: &[f32], s: usize, res: u32, time_res: u32) -> Cell {
+    cell_at(
+        points[4 * s],
+        points[4 * s + 1],
+        points[4 * s + 2],
+        points[4 * s + 3],
+        res,
+        time_res,
+    )
 }
 
 /// Table slot of corner `k` (bit `a` set: one step up axis `a`, time last) of `cell`.
@@ -88,23 +106,46 @@ fn level_words(levels: &[u32], l: usize) -> (u32, u32, u32, u32, usize) {
     )
 }
 
+/// The two features of level `l` (of the table `levels`) at the point `(x, y, z, t)`:
+/// the quadrilinear blend of its cell's sixteen corners.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn encode_level(
+    params: &[f32],
+    levels: &[u32],
+    l: usize,
+    x: f32,
+    y: f32,
+    z: f32,
+    t: f32,
+) -> (f32, f32) {
+    let (res, time_res, entries, dense, offset) = level_words(levels, l);
+    let cell = cell_at(x, y, z, t, res, time_res);
+    let mut f0 = 0.0f32;
+    let mut f1 = 0.0f32;
+    #[unroll]
+    for k in 0..16u32 {
+        let w = corner_weight(&cell, k);
+        let v = corner_slot(&cell, k, res, entries, dense);
+        f0 += w * params[offset + 2 * v];
+        f1 += w * params[offset + 2 * v + 1];
+    }
+    (f0, f1)
+}
+
 #[cube(launch_unchecked)]
 fn encode_fwd(params: &[f32], levels: &[u32], points: &[f32], out: &mut [f32], n_levels: u32) {
     let nl = n_levels as usize;
     let s = ABSOLUTE_POS / nl;
     let l = ABSOLUTE_POS % nl;
     if s * 4 < points.len() {
-        let (res, time_res, entries, dense, offset) = level_words(levels, l);
-        let cell = cell_of(points, s, res, time_res);
-        let mut f0 = 0.0f32;
-        let mut f1 = 0.0f32;
-        #[unroll]
-        for k in 0..16u32 {
-            let w = corner_weight(&cell, k);
-            let v = corner_slot(&cell, k, res, entries, dense);
-            f0 += w * params[offset + 2 * v];
-            f1 += w * params[offset + 2 * v + 1];
-        }
+        let (x, y, z, t) = (
+            points[4 * s],
+            points[4 * s + 1],
+            points[4 * s + 2],
+            points[4 * s + 3],
+        );
+        let (f0, f1) = encode_level(params, levels, l, x, y, z, t);
         out[(s * nl + l) * 2] = f0;
         out[(s * nl + l) * 2 + 1] = f1;
     }
@@ -157,7 +198,7 @@ pub enum Moments {
 /// out: cube code has no `rotate_left`).
 #[cube]
 #[allow(clippy::manual_rotate)]
-fn moment_of_point(x: f32, y: f32, z: f32) -> f32 {
+pub(super) fn moment_of_point(x: f32, y: f32, z: f32) -> f32 {
     let bx = u32::reinterpret(x);
     let by = u32::reinterpret(y);
     let bz = u32::reinterpret(z);
@@ -270,8 +311,9 @@ pub fn per_sample(
 
 /// A space-time grid's level table on the device.
 pub struct GpuSpaceTimeGrid {
-    levels: Handle,
-    n_levels: usize,
+    /// [`LEVEL_WORDS`] a level.
+    pub(super) levels: Handle,
+    pub(super) n_levels: usize,
 }
 
 impl GpuSpaceTimeGrid {
