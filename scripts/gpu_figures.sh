@@ -10,7 +10,8 @@
 #     DEVICE=cpu DIR/gpu_figures.sh run DIR   # a smoke test of the script, on the CPU engine
 #
 # `run` prints, with the adapter's name: training samples/s at 65,536 and 262,144 samples
-# and where a step's host time goes (NERF_GPU_TRACE), lego_400 in 60 s with the defaults
+# and where a step's host time goes (NERF_GPU_TRACE), the same through the fused training
+# kernels at 262,144, lego_400 in 60 s with the defaults
 # (test PSNR on 25 views, the GPU's peak memory), 800x800 frames/s through the layers and
 # through the fused field, the paper model's step,
 # and ngp_fox's 2000 steps with the real-capture defaults (and the step trace's last
@@ -64,6 +65,9 @@ run() {
     NERF_GPU_TRACE=1 "$nerf" bench --device "$gpu" --data "$lego" --samples "$samples" \
       --steps "${STEPS:-100}" --warmup-steps "${WARMUP:-300}" 2>&1 | grep -E "engine:|samples/s|training step|gpu training|rror" | tail -5
   done
+  echo "== training through the fused field (NERF_GPU_TRAIN=fused), 262,144 samples a step"
+  NERF_GPU_TRAIN=fused NERF_GPU_TRACE=1 "$nerf" bench --device "$gpu" --data "$lego" --samples 262144 \
+    --steps "${STEPS:-100}" --warmup-steps "${WARMUP:-300}" 2>&1 | grep -E "samples/s|training step|fit|rror" | tail -4
   echo "== lego_400, ${MINUTES:-1} min with the defaults, 262,144 samples a step"
   local watch=""
   if command -v nvidia-smi >/dev/null; then
@@ -104,5 +108,5 @@ run() {
 case "${1:-}" in
   pack) pack "${2:?a folder to pack into}" ;;
   run) run "${2:?the packed folder}" ;;
-  *) sed -n '2,19p' "$0"; exit 2 ;;
+  *) sed -n '2,20p' "$0"; exit 2 ;;
 esac

@@ -45,6 +45,10 @@ pub struct Gpu {
     /// on a data-centre GPU it rendered no faster than the layers while marching rounds
     /// set the pace, and its compilation delays the first frame (docs/benchmarks.md).
     pub fused_field: bool,
+    /// Whether training runs the fast field's networks in one forward and one backward
+    /// kernel per batch (`fused`, `fused_backward`; the weights' gradients stay products):
+    /// off unless `NERF_GPU_TRAIN=fused`, until a GPU's measurement chooses.
+    pub fused_training: bool,
     /// Consecutive samples a thread of the hash grid's backward takes (`hash_grid`), its
     /// sums kept while they share a cell; `NERF_GPU_GRID_RUN` overrides, for measuring.
     pub grid_run: usize,
@@ -145,6 +149,7 @@ impl Gpu {
             _ => Path::Wide,
         };
         let fused_field = std::env::var("NERF_GPU_FIELD").as_deref() == Ok("fused");
+        let fused_training = std::env::var("NERF_GPU_TRAIN").as_deref() == Ok("fused");
         let grid_run = std::env::var("NERF_GPU_GRID_RUN")
             .ok()
             .and_then(|v| v.parse::<usize>().ok())
@@ -154,6 +159,7 @@ impl Gpu {
             grid_run,
             matmul,
             fused_field,
+            fused_training,
             tensor_cores,
             name: format!(
                 "{runtime}: {}{}",

@@ -10,7 +10,8 @@ use cubecl::server::Handle;
 use super::antialias::LevelWeights;
 use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
-use super::fused::{FusedInput, FusedMotion, FusedShape};
+use super::fused::{FusedInput, FusedMotion, FusedShape, KeptBuffers};
+use super::fused_backward::Forward as FusedForward;
 use super::harmonics::sh4_at;
 use super::hash_grid::{GpuHashGrid, Scatter};
 use super::launch::grid;
@@ -198,6 +199,8 @@ pub struct Activations {
     level_weights: Option<Handle>,
     /// A moving field's points of space and time (`n x 4`) and their encoding.
     motion: Option<(Handle, Handle)>,
+    /// Made by the fused forward, so the fused backward reads them.
+    fused: bool,
 }
 
 impl Activations {
@@ -219,8 +222,12 @@ pub struct GpuFastField {
     /// density 0, 1, colour 0, 1, 2.
     layers: [Dense; 5],
     scatter: Scatter,
-    /// The one-kernel inference (`fused`), where the adapter runs it and the switch allows.
+    /// The one-kernel field (`fused`), where its weights fit the adapter's workgroup memory.
     fused: Option<FusedShape>,
+    /// Whether rendering and density queries take it (`Gpu::fused_field`), and training
+    /// (`Gpu::fused_training`).
+    fused_inference: bool,
+    fused_training: bool,
     /// Per-photo appearance codes, when the field has them.
     codes: Option<GpuCodes>,
     /// The level weighting of an anti-aliased field.
@@ -285,11 +292,11 @@ impl GpuFastField {
                 },
             ),
         };
-        let fused = (gpu.fused_field && shape.fits(gpu)).then_some(shape);
-        if gpu.fused_field && fused.is_none() {
+        let fused = shape.fits(gpu).then_some(shape);
+        if (gpu.fused_field || gpu.fused_training) && fused.is_none() {
             eprintln!(
-                "NERF_GPU_FIELD=fused: this field's weights ({} KB) do not fit this adapter's \
-                 workgroup memory ({} KB); it renders layer by layer",
+                "NERF_GPU_FIELD / NERF_GPU_TRAIN=fused: this field's weights ({} KB) do not \
+                 fit this adapter's workgroup memory ({} KB); it runs layer by layer",
                 shape.staged_floats() * 4 / 1024,
                 gpu.client.properties().hardware.max_shared_memory_size / 1024
             );
@@ -321,6 +328,8 @@ impl GpuFastField {
                 Scatter::CompareAndSwap
             },
             fused,
+            fused_inference: gpu.fused_field,
+            fused_training: gpu.fused_training,
             codes,
             antialias: c.antialias.map(|aa| LevelWeights {
                 reference: aa.reference_footprint,
@@ -399,7 +408,17 @@ impl GpuFastField {
 
     /// The fused kernel's shapes, where [`infer`](Self::infer) runs it now.
     fn fused_now(&self) -> Option<&FusedShape> {
-        self.fused.as_ref().filter(|_| self.level_scale.is_none())
+        self.fused
+            .as_ref()
+            .filter(|_| self.fused_inference && self.level_scale.is_none())
+    }
+
+    /// The fused kernels' shapes, where [`forward`](Self::forward) runs them now (no
+    /// level weight below 1, as for inference).
+    fn fused_training_now(&self) -> Option<&FusedShape> {
+        self.fused
+            .as_ref()
+            .filter(|_| self.fused_training && self.level_scale.is_none())
     }
 
     /// Densities (`n`) and colours (`n x 3`) for rendering, with no activations kept: the
@@ -527,6 +546,7 @@ impl GpuFastField {
             rgb: gpu.floats(0),
             level_weights: None,
             motion: None,
+            fused: false,
         };
         if n == 0 {
             return acts;
@@ -617,6 +637,9 @@ impl GpuFastField {
             moments,
             n,
         } = *input;
+        if let Some(shape) = self.fused_training_now() {
+            return self.fused_forward(gpu, params, shape, input);
+        }
         let mut acts = self.density(gpu, params, positions, footprints, moments, n);
         let [_, _, c0, c1, c2] = &self.layers;
         acts.colour_in = gpu.floats(n * c0.inputs);
@@ -672,6 +695,136 @@ impl GpuFastField {
         acts
     }
 
+    /// [`forward`](Self::forward) through the fused kernel, keeping what the layers keep.
+    fn fused_forward(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        shape: &FusedShape,
+        input: &DeviceInput,
+    ) -> Activations {
+        let n = input.n;
+        let (e, md, ci) = shape.widths();
+        let w = self.layers[0].outputs;
+        let rows = |width: usize| gpu.floats(n * width);
+        let kept = KeptBuffers {
+            unit: rows(3),
+            enc: rows(e),
+            level_weights: self.antialias.as_ref().map(|_| rows(self.grid.n_levels)),
+            motion: self.motion.as_ref().map(|_| (rows(4), rows(md))),
+            h: rows(w),
+            geo: rows(self.geo),
+            colour_in: rows(ci),
+            c1: rows(w),
+            c2: rows(w),
+        };
+        let clock = step_clock::start(Stage::Networks);
+        let times = input.moments.times(gpu);
+        let fused = FusedInput {
+            dirs: Some(input.dirs),
+            footprints: input.footprints,
+            codes: input.codes,
+            times: (&times.0, times.1),
+        };
+        let (sigma, rgb) = shape.forward(
+            gpu,
+            self.grids(),
+            params,
+            self.n_params,
+            input.positions,
+            &fused,
+            &kept,
+            n,
+        );
+        gpu.stage_done(clock);
+        Activations {
+            n,
+            unit: kept.unit,
+            enc: kept.enc,
+            h: kept.h,
+            geo: kept.geo,
+            sigma,
+            colour_in: kept.colour_in,
+            c1: kept.c1,
+            c2: kept.c2,
+            rgb,
+            level_weights: kept.level_weights,
+            motion: kept.motion,
+            fused: true,
+        }
+    }
+
+    /// Backward of [`fused_forward`](Self::fused_forward): the layers' input and output
+    /// gradients from the fused kernel, the weights' from their products, then the codes,
+    /// the space-time grid and the hash grid as the layers' backward does them.
+    #[allow(clippy::too_many_arguments)]
+    fn fused_backward(
+        &self,
+        gpu: &Gpu,
+        (params, grads): (&Handle, &Handle),
+        shape: &FusedShape,
+        acts: &Activations,
+        codes: &SampleCodes,
+        d_sigma: &Handle,
+        d_rgb: &Handle,
+    ) -> InputGradients {
+        let n = acts.n;
+        let np = self.n_params;
+        let [d0, d1, c0, c1, c2] = &self.layers;
+        let networks = step_clock::start(Stage::NetworksBackward);
+        let forward = FusedForward {
+            sigma: &acts.sigma,
+            rgb: &acts.rgb,
+            h: &acts.h,
+            geo: &acts.geo,
+            c1: &acts.c1,
+            c2: &acts.c2,
+            level_weights: acts.level_weights.as_ref(),
+        };
+        let g = shape.backward(gpu, params, np, &forward, d_sigma, d_rgb, n);
+        // The weights' gradients, `x^T dy` layer by layer.
+        let layers = [
+            (c2, &acts.c2, &g.d_logit),
+            (c1, &acts.c1, &g.d_c2),
+            (c0, &acts.colour_in, &g.d_c1),
+            (d1, &acts.h, &g.d_geo),
+            (d0, &acts.enc, &g.d_h),
+        ];
+        for (layer, x, dy) in layers {
+            layer.backward(gpu, params, grads, np, x, dy, None, n);
+        }
+        if let Some(c) = &self.codes {
+            let columns = self.colour_columns();
+            let scatter = self.scatter;
+            c.backward(gpu, scatter, codes, &g.d_colour_in, columns, grads, np, n);
+        }
+        if let (Some(m), Some((points, enc)), Some(d_motion)) =
+            (&self.motion, &acts.motion, &g.d_motion)
+        {
+            m.layer
+                .backward(gpu, params, grads, np, enc, &g.d_h, None, n);
+            m.grid
+                .encode_bwd(gpu, self.scatter, points, d_motion, n, (grads, np));
+        }
+        gpu.stage_done(networks);
+        let clock = step_clock::start(Stage::EncodingBackward);
+        self.grid.encode_bwd(
+            gpu,
+            self.scatter,
+            &acts.unit,
+            &g.d_enc,
+            n,
+            grads,
+            gpu.grid_run,
+        );
+        gpu.stage_done(clock);
+        InputGradients {
+            d_enc: g.d_enc,
+            d_colour_in: g.d_colour_in,
+            colour_columns: c0.inputs,
+        }
+    }
+
     /// Backward of [`forward`](Self::forward) (with the same `codes`): from `d_sigma`
     /// (`n`) and `d_rgb` (`n x 3`), adds every parameter's gradient into `grads`; returns
     /// the inputs' gradients it made on the way.
@@ -694,6 +847,10 @@ impl GpuFastField {
                 d_colour_in: gpu.floats(1),
                 colour_columns: c0.inputs,
             };
+        }
+        if let Some(shape) = self.fused.as_ref().filter(|_| acts.fused) {
+            let state = (params, grads);
+            return self.fused_backward(gpu, state, shape, acts, codes, d_sigma, d_rgb);
         }
         let np = self.n_params;
         let networks = step_clock::start(Stage::NetworksBackward);
@@ -862,6 +1019,22 @@ pub(super) mod tests {
             geo_features: 5,
             bound: 1.5,
             ..FastFieldConfig::default()
+        })
+    }
+
+    /// [`small_moving_field`] with every other input a field can take: anti-aliased level
+    /// weights, appearance codes (3 values for 5 photos) and four view harmonics. The
+    /// fused kernels' tests take this one field (each field shape is a kernel to compile,
+    /// and lavapipe compiles them slowly).
+    pub fn small_field_with_every_input() -> FastField {
+        FastField::new(FastFieldConfig {
+            antialias: Some(crate::field::fast::Antialias {
+                reference_footprint: 0.02,
+            }),
+            appearance_dims: 3,
+            appearance_images: 5,
+            view_harmonics: 4,
+            ..small_moving_field().config
         })
     }
 

@@ -86,7 +86,7 @@ fn stage(src: &[f32], dst: &mut [f32], from: u32, #[comptime] to: usize, #[compt
 /// Where the layers' weights sit in the parameter vector: density 0, 1, colour 0, 1, 2,
 /// and the space-time features' first-layer weights (moving fields; 0 otherwise).
 #[derive(CubeType, CubeLaunch, Clone, Copy)]
-struct LayerOffsets {
+pub(super) struct LayerOffsets {
     d0: u32,
     d1: u32,
     c0: u32,
@@ -113,14 +113,28 @@ struct Feeds {
     moments: u32,
 }
 
+/// `len` values of `v` into `out[row * len..]`.
+#[cube]
+fn keep_row(v: &Array<f32>, out: &mut [f32], row: usize, #[comptime] len: usize) {
+    #[unroll]
+    for k in 0..len {
+        out[row * len + k] = v[k];
+    }
+}
+
 /// Density (and, when `colour` is set, colour) of the first `n` samples: world `positions`
 /// and unit view `dirs` (`n x 3` each) into `sigma` (`n`) and `rgb` (`n x 3`). The field's
 /// optional inputs are compiled in by their sizes: anti-aliased level weights
 /// (`antialias`), an appearance code of `code_dims` values, a space-time grid of
-/// `motion_levels` levels, and the first `harmonics` of the view direction's 16.
+/// `motion_levels` levels, and the first `harmonics` of the view direction's 16. With
+/// `keep` (training, with `colour`), what the backward reads goes into the `kept_` buffers,
+/// each as the layer-by-layer path keeps it (`field::Activations`): unit positions, the
+/// (weighed) hash features, the level weights, the space-time points and features, the
+/// density network's hidden layer and outputs, the colour network's input and hidden
+/// layers (one float each, unwritten, where the kernel does not keep them).
 #[cube(launch_unchecked)]
 #[allow(clippy::too_many_arguments, unused_assignments)]
-fn field_infer(
+fn field_fwd(
     params: &[f32],
     levels: &[u32],
     positions: &[f32],
@@ -132,6 +146,16 @@ fn field_infer(
     times: &[f32],
     sigma: &mut [f32],
     rgb: &mut [f32],
+    kept_unit: &mut [f32],
+    kept_enc: &mut [f32],
+    kept_level_weights: &mut [f32],
+    kept_points: &mut [f32],
+    kept_motion: &mut [f32],
+    kept_h: &mut [f32],
+    kept_geo: &mut [f32],
+    kept_colour_in: &mut [f32],
+    kept_c1: &mut [f32],
+    kept_c2: &mut [f32],
     at: LayerOffsets,
     feeds: Feeds,
     n: u32,
@@ -145,30 +169,18 @@ fn field_infer(
     #[comptime] antialias: bool,
     #[comptime] code_dims: usize,
     #[comptime] motion_levels: usize,
+    #[comptime] keep: bool,
 ) {
     let e = n_levels * 2;
     let md = motion_levels * 2;
     let ci = 15 + geo + code_dims;
-    // Workgroup-memory layout: density 0, the moving features' weights, density 1, colour
-    // 0, 1, 2, back to back.
     let w_m = e * hidden;
     let w_d1 = w_m + md * hidden;
     let w_c0 = w_d1 + hidden * geo;
     let w_c1 = w_c0 + ci * hidden;
     let w_c2 = w_c1 + hidden * hidden;
-    let total = w_c2 + hidden * 3;
-    let mut w = Shared::<[f32]>::new_slice(total);
-    stage(params, &mut w, at.d0, 0usize, e * hidden);
-    if motion_levels > 0 {
-        stage(params, &mut w, at.motion, w_m, md * hidden);
-    }
-    stage(params, &mut w, at.d1, w_d1, hidden * geo);
-    if colour {
-        stage(params, &mut w, at.c0, w_c0, ci * hidden);
-        stage(params, &mut w, at.c1, w_c1, hidden * hidden);
-        stage(params, &mut w, at.c2, w_c2, hidden * 3);
-    }
-    sync_cube();
+    let mut w = Shared::<[f32]>::new_slice(w_c2 + hidden * 3);
+    stage_weights(params, &mut w, at, e, md, ci, hidden, geo, colour);
 
     let s = ABSOLUTE_POS;
     if s < n as usize {
@@ -176,6 +188,11 @@ fn field_infer(
         let ux = (positions[3 * s] + bound) * scale;
         let uy = (positions[3 * s + 1] + bound) * scale;
         let uz = (positions[3 * s + 2] + bound) * scale;
+        if keep {
+            kept_unit[3 * s] = ux;
+            kept_unit[3 * s + 1] = uy;
+            kept_unit[3 * s + 2] = uz;
+        }
         let mut footprint = 0.0f32;
         if antialias {
             footprint = select(
@@ -190,9 +207,15 @@ fn field_infer(
             let mut weight = 1.0f32;
             if antialias {
                 weight = level_weight(levels, l, footprint);
+                if keep {
+                    kept_level_weights[s * n_levels + l] = weight;
+                }
             }
             enc[2 * l] = f0 * weight;
             enc[2 * l + 1] = f1 * weight;
+        }
+        if keep {
+            keep_row(&enc, kept_enc, s, e);
         }
         let mut h = Array::<f32>::new(hidden);
         if motion_levels > 0 {
@@ -212,6 +235,13 @@ fn field_infer(
                 m[2 * l] = f0;
                 m[2 * l + 1] = f1;
             }
+            if keep {
+                kept_points[4 * s] = ux;
+                kept_points[4 * s + 1] = uy;
+                kept_points[4 * s + 2] = uz;
+                kept_points[4 * s + 3] = t;
+                keep_row(&m, kept_motion, s, md);
+            }
             let mut hm = Array::<f32>::new(hidden);
             dense(&m, &mut hm, &w, w_m, md, hidden, false);
             #[unroll]
@@ -224,6 +254,10 @@ fn field_infer(
         let mut g = Array::<f32>::new(geo);
         dense(&h, &mut g, &w, w_d1, hidden, geo, false);
         sigma[s] = f32::exp(f32::min(g[0], log_max));
+        if keep {
+            keep_row(&h, kept_h, s, hidden);
+            keep_row(&g, kept_geo, s, geo);
+        }
         if colour {
             let mut c_in = Array::<f32>::new(ci);
             let sh = sh4(dirs[3 * s], dirs[3 * s + 1], dirs[3 * s + 2]);
@@ -258,8 +292,47 @@ fn field_infer(
             for c in 0..3usize {
                 rgb[3 * s + c] = 1.0 / (1.0 + f32::exp(-out[c]));
             }
+            if keep {
+                keep_row(&c_in, kept_colour_in, s, ci);
+                keep_row(&c1, kept_c1, s, hidden);
+                keep_row(&c2, kept_c2, s, hidden);
+            }
         }
     }
+}
+
+/// Stages the layers' weights into workgroup memory (layout: density 0, the moving
+/// features' weights, density 1, colour 0, 1, 2, back to back; the colour network's only
+/// with `colour`), the workgroup's threads in turn, and waits for all of them.
+#[cube]
+#[allow(clippy::too_many_arguments)]
+pub(super) fn stage_weights(
+    params: &[f32],
+    w: &mut [f32],
+    at: LayerOffsets,
+    #[comptime] e: usize,
+    #[comptime] md: usize,
+    #[comptime] ci: usize,
+    #[comptime] hidden: usize,
+    #[comptime] geo: usize,
+    #[comptime] colour: bool,
+) {
+    let w_m = e * hidden;
+    let w_d1 = w_m + md * hidden;
+    let w_c0 = w_d1 + hidden * geo;
+    let w_c1 = w_c0 + ci * hidden;
+    let w_c2 = w_c1 + hidden * hidden;
+    stage(params, w, at.d0, 0usize, e * hidden);
+    if md > 0 {
+        stage(params, w, at.motion, w_m, md * hidden);
+    }
+    stage(params, w, at.d1, w_d1, hidden * geo);
+    if colour {
+        stage(params, w, at.c0, w_c0, ci * hidden);
+        stage(params, w, at.c1, w_c1, hidden * hidden);
+        stage(params, w, at.c2, w_c2, hidden * 3);
+    }
+    sync_cube();
 }
 
 /// A moving field's space-time grid, as the fused kernel reads it.
@@ -308,9 +381,8 @@ impl FusedShape {
 
     /// Floats of workgroup memory the colour kernel stages.
     pub fn staged_floats(&self) -> usize {
-        let (e, w, g) = (self.levels * FEATURES, self.hidden, self.geo);
-        let md = self.motion.map_or(0, |m| m.levels * FEATURES);
-        let ci = SH_DIMS + g - 1 + self.code_dims();
+        let (e, md, ci) = self.widths();
+        let (w, g) = (self.hidden, self.geo);
         e * w + md * w + w * g + ci * w + w * w + w * 3
     }
 
@@ -327,11 +399,51 @@ impl FusedShape {
     pub fn infer(
         &self,
         gpu: &Gpu,
-        (hash, moving): (&GpuHashGrid, Option<&GpuSpaceTimeGrid>),
+        grids: (&GpuHashGrid, Option<&GpuSpaceTimeGrid>),
         params: &Handle,
         n_params: usize,
         positions: &Handle,
         input: &FusedInput,
+        n: usize,
+    ) -> (Handle, Handle) {
+        self.run(gpu, grids, (params, n_params), positions, input, None, n)
+    }
+
+    /// A training forward: [`infer`](Self::infer) with colours (`input.dirs` given), also
+    /// writing into `kept` what the backward reads.
+    #[allow(clippy::too_many_arguments)]
+    pub fn forward(
+        &self,
+        gpu: &Gpu,
+        grids: (&GpuHashGrid, Option<&GpuSpaceTimeGrid>),
+        params: &Handle,
+        n_params: usize,
+        positions: &Handle,
+        input: &FusedInput,
+        kept: &KeptBuffers,
+        n: usize,
+    ) -> (Handle, Handle) {
+        assert!(input.dirs.is_some(), "a training forward makes colours");
+        self.run(
+            gpu,
+            grids,
+            (params, n_params),
+            positions,
+            input,
+            Some(kept),
+            n,
+        )
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn run(
+        &self,
+        gpu: &Gpu,
+        (hash, moving): (&GpuHashGrid, Option<&GpuSpaceTimeGrid>),
+        (params, n_params): (&Handle, usize),
+        positions: &Handle,
+        input: &FusedInput,
+        kept: Option<&KeptBuffers>,
         n: usize,
     ) -> (Handle, Handle) {
         let sigma = gpu.floats(n);
@@ -340,9 +452,7 @@ impl FusedShape {
         if n == 0 {
             return (sigma, rgb);
         }
-        let [d0, d1, c0, c1, c2] = self.weights.map(|o| o as u32);
-        let motion_weight = self.motion.map_or(0, |m| m.weight as u32);
-        let at = LayerOffsetsLaunch::new(d0, d1, c0, c1, c2, motion_weight);
+        let at = self.offsets();
         let (code_off, images) = self.codes.map_or((0, 0), |c| (c.offset, c.images));
         let feeds = FeedsLaunch::new(
             u32::from(input.footprints.is_some()),
@@ -367,15 +477,28 @@ impl FusedShape {
         let motion_grid = moving.map_or((&no_grid, 1), |g| (&g.levels, g.n_levels * ST_WORDS));
         let (count, dim) = grid(n, GROUP);
         let dirs = input.dirs.unwrap_or(positions);
+        let (e, md, ci) = self.widths();
+        let rows = |h: Option<&Handle>, width: usize| {
+            // SAFETY: a kept buffer holds `n` rows of its width; the stand-in one float,
+            // which the kernel does not write.
+            unsafe {
+                match h {
+                    Some(h) => BufferArg::from_raw_parts(h.clone(), n * width),
+                    None => BufferArg::from_raw_parts(one.clone(), 1),
+                }
+            }
+        };
+        let k = kept;
         // SAFETY: `positions` and `dirs` hold `3n` floats, `sigma` `n` and `rgb` `3n` when
         // `colour` is set (it is not written otherwise); the parameter vector holds every
         // layer, code and table at its offset; `footprints` and `times` hold one float a
         // sample where their flags say so (else one, read at index 0 only), the code
         // indices one or `n` as `per_sample` says, `mean` the code's width where the field
-        // has codes; the kernel reads and writes sample slots below `n` only, and stages at
-        // most the workgroup memory `fits` checked.
+        // has codes; the kept buffers hold `n` rows where `keep` writes them; the kernel
+        // reads and writes sample slots below `n` only, and stages at most the workgroup
+        // memory `fits` checked.
         unsafe {
-            field_infer::launch_unchecked(
+            field_fwd::launch_unchecked(
                 &gpu.client,
                 count,
                 dim,
@@ -390,6 +513,16 @@ impl FusedShape {
                 BufferArg::from_raw_parts(input.times.0.clone(), times_len),
                 BufferArg::from_raw_parts(sigma.clone(), n),
                 BufferArg::from_raw_parts(rgb.clone(), if colour { n * 3 } else { 1 }),
+                rows(k.map(|k| &k.unit), 3),
+                rows(k.map(|k| &k.enc), e),
+                rows(k.and_then(|k| k.level_weights.as_ref()), self.levels),
+                rows(k.and_then(|k| k.motion.as_ref().map(|m| &m.0)), 4),
+                rows(k.and_then(|k| k.motion.as_ref().map(|m| &m.1)), md),
+                rows(k.map(|k| &k.h), self.hidden),
+                rows(k.map(|k| &k.geo), self.geo),
+                rows(k.map(|k| &k.colour_in), ci),
+                rows(k.map(|k| &k.c1), self.hidden),
+                rows(k.map(|k| &k.c2), self.hidden),
                 at,
                 feeds,
                 n as u32,
@@ -403,17 +536,48 @@ impl FusedShape {
                 self.antialias.is_some(),
                 self.code_dims(),
                 self.motion.map_or(0, |m| m.levels),
+                kept.is_some(),
             );
         }
         (sigma, rgb)
     }
+
+    /// Where the layers' weights sit, for the kernels.
+    pub(super) fn offsets(&self) -> LayerOffsetsLaunch {
+        let [d0, d1, c0, c1, c2] = self.weights.map(|o| o as u32);
+        let motion_weight = self.motion.map_or(0, |m| m.weight as u32);
+        LayerOffsetsLaunch::new(d0, d1, c0, c1, c2, motion_weight)
+    }
+
+    /// The widths of the hash features, the space-time features and the colour input.
+    pub(super) fn widths(&self) -> (usize, usize, usize) {
+        let md = self.motion.map_or(0, |m| m.levels * FEATURES);
+        let ci = SH_DIMS + self.geo - 1 + self.code_dims();
+        (self.levels * FEATURES, md, ci)
+    }
+}
+
+/// The buffers a training forward fills for its backward, laid out as
+/// `field::Activations` holds them (each `n` rows).
+pub struct KeptBuffers {
+    pub unit: Handle,
+    pub enc: Handle,
+    /// Anti-aliased fields.
+    pub level_weights: Option<Handle>,
+    /// Moving fields: the space-time points and their features.
+    pub motion: Option<(Handle, Handle)>,
+    pub h: Handle,
+    pub geo: Handle,
+    pub colour_in: Handle,
+    pub c1: Handle,
+    pub c2: Handle,
 }
 
 #[cfg(test)]
 mod tests {
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst, Gpu};
-    use crate::engine::gpu::field::tests::{small_field, small_moving_field};
+    use crate::engine::gpu::field::tests::{small_field, small_field_with_every_input};
     use crate::engine::gpu::field::{DeviceInput, DeviceMoments, GpuFastField};
     use crate::field::fast::{Antialias, FastWorkspace};
     use crate::field::{FastField, FastFieldConfig};
@@ -559,32 +723,14 @@ mod tests {
         matches_the_cpu_field(&gpu, &small_field(), 1.5, 1000, &Feed::default());
     }
 
-    /// Every input a field can take, each on its own: anti-aliased level weights (a
-    /// footprint a sample, and the reference one), appearance codes (a code a sample with
-    /// the mean among them, one photo's for all, the mean for all), a moving field's
-    /// space-time features (a moment a sample), and four of the view direction's harmonics.
+    /// Every input a field can take, at once: anti-aliased level weights (a footprint a
+    /// sample, and the reference one), appearance codes (a code a sample with the mean
+    /// among them, one photo's for all, the mean for all), a moving field's space-time
+    /// features (a moment a sample), and four of the view direction's harmonics.
     #[test]
     fn the_fused_kernel_takes_every_input_the_field_takes() {
         let Some(gpu) = test_gpu() else { return };
-        let small = small_field().config;
-        let antialiased = FastField::new(FastFieldConfig {
-            antialias: Some(Antialias {
-                reference_footprint: 0.02,
-            }),
-            ..small.clone()
-        });
-        for footprints in [true, false] {
-            let feed = Feed {
-                footprints,
-                ..Feed::default()
-            };
-            matches_the_cpu_field(&gpu, &antialiased, 1.5, 700, &feed);
-        }
-        let with_codes = FastField::new(FastFieldConfig {
-            appearance_dims: 3,
-            appearance_images: 5,
-            ..small.clone()
-        });
+        let field = small_field_with_every_input();
         let mut rng = Rng::new(8);
         let mixed: Vec<u32> = (0..700)
             .map(|_| match (rng.uniform() * 6.0) as u32 {
@@ -592,23 +738,18 @@ mod tests {
                 i => i,
             })
             .collect();
-        for codes in [mixed, vec![2; 700], vec![MEAN_APPEARANCE; 700]] {
+        for (footprints, codes) in [
+            (true, mixed),
+            (false, vec![2; 700]),
+            (true, vec![MEAN_APPEARANCE; 700]),
+        ] {
             let feed = Feed {
+                footprints,
                 codes: Some(codes),
-                ..Feed::default()
+                moving: true,
             };
-            matches_the_cpu_field(&gpu, &with_codes, 1.5, 700, &feed);
+            matches_the_cpu_field(&gpu, &field, 1.5, 700, &feed);
         }
-        let moving = Feed {
-            moving: true,
-            ..Feed::default()
-        };
-        matches_the_cpu_field(&gpu, &small_moving_field(), 1.5, 700, &moving);
-        let four_harmonics = FastField::new(FastFieldConfig {
-            view_harmonics: 4,
-            ..small
-        });
-        matches_the_cpu_field(&gpu, &four_harmonics, 1.5, 700, &Feed::default());
     }
 
     /// The default field's shapes (16 levels, 64 wide, 16 geometry features, anti-aliased:

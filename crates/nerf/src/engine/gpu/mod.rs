@@ -18,7 +18,8 @@
 //!   multiresolution hash encoding; gradients scattered with float atomics, or a
 //!   compare-and-swap loop where the adapter has none) and [`mlp`] (dense layers);
 //!   [`fused`]: the same field's inference in one kernel per batch, for rendering and
-//!   density queries (`NERF_GPU_FIELD=fused`); [`codes`]: per-photo appearance codes;
+//!   density queries (`NERF_GPU_FIELD=fused`), and with [`fused_backward`] its training
+//!   forward and backward (`NERF_GPU_TRAIN=fused`); [`codes`]: per-photo appearance codes;
 //!   [`antialias`]: sample footprints and the hash grid's level weights; [`harmonics`]: the
 //!   view direction's spherical harmonics; [`space_time_grid`]: a moving field's encoding
 //!   of space and time, and [`time_smoothness`]: its prior of smooth change in time;
@@ -53,6 +54,7 @@ pub mod engine;
 pub mod field;
 pub mod finite;
 pub mod fused;
+pub mod fused_backward;
 pub mod gemm;
 mod gemm_cmma;
 mod gemm_epilogue;
