@@ -152,6 +152,19 @@ pub struct DeviceInput<'a> {
     pub n: usize,
 }
 
+impl DeviceInput<'_> {
+    /// The batch as the fused kernels take it, its moments as `times` holds them
+    /// ([`DeviceMoments::times`]).
+    fn fused<'b>(&'b self, times: &'b (Handle, Moments)) -> FusedInput<'b> {
+        FusedInput {
+            dirs: Some(self.dirs),
+            footprints: self.footprints,
+            codes: self.codes,
+            times: (&times.0, times.1),
+        }
+    }
+}
+
 /// When a batch's samples are, for a moving field: as the CPU field's `Moments`.
 #[derive(Clone, Copy)]
 pub enum DeviceMoments<'a> {
@@ -427,12 +440,7 @@ impl GpuFastField {
         match self.fused_now() {
             Some(f) => {
                 let times = input.moments.times(gpu);
-                let fused = FusedInput {
-                    dirs: Some(input.dirs),
-                    footprints: input.footprints,
-                    codes: input.codes,
-                    times: (&times.0, times.1),
-                };
+                let fused = input.fused(&times);
                 f.infer(
                     gpu,
                     self.grids(),
@@ -720,12 +728,7 @@ impl GpuFastField {
         };
         let clock = step_clock::start(Stage::Networks);
         let times = input.moments.times(gpu);
-        let fused = FusedInput {
-            dirs: Some(input.dirs),
-            footprints: input.footprints,
-            codes: input.codes,
-            times: (&times.0, times.1),
-        };
+        let fused = input.fused(&times);
         let (sigma, rgb) = shape.forward(
             gpu,
             self.grids(),

@@ -113,6 +113,39 @@ struct Feeds {
     moments: u32,
 }
 
+/// Where each layer's weights sit in a kernel's workgroup memory, back to back: density 0
+/// at 0, then the moving features' first-layer weights, density 1, colour 0, 1, 2; and the
+/// floats in all. One layout for the forward and the backward kernels.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct Staged {
+    pub motion: usize,
+    pub d1: usize,
+    pub c0: usize,
+    pub c1: usize,
+    pub c2: usize,
+    pub total: usize,
+}
+
+impl Staged {
+    /// For `e` hash features, `md` space-time features, a colour input `ci` wide, layers
+    /// `hidden` wide and `geo` geometry features.
+    pub(super) fn new(e: usize, md: usize, ci: usize, hidden: usize, geo: usize) -> Self {
+        let motion = e * hidden;
+        let d1 = motion + md * hidden;
+        let c0 = d1 + hidden * geo;
+        let c1 = c0 + ci * hidden;
+        let c2 = c1 + hidden * hidden;
+        Staged {
+            motion,
+            d1,
+            c0,
+            c1,
+            c2,
+            total: c2 + hidden * 3,
+        }
+    }
+}
+
 /// `len` values of `v` into `out[row * len..]`.
 #[cube]
 fn keep_row(v: &Array<f32>, out: &mut [f32], row: usize, #[comptime] len: usize) {
@@ -174,12 +207,8 @@ fn field_fwd(
     let e = n_levels * 2;
     let md = motion_levels * 2;
     let ci = 15 + geo + code_dims;
-    let w_m = e * hidden;
-    let w_d1 = w_m + md * hidden;
-    let w_c0 = w_d1 + hidden * geo;
-    let w_c1 = w_c0 + ci * hidden;
-    let w_c2 = w_c1 + hidden * hidden;
-    let mut w = Shared::<[f32]>::new_slice(w_c2 + hidden * 3);
+    let at_w = comptime!(Staged::new(e, md, ci, hidden, geo));
+    let mut w = Shared::<[f32]>::new_slice(at_w.total);
     stage_weights(params, &mut w, at, e, md, ci, hidden, geo, colour);
 
     let s = ABSOLUTE_POS;
@@ -243,7 +272,7 @@ fn field_fwd(
                 keep_row(&m, kept_motion, s, md);
             }
             let mut hm = Array::<f32>::new(hidden);
-            dense(&m, &mut hm, &w, w_m, md, hidden, false);
+            dense(&m, &mut hm, &w, at_w.motion, md, hidden, false);
             #[unroll]
             for o in 0..hidden {
                 h[o] = f32::max(h[o] + hm[o], 0.0);
@@ -252,7 +281,7 @@ fn field_fwd(
             dense(&enc, &mut h, &w, 0usize, e, hidden, true);
         }
         let mut g = Array::<f32>::new(geo);
-        dense(&h, &mut g, &w, w_d1, hidden, geo, false);
+        dense(&h, &mut g, &w, at_w.d1, hidden, geo, false);
         sigma[s] = f32::exp(f32::min(g[0], log_max));
         if keep {
             keep_row(&h, kept_h, s, hidden);
@@ -283,11 +312,11 @@ fn field_fwd(
                 }
             }
             let mut c1 = Array::<f32>::new(hidden);
-            dense(&c_in, &mut c1, &w, w_c0, ci, hidden, true);
+            dense(&c_in, &mut c1, &w, at_w.c0, ci, hidden, true);
             let mut c2 = Array::<f32>::new(hidden);
-            dense(&c1, &mut c2, &w, w_c1, hidden, hidden, true);
+            dense(&c1, &mut c2, &w, at_w.c1, hidden, hidden, true);
             let mut out = Array::<f32>::new(3usize);
-            dense(&c2, &mut out, &w, w_c2, hidden, 3usize, false);
+            dense(&c2, &mut out, &w, at_w.c2, hidden, 3usize, false);
             #[unroll]
             for c in 0..3usize {
                 rgb[3 * s + c] = 1.0 / (1.0 + f32::exp(-out[c]));
@@ -317,20 +346,16 @@ pub(super) fn stage_weights(
     #[comptime] geo: usize,
     #[comptime] colour: bool,
 ) {
-    let w_m = e * hidden;
-    let w_d1 = w_m + md * hidden;
-    let w_c0 = w_d1 + hidden * geo;
-    let w_c1 = w_c0 + ci * hidden;
-    let w_c2 = w_c1 + hidden * hidden;
+    let to = comptime!(Staged::new(e, md, ci, hidden, geo));
     stage(params, w, at.d0, 0usize, e * hidden);
     if md > 0 {
-        stage(params, w, at.motion, w_m, md * hidden);
+        stage(params, w, at.motion, to.motion, md * hidden);
     }
-    stage(params, w, at.d1, w_d1, hidden * geo);
+    stage(params, w, at.d1, to.d1, hidden * geo);
     if colour {
-        stage(params, w, at.c0, w_c0, ci * hidden);
-        stage(params, w, at.c1, w_c1, hidden * hidden);
-        stage(params, w, at.c2, w_c2, hidden * 3);
+        stage(params, w, at.c0, to.c0, ci * hidden);
+        stage(params, w, at.c1, to.c1, hidden * hidden);
+        stage(params, w, at.c2, to.c2, hidden * 3);
     }
     sync_cube();
 }
@@ -382,8 +407,7 @@ impl FusedShape {
     /// Floats of workgroup memory the colour kernel stages.
     pub fn staged_floats(&self) -> usize {
         let (e, md, ci) = self.widths();
-        let (w, g) = (self.hidden, self.geo);
-        e * w + md * w + w * g + ci * w + w * w + w * 3
+        Staged::new(e, md, ci, self.hidden, self.geo).total
     }
 
     /// Whether the weights fit in one workgroup's memory on `gpu`.

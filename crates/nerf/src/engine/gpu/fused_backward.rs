@@ -11,7 +11,7 @@ use cubecl::prelude::*;
 use cubecl::server::Handle;
 
 use super::device::Gpu;
-use super::fused::{stage_weights, FusedShape, LayerOffsets};
+use super::fused::{stage_weights, FusedShape, LayerOffsets, Staged};
 use super::launch::grid;
 use crate::field::fast::LOG_SIGMA_MAX;
 
@@ -111,12 +111,8 @@ fn field_bwd(
     let e = n_levels * 2;
     let md = motion_levels * 2;
     let ci = 15 + geo + code_dims;
-    let w_m = e * hidden;
-    let w_d1 = w_m + md * hidden;
-    let w_c0 = w_d1 + hidden * geo;
-    let w_c1 = w_c0 + ci * hidden;
-    let w_c2 = w_c1 + hidden * hidden;
-    let mut w = Shared::<[f32]>::new_slice(w_c2 + hidden * 3);
+    let at_w = comptime!(Staged::new(e, md, ci, hidden, geo));
+    let mut w = Shared::<[f32]>::new_slice(at_w.total);
     stage_weights(params, &mut w, at, e, md, ci, hidden, geo, true);
 
     let s = ABSOLUTE_POS;
@@ -129,13 +125,13 @@ fn field_bwd(
         }
         write_row(&dl, d_logit, s, 3usize);
         let mut a = Array::<f32>::new(hidden);
-        dense_t(&dl, &mut a, &w, w_c2, hidden, 3usize);
+        dense_t(&dl, &mut a, &w, at_w.c2, hidden, 3usize);
         mask_and_write(&mut a, c2, d_c2, s, hidden);
         let mut b = Array::<f32>::new(hidden);
-        dense_t(&a, &mut b, &w, w_c1, hidden, hidden);
+        dense_t(&a, &mut b, &w, at_w.c1, hidden, hidden);
         mask_and_write(&mut b, c1, d_c1, s, hidden);
         let mut dc = Array::<f32>::new(ci);
-        dense_t(&b, &mut dc, &w, w_c0, ci, hidden);
+        dense_t(&b, &mut dc, &w, at_w.c0, ci, hidden);
         write_row(&dc, d_colour_in, s, ci);
         let mut dg = Array::<f32>::new(geo);
         dg[0] = select(geo_out[s * geo] < log_max, d_sigma[s] * sigma[s], 0.0f32);
@@ -145,7 +141,7 @@ fn field_bwd(
         }
         write_row(&dg, d_geo, s, geo);
         let mut dh = Array::<f32>::new(hidden);
-        dense_t(&dg, &mut dh, &w, w_d1, hidden, geo);
+        dense_t(&dg, &mut dh, &w, at_w.d1, hidden, geo);
         mask_and_write(&mut dh, h, d_h, s, hidden);
         let mut de = Array::<f32>::new(e);
         dense_t(&dh, &mut de, &w, 0usize, e, hidden);
@@ -160,7 +156,7 @@ fn field_bwd(
         write_row(&de, d_enc, s, e);
         if motion_levels > 0 {
             let mut dm = Array::<f32>::new(md);
-            dense_t(&dh, &mut dm, &w, w_m, md, hidden);
+            dense_t(&dh, &mut dm, &w, at_w.motion, md, hidden);
             write_row(&dm, d_motion, s, md);
         }
     }
