@@ -15,6 +15,7 @@ const GROUP: u32 = 256;
 
 /// Which code each sample takes: an index into the training photos, or
 /// [`MEAN_APPEARANCE`](crate::stage::MEAN_APPEARANCE).
+#[derive(Clone)]
 pub struct SampleCodes {
     /// `n` indices, or one for every sample.
     pub index: Handle,

@@ -21,7 +21,8 @@ use super::camera_poses::DevicePoses;
 use super::codes::SampleCodes;
 use super::depth_smoothness::LastStep;
 use super::device::Gpu;
-use super::field::{Activations, DeviceInput, DeviceMoments, GpuFastField, InputGradients};
+use super::device_field::{DeviceField, DeviceInput, DeviceMoments};
+use super::field::{Activations, GpuFastField, InputGradients};
 use super::march::{Cut, GpuMarcher, GpuRays};
 use super::occupancy::GpuOccupancy;
 use super::params::{
@@ -219,15 +220,6 @@ impl GpuEngine {
         self.model.config.batch_samples.max(round)
     }
 
-    /// What the field reads besides positions and directions.
-    fn field_needs(&self) -> render::FieldNeeds {
-        render::FieldNeeds {
-            codes: self.field.has_codes(),
-            footprints: self.model.config.field.antialias.is_some(),
-            moments: self.field.is_moving(),
-        }
-    }
-
     pub fn new(gpu: Gpu, config: FastModelConfig, options: EngineOptions, seed: u64) -> Self {
         let model = FastModel::new(config.clone());
         let field = GpuFastField::new(&gpu, &model.field);
@@ -253,7 +245,7 @@ impl GpuEngine {
     /// (a moving field; `None`: any, as the CPU field) into `out`.
     fn density_chunk(&self, positions: &[f32], time: Option<f32>, out: &mut [f32]) -> Result<()> {
         let n = out.len();
-        let sigma = self.field.infer_density(
+        let sigma = self.field.density(
             &self.gpu,
             &self.state.values,
             &self.gpu.upload(positions),
@@ -505,6 +497,7 @@ impl GpuEngine {
             dirs: &dirs,
             codes: &codes,
             footprints: footprints.as_ref(),
+            variances: None,
             moments: DeviceMoments::each_if_any(times.as_ref()),
             n,
         };
@@ -550,7 +543,7 @@ impl GpuEngine {
         check_device(gpu, check, "loss.backward", "d_sigma", &d_sigma, n)?;
         let state = (&self.state.values, &self.state.grads);
         self.field
-            .backward(gpu, state.0, state.1, &acts, &codes, &d_sigma, &d_rgb);
+            .backward(gpu, state.0, state.1, &acts, &d_sigma, &d_rgb);
         if config.time_smoothness > 0.0 {
             let weight = 3.0 * config.time_smoothness;
             self.field.time_smoothness_bwd(gpu, state, &acts, weight);
@@ -706,7 +699,7 @@ impl GpuEngine {
             let dt = self.model.config.step_length();
             let (gpu, field, params) = (&self.gpu, &self.field, &self.state.values);
             let density = |points: &Handle, n: usize| {
-                field.infer_density(gpu, params, points, DeviceMoments::Any, n)
+                field.density(gpu, params, points, DeviceMoments::Any, n)
             };
             self.occupancy
                 .update(gpu, &config, steps_done, seed, dt, &density);
@@ -820,6 +813,7 @@ impl Engine for GpuEngine {
             dirs: &dirs,
             codes: &codes,
             footprints: footprints.as_ref(),
+            variances: None,
             moments: DeviceMoments::each_if_any(times.as_ref()),
             n,
         };
@@ -881,7 +875,6 @@ impl Engine for GpuEngine {
             &self.state.values,
             &self.state.grads,
             &acts,
-            &codes,
             &d_sigma,
             &d_rgb,
         );
@@ -978,16 +971,13 @@ impl Engine for GpuEngine {
         let chunk = self.chunk_rays.max(chunk_rays);
         let marcher = self.model.marcher(rays.near, rays.far);
         let (gpu, params) = (&self.gpu, &self.state.values);
-        let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
-        let needs = self.field_needs();
         render_in_chunks(rays, out, chunk, on_progress, |part, out| {
             let rendered = render::render_rays(
                 gpu,
                 &self.marcher,
                 &marcher,
                 &self.model.grid,
-                &field,
-                needs,
+                (&self.field, params),
                 self.round_samples(),
                 part,
             );
@@ -1032,14 +1022,12 @@ impl Engine for GpuEngine {
             });
         }
         let (gpu, params) = (&self.gpu, &self.state.values);
-        let field = |input: &DeviceInput| self.field.infer(gpu, params, input);
         let cast = started.elapsed();
         let rendered = render::render_batches(
             gpu,
             &self.marcher,
             &marcher,
-            &field,
-            self.field_needs(),
+            (&self.field, params),
             self.round_samples(),
             &batches,
         );

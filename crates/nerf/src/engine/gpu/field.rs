@@ -10,6 +10,7 @@ use cubecl::server::Handle;
 use super::antialias::LevelWeights;
 use super::codes::{GpuCodes, SampleCodes};
 use super::device::Gpu;
+use super::device_field::{DeviceField, DeviceInput, DeviceMoments, DeviceOutput, FieldNeeds};
 use super::fused::{FusedInput, FusedMotion, FusedShape, KeptBuffers};
 use super::fused_backward::Forward as FusedForward;
 use super::harmonics::sh4_at;
@@ -139,19 +140,6 @@ fn geo_bwd(
     }
 }
 
-/// One batch of samples for the field: world positions and unit view directions (`n x 3`
-/// each), each sample's appearance code (fields with codes), and each one's footprint
-/// (anti-aliased fields; `None`: the reference footprint).
-pub struct DeviceInput<'a> {
-    pub positions: &'a Handle,
-    pub dirs: &'a Handle,
-    pub codes: &'a SampleCodes,
-    pub footprints: Option<&'a Handle>,
-    /// When the samples are, for a moving field (others ignore it).
-    pub moments: DeviceMoments<'a>,
-    pub n: usize,
-}
-
 impl DeviceInput<'_> {
     /// The batch as the fused kernels take it, its moments as `times` holds them
     /// ([`DeviceMoments::times`]).
@@ -161,35 +149,6 @@ impl DeviceInput<'_> {
             footprints: self.footprints,
             codes: self.codes,
             times: (&times.0, times.1),
-        }
-    }
-}
-
-/// When a batch's samples are, for a moving field: as the CPU field's `Moments`.
-#[derive(Clone, Copy)]
-pub enum DeviceMoments<'a> {
-    /// Each its own (`n` floats).
-    Each(&'a Handle),
-    /// All at one moment.
-    At(f32),
-    /// Any: a moment drawn from each point (the occupancy grid's refreshes).
-    Any,
-}
-
-impl<'a> DeviceMoments<'a> {
-    /// Each sample's own moment where the step has them (a moving field's training
-    /// samples), else one moment, which a still field does not read.
-    pub fn each_if_any(times: Option<&'a Handle>) -> Self {
-        times.map_or(DeviceMoments::At(0.0), DeviceMoments::Each)
-    }
-
-    /// The moments as the space-time kernels read them: a buffer (one a sample, or one
-    /// for all; unread for `Any`) and how to read it.
-    fn times(&self, gpu: &Gpu) -> (Handle, Moments) {
-        match *self {
-            DeviceMoments::Each(t) => (t.clone(), Moments::Each),
-            DeviceMoments::At(t) => (gpu.upload(&[t]), Moments::At),
-            DeviceMoments::Any => (gpu.floats(1), Moments::Any),
         }
     }
 }
@@ -214,6 +173,21 @@ pub struct Activations {
     motion: Option<(Handle, Handle)>,
     /// Made by the fused forward, so the fused backward reads them.
     fused: bool,
+    /// The samples' appearance codes (a forward's; the density network has none), for
+    /// the codes' gradients.
+    codes: Option<SampleCodes>,
+}
+
+impl DeviceOutput for Activations {
+    fn samples(&self) -> usize {
+        self.n
+    }
+    fn sigma(&self) -> &Handle {
+        &self.sigma
+    }
+    fn rgb(&self) -> &Handle {
+        &self.rgb
+    }
 }
 
 impl Activations {
@@ -434,57 +408,6 @@ impl GpuFastField {
             .filter(|_| self.fused_training && self.level_scale.is_none())
     }
 
-    /// Densities (`n`) and colours (`n x 3`) for rendering, with no activations kept: the
-    /// fused kernel where it runs, else [`forward`](Self::forward).
-    pub fn infer(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> (Handle, Handle) {
-        match self.fused_now() {
-            Some(f) => {
-                let times = input.moments.times(gpu);
-                let fused = input.fused(&times);
-                f.infer(
-                    gpu,
-                    self.grids(),
-                    params,
-                    self.n_params,
-                    input.positions,
-                    &fused,
-                    input.n,
-                )
-            }
-            None => {
-                let acts = self.forward(gpu, params, input);
-                (acts.sigma, acts.rgb)
-            }
-        }
-    }
-
-    /// Densities (`n`) of `n` world `positions`, as [`infer`](Self::infer) does.
-    pub fn infer_density(
-        &self,
-        gpu: &Gpu,
-        params: &Handle,
-        positions: &Handle,
-        moments: DeviceMoments,
-        n: usize,
-    ) -> Handle {
-        match self.fused_now() {
-            Some(f) => {
-                let times = moments.times(gpu);
-                let codes = SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE);
-                let fused = FusedInput {
-                    dirs: None,
-                    footprints: None,
-                    codes: &codes,
-                    times: (&times.0, times.1),
-                };
-                let grids = self.grids();
-                f.infer(gpu, grids, params, self.n_params, positions, &fused, n)
-                    .0
-            }
-            None => self.density(gpu, params, positions, None, moments, n).sigma,
-        }
-    }
-
     /// The hash grid, and the space-time grid of a moving field.
     fn grids(&self) -> (&GpuHashGrid, Option<&GpuSpaceTimeGrid>) {
         (&self.grid, self.motion.as_ref().map(|m| &m.grid))
@@ -520,10 +443,6 @@ impl GpuFastField {
         add_time_smoothness(gpu, &forward, (params, grads, self.n_params), weight);
     }
 
-    pub fn num_params(&self) -> usize {
-        self.n_params
-    }
-
     fn launch(n: usize) -> (CubeCount, CubeDim) {
         grid(n, GROUP)
     }
@@ -531,7 +450,7 @@ impl GpuFastField {
     /// Density network only, for `n` world `positions` (`n x 3`) with their `footprints`
     /// (anti-aliased fields; `None`: the reference footprint): fills everything up to
     /// `sigma` (the colour buffers are left empty).
-    pub fn density(
+    fn density_network(
         &self,
         gpu: &Gpu,
         params: &Handle,
@@ -555,6 +474,7 @@ impl GpuFastField {
             level_weights: None,
             motion: None,
             fused: false,
+            codes: None,
         };
         if n == 0 {
             return acts;
@@ -635,74 +555,6 @@ impl GpuFastField {
         acts
     }
 
-    /// Density and colour of the samples of `input`.
-    pub fn forward(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> Activations {
-        let DeviceInput {
-            positions,
-            dirs,
-            codes,
-            footprints,
-            moments,
-            n,
-        } = *input;
-        if let Some(shape) = self.fused_training_now() {
-            return self.fused_forward(gpu, params, shape, input);
-        }
-        let mut acts = self.density(gpu, params, positions, footprints, moments, n);
-        let [_, _, c0, c1, c2] = &self.layers;
-        acts.colour_in = gpu.floats(n * c0.inputs);
-        acts.c1 = gpu.floats(n * c0.outputs);
-        acts.c2 = gpu.floats(n * c1.outputs);
-        acts.rgb = gpu.floats(n * 3);
-        if n == 0 {
-            return acts;
-        }
-        let np = self.n_params;
-        let clock = step_clock::start(Stage::Networks);
-        // SAFETY: as in `density`.
-        unsafe {
-            let (count, dim) = Self::launch(n * (15 + self.geo));
-            colour_input::launch_unchecked(
-                &gpu.client,
-                count,
-                dim,
-                BufferArg::from_raw_parts(dirs.clone(), n * 3),
-                BufferArg::from_raw_parts(acts.geo.clone(), n * self.geo),
-                BufferArg::from_raw_parts(acts.colour_in.clone(), n * c0.inputs),
-                self.geo as u32,
-                c0.inputs as u32,
-                n as u32,
-                self.harmonics as u32,
-            );
-        }
-        if let Some(c) = &self.codes {
-            c.write(
-                gpu,
-                params,
-                np,
-                codes,
-                &acts.colour_in,
-                self.colour_columns(),
-                n,
-            );
-        }
-        c0.forward(gpu, params, np, &acts.colour_in, &acts.c1, n);
-        c1.forward(gpu, params, np, &acts.c1, &acts.c2, n);
-        c2.forward(gpu, params, np, &acts.c2, &acts.rgb, n);
-        // SAFETY: as in `density`.
-        unsafe {
-            let (count, dim) = Self::launch(n * 3);
-            sigmoid_in_place::launch_unchecked(
-                &gpu.client,
-                count,
-                dim,
-                BufferArg::from_raw_parts(acts.rgb.clone(), n * 3),
-            );
-        }
-        gpu.stage_done(clock);
-        acts
-    }
-
     /// [`forward`](Self::forward) through the fused kernel, keeping what the layers keep.
     fn fused_forward(
         &self,
@@ -754,6 +606,7 @@ impl GpuFastField {
             level_weights: kept.level_weights,
             motion: kept.motion,
             fused: true,
+            codes: Some(input.codes.clone()),
         }
     }
 
@@ -767,7 +620,6 @@ impl GpuFastField {
         (params, grads): (&Handle, &Handle),
         shape: &FusedShape,
         acts: &Activations,
-        codes: &SampleCodes,
         d_sigma: &Handle,
         d_rgb: &Handle,
     ) -> InputGradients {
@@ -796,7 +648,7 @@ impl GpuFastField {
         for (layer, x, dy) in layers {
             layer.backward(gpu, params, grads, np, x, dy, None, n);
         }
-        if let Some(c) = &self.codes {
+        if let (Some(c), Some(codes)) = (&self.codes, &acts.codes) {
             let columns = self.colour_columns();
             let scatter = self.scatter;
             c.backward(gpu, scatter, codes, &g.d_colour_in, columns, grads, np, n);
@@ -827,18 +679,103 @@ impl GpuFastField {
             colour_columns: c0.inputs,
         }
     }
+}
 
-    /// Backward of [`forward`](Self::forward) (with the same `codes`): from `d_sigma`
-    /// (`n`) and `d_rgb` (`n x 3`), adds every parameter's gradient into `grads`; returns
-    /// the inputs' gradients it made on the way.
-    #[allow(clippy::too_many_arguments)]
-    pub fn backward(
+impl DeviceField for GpuFastField {
+    type Activations = Activations;
+    type InputGradients = InputGradients;
+
+    fn num_params(&self) -> usize {
+        self.n_params
+    }
+
+    fn needs(&self) -> FieldNeeds {
+        FieldNeeds {
+            codes: self.codes.is_some(),
+            footprints: self.antialias.is_some(),
+            moments: self.motion.is_some(),
+        }
+    }
+
+    /// Density and colour of the samples of `input`.
+    fn forward(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> Activations {
+        let DeviceInput {
+            positions,
+            dirs,
+            codes,
+            footprints,
+            moments,
+            n,
+            ..
+        } = *input;
+        if let Some(shape) = self.fused_training_now() {
+            return self.fused_forward(gpu, params, shape, input);
+        }
+        let mut acts = self.density_network(gpu, params, positions, footprints, moments, n);
+        let [_, _, c0, c1, c2] = &self.layers;
+        acts.colour_in = gpu.floats(n * c0.inputs);
+        acts.c1 = gpu.floats(n * c0.outputs);
+        acts.c2 = gpu.floats(n * c1.outputs);
+        acts.rgb = gpu.floats(n * 3);
+        acts.codes = Some(codes.clone());
+        if n == 0 {
+            return acts;
+        }
+        let np = self.n_params;
+        let clock = step_clock::start(Stage::Networks);
+        // SAFETY: as in `density`.
+        unsafe {
+            let (count, dim) = Self::launch(n * (15 + self.geo));
+            colour_input::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(dirs.clone(), n * 3),
+                BufferArg::from_raw_parts(acts.geo.clone(), n * self.geo),
+                BufferArg::from_raw_parts(acts.colour_in.clone(), n * c0.inputs),
+                self.geo as u32,
+                c0.inputs as u32,
+                n as u32,
+                self.harmonics as u32,
+            );
+        }
+        if let Some(c) = &self.codes {
+            c.write(
+                gpu,
+                params,
+                np,
+                codes,
+                &acts.colour_in,
+                self.colour_columns(),
+                n,
+            );
+        }
+        c0.forward(gpu, params, np, &acts.colour_in, &acts.c1, n);
+        c1.forward(gpu, params, np, &acts.c1, &acts.c2, n);
+        c2.forward(gpu, params, np, &acts.c2, &acts.rgb, n);
+        // SAFETY: as in `density`.
+        unsafe {
+            let (count, dim) = Self::launch(n * 3);
+            sigmoid_in_place::launch_unchecked(
+                &gpu.client,
+                count,
+                dim,
+                BufferArg::from_raw_parts(acts.rgb.clone(), n * 3),
+            );
+        }
+        gpu.stage_done(clock);
+        acts
+    }
+
+    /// Backward of [`forward`](Self::forward): from `d_sigma` (`n`) and `d_rgb`
+    /// (`n x 3`), adds every parameter's gradient into `grads`; returns the inputs'
+    /// gradients it made on the way.
+    fn backward(
         &self,
         gpu: &Gpu,
         params: &Handle,
         grads: &Handle,
         acts: &Activations,
-        codes: &SampleCodes,
         d_sigma: &Handle,
         d_rgb: &Handle,
     ) -> InputGradients {
@@ -853,7 +790,7 @@ impl GpuFastField {
         }
         if let Some(shape) = self.fused.as_ref().filter(|_| acts.fused) {
             let state = (params, grads);
-            return self.fused_backward(gpu, state, shape, acts, codes, d_sigma, d_rgb);
+            return self.fused_backward(gpu, state, shape, acts, d_sigma, d_rgb);
         }
         let np = self.n_params;
         let networks = step_clock::start(Stage::NetworksBackward);
@@ -921,7 +858,7 @@ impl GpuFastField {
                 LOG_SIGMA_MAX,
             );
         }
-        if let Some(c) = &self.codes {
+        if let (Some(c), Some(codes)) = (&self.codes, &acts.codes) {
             let columns = self.colour_columns();
             c.backward(
                 gpu,
@@ -993,6 +930,60 @@ impl GpuFastField {
             d_enc,
             d_colour_in,
             colour_columns: c0.inputs,
+        }
+    }
+
+    /// Densities (`n`) and colours (`n x 3`) for rendering, with no activations kept: the
+    /// fused kernel where it runs, else [`forward`](Self::forward).
+    fn infer(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> (Handle, Handle) {
+        match self.fused_now() {
+            Some(f) => {
+                let times = input.moments.times(gpu);
+                let fused = input.fused(&times);
+                f.infer(
+                    gpu,
+                    self.grids(),
+                    params,
+                    self.n_params,
+                    input.positions,
+                    &fused,
+                    input.n,
+                )
+            }
+            None => {
+                let acts = self.forward(gpu, params, input);
+                (acts.sigma, acts.rgb)
+            }
+        }
+    }
+
+    /// Densities (`n`) of `n` world `positions`, as [`infer`](Self::infer) does.
+    fn density(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        positions: &Handle,
+        moments: DeviceMoments,
+        n: usize,
+    ) -> Handle {
+        match self.fused_now() {
+            Some(f) => {
+                let times = moments.times(gpu);
+                let codes = SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE);
+                let fused = FusedInput {
+                    dirs: None,
+                    footprints: None,
+                    codes: &codes,
+                    times: (&times.0, times.1),
+                };
+                let grids = self.grids();
+                f.infer(gpu, grids, params, self.n_params, positions, &fused, n)
+                    .0
+            }
+            None => {
+                self.density_network(gpu, params, positions, None, moments, n)
+                    .sigma
+            }
         }
     }
 }
@@ -1207,6 +1198,7 @@ pub(super) mod tests {
                 dirs: &dirs_h,
                 codes: &codes,
                 footprints: fp_h.as_ref(),
+                variances: None,
                 moments,
                 n,
             };
@@ -1216,7 +1208,6 @@ pub(super) mod tests {
                 &p,
                 &g,
                 &acts,
-                &codes,
                 &gpu.upload(&d_sigma),
                 &gpu.upload(&d_rgb),
             );
@@ -1238,13 +1229,13 @@ pub(super) mod tests {
                 assert!(e < 1e-4, "gradient of {}: {e}", t.name);
             }
             // The density-only pass gives the same densities.
-            let alone = gf.density(&gpu, &p, &pos_h, fp_h.as_ref(), moments, n);
+            let alone = gf.density_network(&gpu, &p, &pos_h, fp_h.as_ref(), moments, n);
             assert_eq!(gpu.read(&alone.sigma, n).expect("read"), sigma);
             if moving {
                 // At one moment, as the CPU field's density query.
                 let mut want = vec![0.0; n];
                 field.density_at(&params, &pos, Some(0.3), &mut ws, &mut want);
-                let at = gf.density(&gpu, &p, &pos_h, None, DeviceMoments::At(0.3), n);
+                let at = gf.density_network(&gpu, &p, &pos_h, None, DeviceMoments::At(0.3), n);
                 let e = worst(&gpu.read(&at.sigma, n).expect("read"), &want);
                 assert!(e < 1e-4, "density at a moment: {e}");
             }

@@ -601,8 +601,9 @@ pub struct KeptBuffers {
 mod tests {
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst, Gpu};
+    use crate::engine::gpu::device_field::{DeviceField, DeviceInput, DeviceMoments};
     use crate::engine::gpu::field::tests::{small_field, small_field_with_every_input};
-    use crate::engine::gpu::field::{DeviceInput, DeviceMoments, GpuFastField};
+    use crate::engine::gpu::field::GpuFastField;
     use crate::field::fast::{Antialias, FastWorkspace};
     use crate::field::{FastField, FastFieldConfig};
     use crate::rng::Rng;
@@ -680,6 +681,7 @@ mod tests {
             dirs: &dirs_h,
             codes: &codes,
             footprints: fp_h.as_ref(),
+            variances: None,
             moments: match feed.moving {
                 true => DeviceMoments::Each(&times_h),
                 false => DeviceMoments::At(0.0),
@@ -709,12 +711,12 @@ mod tests {
             .fold((f32::MAX, 0.0f32), |(lo, hi), &s| (lo.min(s), hi.max(s)));
         assert!(hi > 100.0 * lo, "densities from {lo} to {hi} only");
         if fp_h.is_none() {
-            let alone = device_field.infer_density(&fast, &p, &pos_h, input.moments, n);
+            let alone = device_field.density(&fast, &p, &pos_h, input.moments, n);
             assert_eq!(fast.read(&alone, n).expect("read"), sigma);
         }
         for moments in [DeviceMoments::At(0.3), DeviceMoments::Any] {
-            let alone = device_field.infer_density(&fast, &p, &pos_h, moments, n);
-            let plain = layer_field.infer_density(&layers, &p, &pos_h, moments, n);
+            let alone = device_field.density(&fast, &p, &pos_h, moments, n);
+            let plain = layer_field.density(&layers, &p, &pos_h, moments, n);
             let (alone, plain) = (
                 fast.read(&alone, n).expect("read"),
                 layers.read(&plain, n).expect("read"),

@@ -282,8 +282,9 @@ impl FusedShape {
 mod tests {
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst, Gpu};
+    use crate::engine::gpu::device_field::{DeviceField, DeviceInput, DeviceMoments};
     use crate::engine::gpu::field::tests::small_field_with_every_input;
-    use crate::engine::gpu::field::{DeviceInput, DeviceMoments, GpuFastField};
+    use crate::engine::gpu::field::GpuFastField;
     use crate::field::fast::FastWorkspace;
     use crate::field::FastField;
     use crate::nn::GradBuffer;
@@ -372,6 +373,7 @@ mod tests {
                 dirs: &dirs_h,
                 codes: &sample_codes,
                 footprints: fp_h.as_ref(),
+                variances: None,
                 moments: match moving {
                     true => DeviceMoments::Each(&times_h),
                     false => DeviceMoments::At(0.0),
@@ -384,7 +386,6 @@ mod tests {
                 &p,
                 &g,
                 &acts,
-                &sample_codes,
                 &gpu.upload(&d_sigma),
                 &gpu.upload(&d_rgb),
             );

@@ -49,6 +49,7 @@ pub mod codes;
 pub mod deformation;
 pub mod depth_smoothness;
 pub mod device;
+pub mod device_field;
 pub mod distortion;
 pub mod engine;
 pub mod field;

@@ -15,7 +15,7 @@ use rayon::prelude::*;
 use super::antialias::sample_footprints;
 use super::codes::SampleCodes;
 use super::device::Gpu;
-use super::field::{DeviceInput, DeviceMoments};
+use super::device_field::{DeviceField, DeviceInput, DeviceMoments, FieldNeeds};
 use super::launch::grid;
 use super::march::{Counted, Cut, GpuMarcher, GpuRays, PendingCut, RoundState, STATE_WORDS};
 use super::space_time_grid::per_sample;
@@ -69,20 +69,6 @@ fn accumulate(
         state[b + 4] = depth;
         state[b + 5] = opacity;
     }
-}
-
-/// A field on the device: densities (`n`) and colours (`n x 3`) of a round's samples.
-pub type DeviceFieldFn<'a> = dyn Fn(&DeviceInput) -> (Handle, Handle) + 'a;
-
-/// What a field reads besides positions and directions.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub struct FieldNeeds {
-    /// Each sample's appearance code (`RayBatch::appearance_of` its ray; else the mean).
-    pub codes: bool,
-    /// Each sample's footprint (from the batch's cone radii; else the reference one).
-    pub footprints: bool,
-    /// Each sample's moment (a moving field: the batch's `RayTimes`).
-    pub moments: bool,
 }
 
 /// Each ray's appearance code on the device.
@@ -155,15 +141,14 @@ impl DeviceBatch {
     }
 }
 
-/// Renders the host's `rays` through `field`: see [`render_batch`].
+/// Renders the host's `rays` through `field` at `params`: see [`render_batch`].
 #[allow(clippy::too_many_arguments)]
-pub fn render_rays(
+pub fn render_rays<F: DeviceField>(
     gpu: &Gpu,
     device_grid: &GpuMarcher,
     marcher: &Marcher,
     host_grid: &OccupancyGrid,
-    field: &DeviceFieldFn,
-    needs: FieldNeeds,
+    (field, params): (&F, &Handle),
     round_samples: usize,
     rays: &RayBatch,
 ) -> Result<Vec<RayOutput>> {
@@ -175,8 +160,7 @@ pub fn render_rays(
         gpu,
         device_grid,
         marcher,
-        field,
-        needs,
+        (field, params),
         round_samples,
         &batch,
     )?;
@@ -210,41 +194,32 @@ pub fn write_ray_outputs(
         });
 }
 
-/// Renders `batch` through `field`: the grid `device_grid` marched as `marcher` marches,
-/// at most about `round_samples` samples per round, the field told what it `needs`.
+/// Renders `batch` through `field` at `params`: the grid `device_grid` marched as
+/// `marcher` marches, at most about `round_samples` samples per round, each round making
+/// the inputs the field needs.
 /// Returns each ray's running state at the end (`STATE_WORDS` floats a ray: transmittance,
 /// rgb, depth, opacity, before any background).
-pub fn render_batch(
+pub fn render_batch<F: DeviceField>(
     gpu: &Gpu,
     device_grid: &GpuMarcher,
     marcher: &Marcher,
-    field: &DeviceFieldFn,
-    needs: FieldNeeds,
+    field: (&F, &Handle),
     round_samples: usize,
     batch: &DeviceBatch,
 ) -> Result<Vec<f32>> {
     let batches = std::slice::from_ref(batch);
-    let mut states = render_batches(
-        gpu,
-        device_grid,
-        marcher,
-        field,
-        needs,
-        round_samples,
-        batches,
-    )?;
+    let mut states = render_batches(gpu, device_grid, marcher, field, round_samples, batches)?;
     Ok(states.pop().unwrap_or_default())
 }
 
 /// Renders `batches` as [`render_batch`] renders each, their rounds interleaved: while
 /// the host waits for one batch's round to be cut, the device works on another's, so
 /// the round trips that set a frame's pace on a hardware GPU overlap its work.
-pub fn render_batches(
+pub fn render_batches<F: DeviceField>(
     gpu: &Gpu,
     device_grid: &GpuMarcher,
     marcher: &Marcher,
-    field: &DeviceFieldFn,
-    needs: FieldNeeds,
+    (field, params): (&F, &Handle),
     round_samples: usize,
     batches: &[DeviceBatch],
 ) -> Result<Vec<Vec<f32>>> {
@@ -253,7 +228,8 @@ pub fn render_batches(
         device_grid,
         marcher,
         field,
-        needs,
+        params,
+        needs: field.needs(),
         round_samples: round_samples.max(1),
     };
     rounds.render(batches)
@@ -325,11 +301,12 @@ pub fn lane_ranges(range: std::ops::Range<usize>, lanes: usize) -> Vec<std::ops:
 }
 
 /// What every batch's rounds share.
-struct Rounds<'a> {
+struct Rounds<'a, F> {
     gpu: &'a Gpu,
     device_grid: &'a GpuMarcher,
     marcher: &'a Marcher,
-    field: &'a DeviceFieldFn<'a>,
+    field: &'a F,
+    params: &'a Handle,
     needs: FieldNeeds,
     round_samples: usize,
 }
@@ -347,7 +324,7 @@ struct Lane<'a> {
     pending: Option<(Counted, PendingCut<'a>)>,
 }
 
-impl<'a> Rounds<'a> {
+impl<'a, F: DeviceField> Rounds<'a, F> {
     fn render(&self, batches: &'a [DeviceBatch]) -> Result<Vec<Vec<f32>>> {
         let mut trace = Trace::start();
         // A lane per batch with rays.
@@ -465,14 +442,16 @@ impl<'a> Rounds<'a> {
                 s,
             )
         });
-        let (sigma, rgb) = (self.field)(&DeviceInput {
+        let input = DeviceInput {
             positions: &positions,
             dirs: &dirs,
             codes: round_codes.as_ref().unwrap_or(&lane.all_codes),
             footprints: footprints.as_ref(),
+            variances: None,
             moments,
             n: s,
-        });
+        };
+        let (sigma, rgb) = self.field.infer(gpu, self.params, &input);
         // SAFETY: `offsets` holds `k + 1` slots ending at `s`, the length of every sample
         // buffer (`3s` for colours); `inv_norm` and `state` hold the `n >= k` rays.
         unsafe {
@@ -587,10 +566,7 @@ mod tests {
 
         let device_field = GpuFastField::new(&gpu, &field);
         let device_params = gpu.upload(&params);
-        let field_fn = |input: &DeviceInput| {
-            let acts = device_field.forward(&gpu, &device_params, input);
-            (acts.sigma, acts.rgb)
-        };
+        let field_at = (&device_field, &device_params);
         let device_grid = GpuMarcher::with_grid(&gpu, &marcher, &grid);
         let flat = |o: &[RayOutput]| -> Vec<f32> {
             o.iter()
@@ -603,8 +579,7 @@ mod tests {
                 &device_grid,
                 &marcher,
                 &grid,
-                &field_fn,
-                FieldNeeds::default(),
+                field_at,
                 round_samples,
                 &rays,
             )
@@ -624,8 +599,7 @@ mod tests {
                 &gpu,
                 &device_grid,
                 &marcher,
-                &field_fn,
-                FieldNeeds::default(),
+                field_at,
                 round_samples,
                 &batches,
             )

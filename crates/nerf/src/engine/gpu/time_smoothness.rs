@@ -153,8 +153,9 @@ pub fn add_time_smoothness(
 mod tests {
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst};
+    use crate::engine::gpu::device_field::{DeviceField, DeviceInput, DeviceMoments};
     use crate::engine::gpu::field::tests::small_moving_field;
-    use crate::engine::gpu::field::{DeviceInput, DeviceMoments, GpuFastField};
+    use crate::engine::gpu::field::GpuFastField;
     use crate::field::fast::{FastWorkspace, SMOOTH_STRIDE};
     use crate::nn::GradBuffer;
     use crate::rng::Rng;
@@ -207,6 +208,7 @@ mod tests {
                 dirs: &dirs_h,
                 codes: &codes,
                 footprints: None,
+                variances: None,
                 moments: DeviceMoments::Each(&times_h),
                 n,
             },

@@ -20,6 +20,7 @@ use cubecl::server::Handle;
 
 use super::depth_smoothness::{add_depth_smoothness, LastStep};
 use super::device::Gpu;
+use super::device_field::DeviceField;
 use super::importance::{self, PassSamples};
 use super::loss;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
@@ -141,7 +142,7 @@ impl GpuVanillaEngine {
         } = samples;
         let (rays, n) = (on_device.rays, on_device.len);
         let params = &self.state.values;
-        let acts = net.forward(gpu, params, &positions, variances, times, &dirs, n);
+        let acts = net.forward_points(gpu, params, &positions, variances, times, &dirs, n);
         let (weights, out) = (gpu.floats(n), gpu.floats(rays * OUT_WORDS));
         volume::composite(
             gpu,
@@ -503,7 +504,7 @@ impl Engine for GpuVanillaEngine {
             // Density does not depend on the direction: any unit vector will do.
             let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.0, 1.0]).collect();
             let times = time.map(|t| self.gpu.upload(&vec![t; n]));
-            let acts = net.forward(
+            let acts = net.forward_points(
                 &self.gpu,
                 &self.state.values,
                 &self.gpu.upload(p),

@@ -8,8 +8,10 @@
 use cubecl::prelude::*;
 use cubecl::server::Handle;
 
+use super::codes::SampleCodes;
 use super::deformation::{position_encoding_bwd, DeformActs, GpuDeformation};
 use super::device::Gpu;
+use super::device_field::{DeviceField, DeviceInput, DeviceMoments, DeviceOutput, FieldNeeds};
 use super::field::{sigmoid_bwd, sigmoid_in_place};
 use super::launch::grid;
 use super::mlp::Dense;
@@ -168,7 +170,7 @@ impl GpuVanillaNet {
     /// each point is first carried into the canonical scene from its moment (none: all at
     /// the canonical moment).
     #[allow(clippy::too_many_arguments)]
-    pub fn forward(
+    pub fn forward_points(
         &self,
         gpu: &Gpu,
         params: &Handle,
@@ -245,10 +247,64 @@ impl GpuVanillaNet {
             rgb,
         }
     }
+}
 
-    /// Backward of [`forward`](Self::forward): from `d_sigma` (`n`) and `d_rgb` (`n x 3`),
+impl DeviceOutput for VanillaActs {
+    fn samples(&self) -> usize {
+        self.n
+    }
+    fn sigma(&self) -> &Handle {
+        &self.sigma
+    }
+    fn rgb(&self) -> &Handle {
+        &self.rgb
+    }
+}
+
+impl DeviceField for GpuVanillaNet {
+    type Activations = VanillaActs;
+    type InputGradients = ();
+
+    fn num_params(&self) -> usize {
+        self.n_params
+    }
+
+    fn needs(&self) -> FieldNeeds {
+        FieldNeeds {
+            moments: self.deformation.is_some(),
+            ..FieldNeeds::default()
+        }
+    }
+
+    /// [`forward_points`](Self::forward_points) of `input`'s samples (their variances
+    /// where the encoding is integrated; their moments where the net deforms).
+    fn forward(&self, gpu: &Gpu, params: &Handle, input: &DeviceInput) -> VanillaActs {
+        let at_one;
+        let times = match input.moments {
+            DeviceMoments::Each(times) => Some(times),
+            // The canonical moment, where D-NeRF's deformation is zero; the paper's model
+            // keeps no occupancy grid to ask for any moment.
+            DeviceMoments::At(0.0) | DeviceMoments::Any => None,
+            DeviceMoments::At(t) => {
+                at_one = gpu.upload(&vec![t; input.n]);
+                Some(&at_one)
+            }
+        };
+        let (positions, dirs) = (input.positions, input.dirs);
+        self.forward_points(
+            gpu,
+            params,
+            positions,
+            input.variances,
+            times,
+            dirs,
+            input.n,
+        )
+    }
+
+    /// Backward of [`forward`](DeviceField::forward): from `d_sigma` (`n`) and `d_rgb` (`n x 3`),
     /// adds every parameter's gradient into `grads`.
-    pub fn backward(
+    fn backward(
         &self,
         gpu: &Gpu,
         params: &Handle,
@@ -410,6 +466,31 @@ impl GpuVanillaNet {
             deformation.backward(gpu, (params, grads), deform, &d_moved, n);
         }
     }
+
+    /// The densities of a forward seen along +z, as the CPU net's `density_at` (a
+    /// density does not depend on the direction).
+    fn density(
+        &self,
+        gpu: &Gpu,
+        params: &Handle,
+        positions: &Handle,
+        moments: DeviceMoments,
+        n: usize,
+    ) -> Handle {
+        let along_z: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.0, 1.0]).collect();
+        let dirs = gpu.upload(&along_z);
+        let codes = SampleCodes::all(gpu, crate::stage::MEAN_APPEARANCE);
+        let input = DeviceInput {
+            positions,
+            dirs: &dirs,
+            codes: &codes,
+            footprints: None,
+            variances: None,
+            moments,
+            n,
+        };
+        self.forward(gpu, params, &input).sigma
+    }
 }
 
 #[cfg(test)]
@@ -536,15 +617,18 @@ mod tests {
                 let g = gpu.zeros(all.len());
                 let var_h = integrated.then(|| gpu.upload(&var));
                 let times_h = moving.then(|| gpu.upload(&times));
-                let acts = gn.forward(
-                    &gpu,
-                    &p,
-                    &gpu.upload(&pos),
-                    var_h.as_ref(),
-                    times_h.as_ref(),
-                    &gpu.upload(&dirs),
+                let (pos_h, dirs_h) = (gpu.upload(&pos), gpu.upload(&dirs));
+                let codes = SampleCodes::all(&gpu, crate::stage::MEAN_APPEARANCE);
+                let input = DeviceInput {
+                    positions: &pos_h,
+                    dirs: &dirs_h,
+                    codes: &codes,
+                    footprints: None,
+                    variances: var_h.as_ref(),
+                    moments: DeviceMoments::each_if_any(times_h.as_ref()),
                     n,
-                );
+                };
+                let acts = gn.forward(&gpu, &p, &input);
                 gn.backward(
                     &gpu,
                     &p,
@@ -575,6 +659,18 @@ mod tests {
                     let tolerance = if t.name.contains("time_") { 1e-3 } else { 1e-4 };
                     assert!(e < tolerance, "gradient of {} (view {view}): {e}", t.name);
                 }
+                // Densities alone (through the deformation at one moment where it moves),
+                // as the CPU net's density query.
+                let moment = moving.then_some(0.3);
+                let mut want = vec![0.0; n];
+                net.density_at(&params, &pos, moment, &mut ws, &mut want);
+                let at = DeviceMoments::At(moment.unwrap_or(0.0));
+                let alone = gpu.read(&gn.density(&gpu, &p, &pos_h, at, n), n);
+                let e = worst(&alone.expect("read"), &want);
+                assert!(
+                    e < 1e-4,
+                    "density alone (view {view}, moving {moving}): {e}"
+                );
             }
         }
     }
