@@ -1149,5 +1149,23 @@ fn paper_model_alike(
             assert!((x.rgb[c] - y.rgb[c]).abs() < 1e-3, "{x:?} vs {y:?}");
         }
     }
+    // Density queries (meshes, point clouds) too, at that moment for a moving scene.
+    let points: Vec<f32> = (0..300)
+        .map(|i| ((i * 37) % 101) as f32 / 50.0 - 1.0)
+        .collect();
+    let time = scene.is_dynamic().then_some(0.5);
+    let (mut da, mut db) = (vec![0.0; 100], vec![0.0; 100]);
+    cpu.engine.density(&points, time, &mut da);
+    gpu.engine.density(&points, time, &mut db);
+    let apart = da
+        .iter()
+        .zip(&db)
+        .fold(0.0f32, |m, (p, q)| m.max((p - q).abs() / p.abs().max(1.0)));
+    eprintln!("{label}: densities apart {apart:.1e}");
+    assert!(apart < 1e-3, "densities differ by {apart}");
+    assert!(
+        da.iter().any(|&d| d > 0.0),
+        "every density is 0: nothing to compare"
+    );
     Some(losses)
 }

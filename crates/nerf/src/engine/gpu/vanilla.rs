@@ -20,7 +20,7 @@ use cubecl::server::Handle;
 
 use super::depth_smoothness::{add_depth_smoothness, LastStep};
 use super::device::Gpu;
-use super::device_field::DeviceField;
+use super::device_field::{DeviceField, DeviceMoments};
 use super::importance::{self, PassSamples};
 use super::loss;
 use super::params::{check_device, density_in_chunks, fail_rays, DeviceParams};
@@ -500,20 +500,10 @@ impl Engine for GpuVanillaEngine {
     fn density(&self, positions: &[f32], time: Option<f32>, out: &mut [f32]) {
         let net = self.fine.as_ref().unwrap_or(&self.coarse);
         density_in_chunks(positions, out, DENSITY_CHUNK, |p, o| {
-            let n = o.len();
-            // Density does not depend on the direction: any unit vector will do.
-            let dirs: Vec<f32> = (0..n).flat_map(|_| [0.0, 0.0, 1.0]).collect();
-            let times = time.map(|t| self.gpu.upload(&vec![t; n]));
-            let acts = net.forward_points(
-                &self.gpu,
-                &self.state.values,
-                &self.gpu.upload(p),
-                None,
-                times.as_ref(),
-                &self.gpu.upload(&dirs),
-                n,
-            );
-            o.copy_from_slice(&self.gpu.read(&acts.sigma, n)?);
+            let (gpu, n) = (&self.gpu, o.len());
+            let at = DeviceMoments::At(time.unwrap_or(0.0));
+            let sigma = net.density(gpu, &self.state.values, &gpu.upload(p), at, n);
+            o.copy_from_slice(&gpu.read(&sigma, n)?);
             Ok(())
         });
     }
