@@ -63,8 +63,6 @@ pub trait DeviceField {
 
 /// A forward's outputs, as its activations hold them.
 pub trait DeviceOutput {
-    /// The samples.
-    fn samples(&self) -> usize;
     /// Densities (`n`).
     fn sigma(&self) -> &Handle;
     /// Colours (`n x 3`).

@@ -295,7 +295,7 @@ impl GpuEngine {
                 self.last_rays = cut.rays;
                 let (samples, positions, dirs) =
                     self.marcher.write(&self.gpu, &on_device, &counted, cut);
-                let codes = match of_view.as_ref().filter(|_| self.field.has_codes()) {
+                let codes = match of_view.as_ref().filter(|_| self.field.needs().codes) {
                     Some(of_view) => SampleCodes::of_rays(
                         &self.gpu,
                         of_view,
@@ -360,8 +360,8 @@ impl GpuEngine {
         cameras: &StepCameras,
     ) -> DrawnRays {
         let footprints = self.model.config.field.antialias.is_some();
-        let codes = self.field.has_codes();
-        let moving = self.field.is_moving();
+        let codes = self.field.needs().codes;
+        let moving = self.field.needs().moments;
         let gpu = &self.gpu;
         let host_steps = match cameras {
             StepCameras::Host(steps) => Some(steps),
@@ -485,7 +485,7 @@ impl GpuEngine {
                 n,
             )
         });
-        let times = self.field.is_moving().then(|| {
+        let times = self.field.needs().moments.then(|| {
             let per_ray = match patches.rays.times.len() {
                 0 => vec![0.0; rays],
                 _ => std::mem::take(&mut patches.rays.times),

@@ -179,9 +179,6 @@ pub struct Activations {
 }
 
 impl DeviceOutput for Activations {
-    fn samples(&self) -> usize {
-        self.n
-    }
     fn sigma(&self) -> &Handle {
         &self.sigma
     }
@@ -381,11 +378,6 @@ impl GpuFastField {
         (self.layers[2].inputs, first)
     }
 
-    /// Whether the field has per-photo appearance codes.
-    pub fn has_codes(&self) -> bool {
-        self.codes.is_some()
-    }
-
     /// Whether [`infer`](Self::infer) runs the one-kernel path now: where the adapter and
     /// the switch allow it and no level weight is below 1 (the kernel has none). The
     /// renderer sizes its rounds by this, so a round never outgrows the layer path.
@@ -411,11 +403,6 @@ impl GpuFastField {
     /// The hash grid, and the space-time grid of a moving field.
     fn grids(&self) -> (&GpuHashGrid, Option<&GpuSpaceTimeGrid>) {
         (&self.grid, self.motion.as_ref().map(|m| &m.grid))
-    }
-
-    /// Whether the field moves in time (reads its samples' moments).
-    pub fn is_moving(&self) -> bool {
-        self.motion.is_some()
     }
 
     /// Moving fields: adds into `grads` the gradient of `weight` times the prior that the
@@ -1182,7 +1169,7 @@ pub(super) mod tests {
                 ..gpu.clone()
             };
             let gf = GpuFastField::new(&gpu, field);
-            assert_eq!(gf.is_moving(), moving);
+            assert_eq!(gf.needs().moments, moving);
             let p = gpu.upload(&params);
             let g = gpu.zeros(field.num_params());
             let codes = codes(&gpu);

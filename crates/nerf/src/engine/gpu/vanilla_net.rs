@@ -250,9 +250,6 @@ impl GpuVanillaNet {
 }
 
 impl DeviceOutput for VanillaActs {
-    fn samples(&self) -> usize {
-        self.n
-    }
     fn sigma(&self) -> &Handle {
         &self.sigma
     }
