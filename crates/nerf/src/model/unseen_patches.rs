@@ -25,8 +25,9 @@ pub struct DepthSmoothness {
     pub stride: usize,
 }
 
-/// Patches per step by default: 256 rays, a sixth of a lego step's.
-pub const PATCHES: usize = 16;
+/// Patches per step by default: 64 rays. Four keep nearly all of sixteen's gain for a
+/// fraction of their time (docs/benchmarks.md, "Fewer patches a step").
+pub const PATCHES: usize = 4;
 
 /// Random streams of patch rays start here, far from the photo rays' (`0, 1, ...`).
 const PATCH_STREAMS: u64 = 1 << 62;

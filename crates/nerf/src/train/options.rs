@@ -188,10 +188,10 @@ pub struct TrainOptions {
     /// Fast, moving scenes: no prior of smoothness in time.
     #[arg(long)]
     pub no_time_smoothness: bool,
-    /// Fast: weight of RegNeRF's depth smoothness, on 16 patches of 4x4 rays
+    /// Fast: weight of RegNeRF's depth smoothness, on 4 patches of 4x4 rays
     /// per step rendered from poses between the training cameras, against geometry that
     /// only looks right from where the photos were taken. Default: 0.1 for forward-facing
-    /// (NDC) runs on at most 16 photos (+2.4 dB on the rug from 3); none for others (on
+    /// (NDC) runs on at most 16 photos (+2.35 dB on the rug from 3); none for others (on
     /// 8-view lego and chair it gained 0.05-0.19 dB; docs/benchmarks.md, "Few views").
     #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive,
           allow_negative_numbers = true, conflicts_with = "no_depth_smoothness")]
