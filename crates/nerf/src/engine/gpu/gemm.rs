@@ -202,9 +202,18 @@ enum Kernel {
 
 impl Kernel {
     /// `path`'s kernel for an `m x n` product: the wide and tensor-core kernels take
-    /// products of more than [`NARROW`] columns, the blocked kernel the narrower ones.
+    /// products of more than [`NARROW`] columns, the blocked kernel the narrower ones,
+    /// except on a `software` adapter, where the wide kernel takes them all: lavapipe
+    /// loads a value lane by lane, so the wide kernel's many multiply-adds a load pay for
+    /// the columns it computes past `n` (docs/benchmarks.md).
     /// `a_rows_unit`, `b_cols_unit`: `A`'s rows (`B`'s columns) are adjacent in memory.
-    fn for_product(path: Path, m: usize, n: usize, a_rows_unit: bool, b_cols_unit: bool) -> Kernel {
+    fn for_product(
+        path: Path,
+        (m, n): (usize, usize),
+        a_rows_unit: bool,
+        b_cols_unit: bool,
+        software: bool,
+    ) -> Kernel {
         let narrow = n <= NARROW;
         match path {
             Path::Plain | Path::Tiled => Kernel::Tiled,
@@ -213,7 +222,7 @@ impl Kernel {
                 b_cols_unit,
             },
             // Outputs a thread: 8 rows (columns) where the product has more than 64, else 4.
-            Path::Wide if !narrow => Kernel::Wide(Shape {
+            Path::Wide if !narrow || software => Kernel::Wide(Shape {
                 tm: if m > BLOCK { 8 } else { 4 },
                 tn: if n > BLOCK { 8 } else { 4 },
                 a_rows_unit,
@@ -260,7 +269,7 @@ pub fn matmul(
     path: Path,
 ) -> bool {
     let parts = k.div_ceil(k_part.max(1)).max(1);
-    let kernel = Kernel::for_product(path, m, n, a.outer == 1, b.outer == 1);
+    let kernel = Kernel::for_product(path, (m, n), a.outer == 1, b.outer == 1, gpu.software);
     let (gx, gy) = kernel.grid(m, n);
     if gy > 65535 || parts > 65535 || m == 0 || n == 0 {
         return m == 0 || n == 0;

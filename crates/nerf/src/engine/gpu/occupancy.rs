@@ -118,28 +118,21 @@ fn sum_blocks(values: &[f32], sums: &mut [f32], n: u32, block: u32) {
     }
 }
 
-/// `occ = thickness >= min(threshold, mean)`, the mean from the block sums, where the cell
-/// may hold anything.
+/// `occ = thickness >= min(threshold, mean)`, the mean from `total[0]`, the sum of the
+/// thickness, where the cell may hold anything.
 #[cube(launch_unchecked)]
-#[allow(clippy::too_many_arguments)]
 fn occupied_cells(
     thickness: &[f32],
-    sums: &[f32],
+    total: &[f32],
     possible: &[u32],
     occ: &mut [u32],
     n: u32,
-    blocks: u32,
     threshold: f32,
     masked: u32,
 ) {
     let i = ABSOLUTE_POS;
     if i < n as usize {
-        // Every thread adds the few block sums itself: no extra pass, and the same order.
-        let mut total = 0.0f32;
-        for b in 0..blocks as usize {
-            total += sums[b];
-        }
-        let cut = f32::min(threshold, total / f32::cast_from(n));
+        let cut = f32::min(threshold, total[0] / f32::cast_from(n));
         let on = thickness[i] >= cut && may_hold(possible, masked, i);
         occ[i] = select(on, 1u32, 0u32);
     }
@@ -271,8 +264,9 @@ impl GpuOccupancy {
         }
         let blocks = cells.div_ceil(SUM_BLOCK);
         let sums = gpu.floats(blocks);
-        // SAFETY: `sums` holds one float per block; both kernels bounds-check against
-        // `cells` and `blocks`.
+        let total = gpu.floats(1);
+        // SAFETY: `sums` holds one float per block and `total` one; the kernels
+        // bounds-check against `cells` and `blocks`.
         unsafe {
             let (c, d) = grid(blocks, GROUP);
             sum_blocks::launch_unchecked(
@@ -284,17 +278,28 @@ impl GpuOccupancy {
                 cells as u32,
                 SUM_BLOCK as u32,
             );
+            // The block sums added by one thread, in order: once, where every cell's
+            // thread adding them all cost as many loads as cells times blocks.
+            let (c, d) = grid(1, GROUP);
+            sum_blocks::launch_unchecked(
+                &gpu.client,
+                c,
+                d,
+                BufferArg::from_raw_parts(sums.clone(), blocks),
+                BufferArg::from_raw_parts(total.clone(), 1),
+                blocks as u32,
+                blocks as u32,
+            );
             let (c, d) = grid(cells, GROUP);
             occupied_cells::launch_unchecked(
                 &gpu.client,
                 c,
                 d,
                 BufferArg::from_raw_parts(self.thickness.clone(), cells),
-                BufferArg::from_raw_parts(sums.clone(), blocks),
+                BufferArg::from_raw_parts(total.clone(), 1),
                 BufferArg::from_raw_parts(self.possible.clone(), self.possible_len()),
                 BufferArg::from_raw_parts(self.occupied.clone(), cells),
                 cells as u32,
-                blocks as u32,
                 config.threshold,
                 u32::from(self.masked),
             );
