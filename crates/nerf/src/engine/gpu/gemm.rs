@@ -187,7 +187,7 @@ pub struct Epilogue<'a> {
 }
 
 /// The kernel one product takes, with what it is compiled for.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 enum Kernel {
     Tiled,
     Blocked {
@@ -369,6 +369,30 @@ mod tests {
     use super::*;
     use crate::engine::gpu::device::{test_gpu, worst};
     use crate::rng::Rng;
+
+    /// Narrow products take the blocked kernel on a hardware adapter and the wide one on a
+    /// software adapter; wide products take the wide kernel on both.
+    #[test]
+    fn narrow_products_take_the_wide_kernel_on_a_software_adapter_only() {
+        let wide = |tm, tn| {
+            Kernel::Wide(Shape {
+                tm,
+                tn,
+                a_rows_unit: false,
+                b_cols_unit: true,
+            })
+        };
+        let kernel =
+            |n, software| Kernel::for_product(Path::Wide, (4096, n), false, true, software);
+        assert_eq!(kernel(16, false), Kernel::Blocked { cols: 1 });
+        assert_eq!(kernel(16, true), wide(8, 4));
+        assert_eq!(kernel(64, false), wide(8, 4));
+        assert_eq!(kernel(64, true), wide(8, 4));
+        assert_eq!(kernel(128, false), wide(8, 8));
+        // The other paths are what they name, on either adapter.
+        let blocked = Kernel::for_product(Path::Blocked, (4096, 16), false, true, true);
+        assert_eq!(blocked, Kernel::Blocked { cols: 1 });
+    }
 
     /// Every kernel against a host product on shapes that end mid-tile, with the
     /// reduction split into parts, `A` transposed (as weight gradients read it), and each

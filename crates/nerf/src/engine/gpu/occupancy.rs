@@ -268,28 +268,23 @@ impl GpuOccupancy {
         // SAFETY: `sums` holds one float per block and `total` one; the kernels
         // bounds-check against `cells` and `blocks`.
         unsafe {
-            let (c, d) = grid(blocks, GROUP);
-            sum_blocks::launch_unchecked(
-                &gpu.client,
-                c,
-                d,
-                BufferArg::from_raw_parts(self.thickness.clone(), cells),
-                BufferArg::from_raw_parts(sums.clone(), blocks),
-                cells as u32,
-                SUM_BLOCK as u32,
-            );
+            // Sums of `block` values of `n` a thread, into `out` (`n / block` floats).
+            let sum = |values: &Handle, out: &Handle, n: usize, block: usize| {
+                let (c, d) = grid(n.div_ceil(block), GROUP);
+                sum_blocks::launch_unchecked(
+                    &gpu.client,
+                    c,
+                    d,
+                    BufferArg::from_raw_parts(values.clone(), n),
+                    BufferArg::from_raw_parts(out.clone(), n.div_ceil(block)),
+                    n as u32,
+                    block as u32,
+                );
+            };
+            sum(&self.thickness, &sums, cells, SUM_BLOCK);
             // The block sums added by one thread, in order: once, where every cell's
             // thread adding them all cost as many loads as cells times blocks.
-            let (c, d) = grid(1, GROUP);
-            sum_blocks::launch_unchecked(
-                &gpu.client,
-                c,
-                d,
-                BufferArg::from_raw_parts(sums.clone(), blocks),
-                BufferArg::from_raw_parts(total.clone(), 1),
-                blocks as u32,
-                blocks as u32,
-            );
+            sum(&sums, &total, blocks, blocks);
             let (c, d) = grid(cells, GROUP);
             occupied_cells::launch_unchecked(
                 &gpu.client,
