@@ -282,8 +282,8 @@ impl GpuOccupancy {
                 );
             };
             sum(&self.thickness, &sums, cells, SUM_BLOCK);
-            // The block sums added by one thread, in order: once, where every cell's
-            // thread adding them all cost as many loads as cells times blocks.
+            // The block sums added once, by one thread, in order: every cell's thread
+            // adding them itself would load cells x blocks values.
             sum(&sums, &total, blocks, blocks);
             let (c, d) = grid(cells, GROUP);
             occupied_cells::launch_unchecked(
