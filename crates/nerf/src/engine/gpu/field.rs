@@ -1003,19 +1003,30 @@ pub(super) mod tests {
         })
     }
 
-    /// [`small_moving_field`] with every other input a field can take: anti-aliased level
+    /// A moving field with every other input a field can take: anti-aliased level
     /// weights, appearance codes (3 values for 5 photos) and four view harmonics. The
-    /// fused kernels' tests take this one field (each field shape is a kernel to compile,
-    /// and lavapipe compiles them slowly).
+    /// fused kernels' tests take this one field, narrow and shallow (two still levels,
+    /// one moving, 8 wide): each field shape is a kernel to compile, and lavapipe's
+    /// compile time grows faster than the kernel's size.
     pub fn small_field_with_every_input() -> FastField {
+        let moving = small_moving_field().config;
         FastField::new(FastFieldConfig {
+            grid: HashGridConfig {
+                levels: 2,
+                ..moving.grid
+            },
+            motion: moving
+                .motion
+                .map(|m| crate::encoding::space_time_grid::SpaceTimeConfig { levels: 1, ..m }),
             antialias: Some(crate::field::fast::Antialias {
                 reference_footprint: 0.02,
             }),
             appearance_dims: 3,
             appearance_images: 5,
             view_harmonics: 4,
-            ..small_moving_field().config
+            hidden: 8,
+            geo_features: 3,
+            ..moving
         })
     }
 
