@@ -1005,16 +1005,11 @@ pub(super) mod tests {
 
     /// A moving field with every other input a field can take: anti-aliased level
     /// weights, appearance codes (3 values for 5 photos) and four view harmonics. The
-    /// fused kernels' tests take this one field, narrow and shallow (two still levels,
-    /// one moving, 8 wide): each field shape is a kernel to compile, and lavapipe's
-    /// compile time grows faster than the kernel's size.
+    /// fused kernels' tests take this one field, [`narrow`] and with one moving level:
+    /// each field shape is a kernel to compile.
     pub fn small_field_with_every_input() -> FastField {
-        let moving = small_moving_field().config;
+        let moving = narrow(small_moving_field().config);
         FastField::new(FastFieldConfig {
-            grid: HashGridConfig {
-                levels: 2,
-                ..moving.grid
-            },
             motion: moving
                 .motion
                 .map(|m| crate::encoding::space_time_grid::SpaceTimeConfig { levels: 1, ..m }),
@@ -1024,10 +1019,23 @@ pub(super) mod tests {
             appearance_dims: 3,
             appearance_images: 5,
             view_harmonics: 4,
-            hidden: 8,
             geo_features: 3,
             ..moving
         })
+    }
+
+    /// `config` with two still levels and 8 hidden units: the fused kernels' tests take
+    /// narrow, shallow fields, since lavapipe's compile time grows faster than a kernel's
+    /// size and the shapes' sizes are not what they test.
+    pub fn narrow(config: FastFieldConfig) -> FastFieldConfig {
+        FastFieldConfig {
+            grid: HashGridConfig {
+                levels: 2,
+                ..config.grid
+            },
+            hidden: 8,
+            ..config
+        }
     }
 
     /// A small field with large random weights (every path carries signal) over 700

@@ -602,7 +602,7 @@ mod tests {
     use crate::engine::gpu::codes::SampleCodes;
     use crate::engine::gpu::device::{test_gpu, worst, Gpu};
     use crate::engine::gpu::device_field::{DeviceField, DeviceInput, DeviceMoments};
-    use crate::engine::gpu::field::tests::{small_field, small_field_with_every_input};
+    use crate::engine::gpu::field::tests::{narrow, small_field, small_field_with_every_input};
     use crate::engine::gpu::field::GpuFastField;
     use crate::field::fast::{Antialias, FastWorkspace};
     use crate::field::{FastField, FastFieldConfig};
@@ -742,21 +742,12 @@ mod tests {
         }
     }
 
-    /// A small field without the optional inputs over 1000 samples: several workgroups,
-    /// the last one partly empty. Two levels, 8 wide: lavapipe's compile time grows
-    /// faster than the kernel, and the shapes' sizes are not what is tested here.
+    /// A small field without the optional inputs, [`narrow`], over 1000 samples: several
+    /// workgroups, the last one partly empty.
     #[test]
     fn the_fused_kernel_matches_the_cpu_field() {
         let Some(gpu) = test_gpu() else { return };
-        let small = small_field().config;
-        let field = FastField::new(FastFieldConfig {
-            grid: crate::encoding::HashGridConfig {
-                levels: 2,
-                ..small.grid
-            },
-            hidden: 8,
-            ..small
-        });
+        let field = FastField::new(narrow(small_field().config));
         matches_the_cpu_field(&gpu, &field, 1.5, 1000, &Feed::default());
     }
 
