@@ -1,10 +1,12 @@
-//! Matrix products over row-major `f32` slices, via the `gemm` crate, or with inputs
+//! Matrix products over row-major `f32` slices, via the `gemm-f32` crate, or with inputs
 //! rounded to bfloat16 where the CPU has AVX-512 BF16 ([`Precision`]).
 //!
 //! Every layer is `Y = X W + b` with `X: n x in`, `W: in x out` (TensorFlow's kernel
 //! layout, which the reference NeRF used). The backward needs `dX = dY W^T` and
 //! `dW += X^T dY`; both are strided views of the same buffers, so no transpose is copied.
 //! Each call is single-threaded: parallelism comes from independent ray chunks per thread.
+
+use gemm_common::Parallelism;
 
 use super::bf16_kernels::{pairs_product, rows_product, PackedRight, Rows};
 
@@ -110,22 +112,16 @@ pub fn matmul_in(precision: Precision, out: &mut [f32], a: MatRef, b: MatRef, ac
 
 /// `out (m x n, row-major) = a b`, or `out += a b` when `accumulate`.
 pub fn matmul(out: &mut [f32], a: MatRef, b: MatRef, accumulate: bool) {
-    gemm_checked(out, a, b, accumulate, gemm::Parallelism::None);
+    gemm_checked(out, a, b, accumulate, Parallelism::None);
 }
 
-/// Like [`matmul`] but lets `gemm` split the one product over `threads` threads
+/// Like [`matmul`] but lets `gemm-f32` split the one product over `threads` threads
 /// (used by the benchmark to measure the library's peak).
 pub fn matmul_parallel(out: &mut [f32], a: MatRef, b: MatRef, threads: usize) {
-    gemm_checked(out, a, b, false, gemm::Parallelism::Rayon(threads));
+    gemm_checked(out, a, b, false, Parallelism::Rayon(threads));
 }
 
-fn gemm_checked(
-    out: &mut [f32],
-    a: MatRef,
-    b: MatRef,
-    accumulate: bool,
-    parallelism: gemm::Parallelism,
-) {
+fn gemm_checked(out: &mut [f32], a: MatRef, b: MatRef, accumulate: bool, parallelism: Parallelism) {
     assert_eq!(a.cols, b.rows, "inner dimensions differ");
     let (m, n, k) = (a.rows, b.cols, a.cols);
     assert!(out.len() >= m * n, "output too short");
@@ -138,24 +134,33 @@ fn gemm_checked(
         }
         return;
     }
+    // The kernels prefer a column-major destination: ours is row-major, so (as the `gemm`
+    // crate's front end does) compute the transpose, `out^T = b^T a^T`, which swaps the
+    // operands and their strides. A single column is both layouts at once.
+    let (rows, cols, out_cs, out_rs, lhs, rhs) = if n > 1 {
+        (n, m, n as isize, 1, b.t(), a.t())
+    } else {
+        (m, n, 1, n as isize, a, b)
+    };
     // SAFETY: the asserts above and in `MatRef::new` keep every index the strides reach
     // inside the slices: a's largest is (m-1)*rs + (k-1)*cs < rows*cols <= len, same for b,
-    // and out is m*n dense. The output does not alias the inputs (it is `&mut`).
+    // and out is m*n dense. The output does not alias the inputs (it is `&mut`). All
+    // strides are positive, which the kernels require.
     unsafe {
-        gemm::gemm(
-            m,
-            n,
+        gemm_f32::gemm::f32::get_gemm_fn()(
+            rows,
+            cols,
             k,
             out.as_mut_ptr(),
-            1,
-            n as isize,
+            out_cs,
+            out_rs,
             accumulate,
-            a.data.as_ptr(),
-            a.col_stride as isize,
-            a.row_stride as isize,
-            b.data.as_ptr(),
-            b.col_stride as isize,
-            b.row_stride as isize,
+            lhs.data.as_ptr(),
+            lhs.col_stride as isize,
+            lhs.row_stride as isize,
+            rhs.data.as_ptr(),
+            rhs.col_stride as isize,
+            rhs.row_stride as isize,
             1.0,
             1.0,
             false,
@@ -209,6 +214,41 @@ mod tests {
                 assert!((ct[j * m + i] - want[i * n + j]).abs() < 1e-5);
             }
         }
+    }
+
+    /// Every layout the layers use (`X W`, `dY W^T`, `X^T dY`), at shapes that take each
+    /// of the kernels' paths: one column, one row, inner size one, and sizes past a
+    /// register tile, single-threaded and split over threads.
+    #[test]
+    fn every_layout_and_edge_shape_matches_naive() {
+        for &(m, k, n) in &[(1, 4, 1), (9, 3, 1), (1, 6, 9), (5, 1, 4), (67, 33, 65)] {
+            let a: Vec<f32> = (0..m * k).map(|i| (i as f32 * 0.29).sin()).collect();
+            let b: Vec<f32> = (0..k * n).map(|i| (i as f32 * 0.17).cos()).collect();
+            let want = naive(&a, &b, m, k, n);
+            let (at, bt) = (transposed(&a, m, k), transposed(&b, k, n));
+            let layouts = [
+                (MatRef::new(&a, m, k), MatRef::new(&b, k, n)),
+                (MatRef::new(&a, m, k), MatRef::new(&bt, n, k).t()),
+                (MatRef::new(&at, k, m).t(), MatRef::new(&b, k, n)),
+            ];
+            for (la, lb) in layouts {
+                let mut c = vec![f32::NAN; m * n];
+                matmul(&mut c, la, lb, false);
+                let mut p = vec![f32::NAN; m * n];
+                matmul_parallel(&mut p, la, lb, 2);
+                for ((x, y), w) in c.iter().zip(&p).zip(&want) {
+                    let tol = 1e-4 * (1.0 + w.abs());
+                    assert!((x - w).abs() < tol, "{m}x{k}x{n}: {x} vs {w}");
+                    assert!((y - w).abs() < tol, "{m}x{k}x{n} parallel: {y} vs {w}");
+                }
+            }
+        }
+    }
+
+    fn transposed(x: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+        (0..rows * cols)
+            .map(|i| x[(i % rows) * cols + i / rows])
+            .collect()
     }
 
     /// `a b` in `f64` over the inputs rounded to bfloat16: what the bfloat16 kernels must
