@@ -68,6 +68,9 @@ fn train_into(dir: &Path) {
         m.field.grid.log2_table_size = 12;
         m.samples_per_step = 1 << 12;
         m.occupancy.resolution = 32;
+        // A 32-pixel scene needs no finer marching steps than this: the page's frames
+        // then cost a quarter of the samples.
+        m.steps_per_diagonal = 256.0;
         m.field.appearance_dims = 8;
         m.field.appearance_images = 12;
         // A coarse one: a quarter turn of a 32-pixel chair needs no more.
