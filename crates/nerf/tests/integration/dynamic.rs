@@ -11,7 +11,10 @@ use nerf::train::{run, TrainConfig};
 use crate::common::{cpu_run, demo_config, eval_test, fast_config};
 
 const SIZE: usize = 48;
-const STEPS: u64 = 500;
+/// Steps of each fast-model run, its learning rate decaying to half its start rather than
+/// to a tenth: held-out moments at 19.65 dB moving against 15.42 still, the still chair
+/// at 26.28 against 26.03 (500 steps decaying to a tenth: 19.63 / 15.58, 26.26 / 26.27).
+const STEPS: u64 = 350;
 
 /// The chair, turning (`animate`) or still, 40 training photos and 6 held-out ones (at
 /// moments between the training photos' when it turns).
@@ -37,6 +40,7 @@ fn scene_of_size(dir: &std::path::Path, animate: bool, size: usize) {
 /// split's mean PSNR.
 fn psnr(data: &std::path::Path, out: &std::path::Path, dynamic: bool) -> f64 {
     let mut config = fast_config(data, STEPS);
+    config.lr_final = 0.5 * config.lr_init;
     if let ModelConfig::Fast(m) = &mut config.model {
         m.field.motion = dynamic.then_some(SpaceTimeConfig {
             log2_table_size: 15,
