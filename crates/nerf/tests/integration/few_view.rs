@@ -274,7 +274,10 @@ fn reg_nerf_beats_the_plain_model_from_three_photos() {
     let data = dir.path().join("rug");
     rug_scene(&data, 48, 36);
     let train = |name: &str, regularisers: Regularisers| {
-        let mut config = crate::common::demo_config(&data, 400);
+        // 300 steps, the rate decaying to half its start: the networks this small still
+        // learn when the demo schedule has slowed them to a quarter.
+        let mut config = crate::common::demo_config(&data, 300);
+        config.lr_final = 0.5 * config.lr_init;
         config.train_views = Some(nerf::data::TrainViews::Spread { spread: 3 });
         let (losses, psnr) = train_vanilla(config, &dir.path().join(name), regularisers);
         (losses, psnr)
@@ -283,7 +286,8 @@ fn reg_nerf_beats_the_plain_model_from_three_photos() {
     let (_, plain) = train("plain", Regularisers::None);
     eprintln!("rug from 3 photos, held-out views: {plain:.2} dB plain, {reg:.2} dB RegNeRF");
     assert_loss_halves(&losses);
-    // Measured: 21.40 against 20.24 dB.
+    // Measured: 21.40 against 20.11 dB (400 steps decaying to a quarter: 21.40 against
+    // 20.24).
     assert!(
         reg >= plain + 0.5,
         "RegNeRF {reg:.2} dB against {plain:.2} dB"
