@@ -8,7 +8,7 @@ use nerf::model::ModelConfig;
 use nerf::train::folder::LoadedRun;
 use nerf::train::{run, TrainConfig};
 
-use crate::common::{cpu_run, demo_config, eval_test, fast_config};
+use crate::common::{cpu_run, demo_config, eval_test, fast_config, short_schedule};
 
 const SIZE: usize = 48;
 /// Steps of each fast-model run, its learning rate decaying to half its start rather than
@@ -39,8 +39,7 @@ fn scene_of_size(dir: &std::path::Path, animate: bool, size: usize) {
 /// Trains `data` for [`STEPS`] with a field of space and time or a still one; the test
 /// split's mean PSNR.
 fn psnr(data: &std::path::Path, out: &std::path::Path, dynamic: bool) -> f64 {
-    let mut config = fast_config(data, STEPS);
-    config.lr_final = 0.5 * config.lr_init;
+    let mut config = short_schedule(fast_config(data, STEPS));
     if let ModelConfig::Fast(m) = &mut config.model {
         m.field.motion = dynamic.then_some(SpaceTimeConfig {
             log2_table_size: 15,

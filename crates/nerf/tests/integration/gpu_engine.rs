@@ -924,8 +924,7 @@ fn gpu_engine_trains_a_small_scene_past_the_psnr_floor() {
     let data = dir.path().join("chair");
     small_scene(&data, 32);
     let out = dir.path().join("run");
-    let mut config = config_with(&data, STEPS, 1 << 12);
-    config.lr_final = 0.5 * config.lr_init;
+    let config = crate::common::short_schedule(config_with(&data, STEPS, 1 << 12));
     let t0 = std::time::Instant::now();
     run::train(
         &options(&out, config, Device::Wgpu, false, None),
