@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # The quality runs, before a release: full training schedules on the shared benchmark
 # scenes, each scored by `nerf eval` and held to a floor a little below the figures in
-# docs/benchmarks.md. `cargo test --release` keeps only short runs; these are the long ones
-# (about 1.5 hours on 2 cores; much less on a GPU with DEVICE=wgpu).
+# docs/benchmarks.md, and the test suite's long comparisons (`cargo test --release`
+# keeps only short runs; the tests marked `#[ignore]` are the long ones). About 1.5 hours
+# on 2 cores; much less on a GPU with DEVICE=wgpu.
 #
 #   scripts/quality.sh                  # every run
-#   scripts/quality.sh lego fox         # some of them: lego, barf, fox, beer, demo
+#   scripts/quality.sh lego fox         # some of them: tests, lego, barf, fox, beer, demo
 #
 # DATA (default ../shared/data) holds the scenes, OUT (default quality_runs) gets the runs.
 set -euo pipefail
@@ -45,9 +46,13 @@ run() {
   fi
 }
 
-wanted=${*:-lego barf fox beer demo}
+wanted=${*:-tests lego barf fox beer demo}
 for w in $wanted; do
   case $w in
+    tests)
+      echo "== tests: cargo test --release -- --ignored"
+      cargo test --release -q -- --ignored || failed=1
+      ;;
     lego) run lego 31.0 --data "$DATA/lego_400" ;;
     barf) run barf 29.5 --data "$DATA/lego_400" --perturb-poses 0.15 --refine-cameras ;;
     fox) run fox 26.5 --data "$DATA/ngp_fox" --downscale 4 ;;
@@ -56,7 +61,7 @@ for w in $wanted; do
       rm -rf "$OUT/demo"
       (mkdir -p "$OUT/demo" && cd "$OUT/demo" && "$NERF" demo --device "$DEVICE")
       ;;
-    *) echo "unknown run $w (lego, barf, fox, beer, demo)"; exit 2 ;;
+    *) echo "unknown run $w (tests, lego, barf, fox, beer, demo)"; exit 2 ;;
   esac
 done
 exit $failed
