@@ -247,7 +247,7 @@ fn free_nerf_beats_the_plain_model_from_three_photos() {
     // Seed 5: the plain model does not collapse to the background here (at seeds 3 and 4
     // it does, at about 11.5 dB, and FreeNeRF's lead is 7-9 dB).
     chair_scene(&data, 32, 3, 8, 5);
-    let config = crate::common::demo_config(&data, 300);
+    let config = crate::common::short_schedule(crate::common::demo_config(&data, 250));
     let (losses, free) = train_vanilla(
         config.clone(),
         &dir.path().join("free"),
@@ -256,7 +256,8 @@ fn free_nerf_beats_the_plain_model_from_three_photos() {
     let (_, plain) = train_vanilla(config, &dir.path().join("plain"), Regularisers::None);
     eprintln!("3 photos, held-out views: {plain:.2} dB plain, {free:.2} dB FreeNeRF");
     assert_loss_halves(&losses);
-    // Measured: 18.82 against 17.63 dB.
+    // Measured: 18.80 against 17.21 dB (300 steps decaying to a quarter: 18.82 against
+    // 17.63).
     assert!(
         free >= plain + 0.6,
         "FreeNeRF {free:.2} dB against {plain:.2} dB"
