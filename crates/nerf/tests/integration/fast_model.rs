@@ -2,7 +2,7 @@
 //! must learn a small built-in scene past a PSNR floor in seconds, carve empty space out of
 //! its occupancy grid, and resume bit-exactly (grid included) across a grid refresh.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use crate::common::{cpu_run, fast_config, small_scene, trained_chair, TRAINED_CHAIR_STEPS};
 
@@ -291,16 +291,20 @@ fn pose_errors_are_measured_on_the_views_trained() {
     assert!(cameras.error().rotation_deg > 0.5, "{:?}", cameras.error());
 }
 
+/// A run of [`refine_perturbed`]: its folder, the run, and its cameras' errors before and
+/// after refinement.
+struct PerturbedRun {
+    out: PathBuf,
+    loaded: LoadedRun,
+    before: PoseError,
+    after: PoseError,
+}
+
 /// The chair at `size` pixels, its training poses moved by BARF's se(3) noise (sigma
 /// 0.03, in the world frame: about 2.5 degrees and 4.3% of the camera radius on average),
 /// trained for `steps` with refinement as `--perturb-poses` sets it up, `samples` a step,
-/// into `dir/run`: the run and its cameras' errors before and after.
-fn refine_perturbed(
-    dir: &Path,
-    steps: u64,
-    size: usize,
-    samples: usize,
-) -> (LoadedRun, PoseError, PoseError) {
+/// into `dir/run`.
+fn refine_perturbed(dir: &Path, steps: u64, size: usize, samples: usize) -> PerturbedRun {
     use nerf::model::camera_refine::{
         CameraRefinement, Frame, PosePerturbation, LARGE_ERROR_FINAL_FRACTION, LARGE_ERROR_LR,
     };
@@ -336,7 +340,12 @@ fn refine_perturbed(
         ..cameras.clone()
     }
     .error();
-    (loaded, before, cameras.error())
+    PerturbedRun {
+        out,
+        loaded,
+        before,
+        after: cameras.error(),
+    }
 }
 
 /// The pose errors the run in `out` tracked as it trained (the truth is known), with
@@ -364,7 +373,9 @@ fn tracked_pose_errors(out: &Path) -> Vec<(u64, PoseError)> {
 #[ignore = "a long quality run, before a release: scripts/quality.sh tests"]
 fn refinement_recovers_perturbed_cameras() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (_, before, after) = refine_perturbed(dir.path(), 2000, 48, 1 << 13);
+    let PerturbedRun {
+        out, before, after, ..
+    } = refine_perturbed(dir.path(), 2000, 48, 1 << 13);
     eprintln!(
         "mean rotation error {:.2} -> {:.2} degrees, centres {:.2}% -> {:.2}% of the radius",
         before.rotation_deg,
@@ -378,7 +389,7 @@ fn refinement_recovers_perturbed_cameras() {
             && after.translation_percent_of_radius < 0.67 * before.translation_percent_of_radius,
         "{before:?} -> {after:?}"
     );
-    let tracked = tracked_pose_errors(&dir.path().join("run"));
+    let tracked = tracked_pose_errors(&out);
     assert!(
         tracked[0].1.rotation_deg > after.rotation_deg,
         "{tracked:?}"
@@ -393,8 +404,9 @@ fn refinement_tracks_and_reports_the_pose_error() {
     use nerf::model::camera_refine::Frame;
     let dir = tempfile::tempdir().expect("tempdir");
     let steps = 2 * run::POSE_ERROR_EVERY;
-    let (loaded, _, after) = refine_perturbed(dir.path(), steps, 24, 1 << 11);
-    let out = dir.path().join("run");
+    let PerturbedRun {
+        out, loaded, after, ..
+    } = refine_perturbed(dir.path(), steps, 24, 1 << 11);
     let tracked = tracked_pose_errors(&out);
     let at: Vec<u64> = tracked.iter().map(|(s, _)| *s).collect();
     assert_eq!(at, vec![run::POSE_ERROR_EVERY, steps]);
