@@ -65,7 +65,9 @@ impl SpaceTimeConfig {
     /// then shares what the neighbouring moments agree on. A fast motion needs the fine
     /// cells, a slow one the prior: together they measured better on both at small sizes,
     /// and at full size reach a fast motion's figure sooner, level with coarser time
-    /// cells in long runs (figures in `docs/benchmarks.md`).
+    /// cells in long runs on it; on a slow motion (standup) they cost 0.77 dB at 30
+    /// minutes, so the coarser cells are the better long-run default there (figures in
+    /// `docs/benchmarks.md`).
     pub fn for_moments(moments: usize) -> Self {
         let base = SpaceTimeConfig::default();
         SpaceTimeConfig {
