@@ -34,7 +34,8 @@ enum Command {
     /// What a scene folder holds, as training reads it (format, splits, bounds, box).
     Scene(commands::scene::SceneArgs),
     /// Train a radiance field on a scene (Blender, instant-ngp / nerfstudio, LLFF, COLMAP).
-    Train(nerf::train::options::TrainOptions),
+    // Boxed: its options outweigh every other command's.
+    Train(Box<nerf::train::options::TrainOptions>),
     /// Render a split of the scene and report PSNR / SSIM per view and on average.
     Eval(commands::eval::EvalArgs),
     /// Render the test views or an orbit around the object to PNGs.
@@ -95,7 +96,7 @@ fn main() {
         Command::Synth(a) => commands::synth::run(a),
         Command::Capture(a) => commands::capture::run(a),
         Command::Scene(a) => commands::scene::run(a),
-        Command::Train(a) => commands::train::run(a),
+        Command::Train(a) => commands::train::run(*a),
         Command::Eval(a) => commands::eval::run(a),
         Command::Render(a) => commands::render::run(a),
         Command::Mesh(a) => commands::mesh::run(a),

@@ -153,6 +153,7 @@ pub fn run(opts: &FastBenchOptions, say: &mut dyn FnMut(String)) -> Result<FastB
         few_view: Choice::Default,
         dynamic: Choice::Default,
         time_smoothness: Choice::Default,
+        time_cells: None,
         depth_smoothness: Choice::Default,
         bf16: match opts.bf16 {
             Some(true) => Choice::On(()),

@@ -46,32 +46,29 @@ impl Default for SpaceTimeConfig {
             // part, and finer space-time cells fit each photo's view of it instead of a
             // shape the neighbouring moments share (the still grid keeps the fine detail).
             max_resolution: 256,
+            // Neighbouring moments share the finest time cells too. A cell per moment
+            // (`--time-cells`) with the prior of smoothness in time gains early on a fast
+            // motion, but measured level on it from 10 minutes on and 0.5-0.7 dB worse
+            // on a slow one (standup at 10 and 30 minutes; `docs/benchmarks.md`).
             base_time_resolution: 4,
             max_time_resolution: 64,
         }
     }
 }
 
-/// The most cells along time a run gets from its moments ([`SpaceTimeConfig::for_moments`]):
-/// more than the 200 moments of the longest scene measured, few enough that the finest
-/// level's cells stay in a hash table of `2^18` entries without colliding everywhere.
+/// The most cells along time the finest level may have (`--time-cells`): more than the
+/// 200 moments of the longest scene measured, few enough that the finest level's cells stay
+/// in a hash table of `2^18` entries without colliding everywhere.
 pub const MAX_TIME_CELLS: usize = 256;
 
 impl SpaceTimeConfig {
-    /// The grid for a scene whose training photos show `moments` distinct moments: a
-    /// finest time cell per moment (at most [`MAX_TIME_CELLS`], at least the coarsest
-    /// level's), so a photo's moment is not blended with its neighbours' at the finest
-    /// level; the prior of smoothness in time (`model::FastModelConfig::time_smoothness`)
-    /// then shares what the neighbouring moments agree on. A fast motion needs the fine
-    /// cells, a slow one the prior: together they measured better on both at small sizes,
-    /// and at full size reach a fast motion's figure sooner, level with coarser time
-    /// cells in long runs on it; on a slow motion (standup) they cost 0.77 dB at 30
-    /// minutes, so the coarser cells are the better long-run default there (figures in
-    /// `docs/benchmarks.md`).
-    pub fn for_moments(moments: usize) -> Self {
+    /// The default grid with `cells` along time at its finest level, within the coarsest
+    /// level's cells and [`MAX_TIME_CELLS`]. A cell per moment the training photos show
+    /// keeps a photo's moment from being blended with its neighbours' at the finest level.
+    pub fn with_time_cells(cells: usize) -> Self {
         let base = SpaceTimeConfig::default();
         SpaceTimeConfig {
-            max_time_resolution: moments.clamp(base.base_time_resolution, MAX_TIME_CELLS),
+            max_time_resolution: cells.clamp(base.base_time_resolution, MAX_TIME_CELLS),
             ..base
         }
     }
@@ -252,18 +249,18 @@ mod tests {
     }
 
     #[test]
-    fn a_run_gets_a_finest_time_cell_per_moment_within_bounds() {
+    fn the_finest_time_cells_are_set_within_bounds() {
         let base = SpaceTimeConfig::default();
-        for (moments, cells) in [
+        for (asked, cells) in [
             (0, base.base_time_resolution),
             (3, base.base_time_resolution),
             (150, 150),
             (200, 200),
             (5000, MAX_TIME_CELLS),
         ] {
-            let c = SpaceTimeConfig::for_moments(moments);
-            assert_eq!(c.max_time_resolution, cells, "{moments} moments");
-            // Only the time axis follows the moments.
+            let c = SpaceTimeConfig::with_time_cells(asked);
+            assert_eq!(c.max_time_resolution, cells, "{asked} cells asked");
+            // Only the time axis changes.
             assert_eq!(
                 SpaceTimeConfig {
                     max_time_resolution: base.max_time_resolution,

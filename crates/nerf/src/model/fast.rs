@@ -83,8 +83,8 @@ pub struct FastModelConfig {
     pub few_view: Option<FewView>,
     /// Moving scenes: weight of the prior that the space-time grid's features change
     /// smoothly in time (`FastField::time_smoothness_bwd`), per ray: its mean over the
-    /// step's rays of the squared change over one time cell of every fourth sample's
-    /// features; 0: none.
+    /// step's rays of the squared change over one finest time cell of every
+    /// `field::fast::SMOOTH_STRIDE`-th sample's features; 0: none (the default).
     #[serde(default, skip_serializing_if = "is_zero")]
     pub time_smoothness: f32,
     /// RegNeRF's depth smoothness on patches from poses between the training cameras

@@ -21,9 +21,11 @@
 //! 6. a field of space and time: on for moving scenes (every photo has a time), which then
 //!    get no appearance codes or camera refinement by default (on a moving subject they
 //!    would absorb the motion). A still field would average the motion into a blur, so
-//!    with `--device auto` a moving scene trains where this field runs. Its finest time
-//!    cells follow the training photos' moments (`SpaceTimeConfig::for_moments`), with
-//!    the prior of smoothness in time at [`TIME_SMOOTHNESS`];
+//!    with `--device auto` a moving scene trains where this field runs. Its grid is
+//!    `SpaceTimeConfig::default()` (4 to 64 cells along time) with no prior of smoothness
+//!    in time unless asked (`--time-cells`, `--time-smoothness`): a cell per moment with
+//!    the prior gains early on a fast motion but measured level on it from 10 minutes on
+//!    and worse on a slow one;
 //! 7. the networks' products in bfloat16 (`f32` sums): on where the CPU engine runs on a
 //!    CPU with AVX-512 BF16, where they train at the same PSNR in less time.
 //!
@@ -42,13 +44,6 @@ use crate::model::fast::FastModelConfig;
 /// weights measured on 8-view lego and chair, where it gained little; on the
 /// forward-facing rug from 3 photos it gained 2.4 dB (figures in `docs/benchmarks.md`).
 pub const FEW_VIEW_DEPTH_SMOOTHNESS: f32 = 0.1;
-
-/// The weight of the prior of smoothness in time for a field of space and time with a
-/// finest time cell per moment, over every `field::fast::SMOOTH_STRIDE`-th (16th) sample:
-/// 0.1 over every fourth, the best of the weights measured on jumpingjacks and standup at
-/// 100x100, where without it the cell per moment fits each photo's view of a moving part
-/// on its own (figures in `docs/benchmarks.md`).
-pub const TIME_SMOOTHNESS: f32 = 0.4;
 
 /// The fast model's samples per step in a run scheduled by the clock (`--minutes` alone):
 /// twice the default, since a step's fixed costs (Adam, the gradients' reduction, the
@@ -141,6 +136,8 @@ pub struct Flags {
     pub depth_smoothness: Choice<f32>,
     /// With the prior's weight (a field of space and time only).
     pub time_smoothness: Choice<f32>,
+    /// The finest level's cells along time (a field of space and time only).
+    pub time_cells: Option<usize>,
     pub bf16: Choice,
 }
 
@@ -418,8 +415,14 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
             )
         });
 
-    // Asked for or not, the prior's weight is told with the field it belongs to.
-    let time_weight = flags.time_smoothness.weight(TIME_SMOOTHNESS, || true);
+    // Off unless asked: the prior measured no better in long runs on the default grid.
+    let time_weight = match flags.time_smoothness {
+        Choice::On(w) => w,
+        Choice::Off | Choice::Default => 0.0,
+    };
+    let motion_grid = flags
+        .time_cells
+        .map_or_else(SpaceTimeConfig::default, SpaceTimeConfig::with_time_cells);
     let dynamic = match flags.dynamic {
         Choice::On(()) => true,
         Choice::Off => false,
@@ -427,21 +430,21 @@ pub fn fast_defaults(scene: &SceneFacts, engine: EngineKind, flags: &Flags) -> D
             let prior = if time_weight == 0.0 {
                 "no prior of smoothness in time".to_string()
             } else {
-                format!("smooth in time (weight {time_weight}; --no-time-smoothness turns it off)")
+                format!("smooth in time (weight {time_weight})")
             };
             by_default(
                 Feature::Dynamic,
                 scene.dynamic(),
                 &format!(
-                    "the photos show a moving scene: training a field of space and time (the \
-                     default when every photo has a time; --no-dynamic trains a still one), a \
-                     finest time cell for each of its {} moments, {prior}",
-                    scene.moments
+                    "the photos show a moving scene ({} moments): training a field of space \
+                     and time (the default when every photo has a time; --no-dynamic trains a \
+                     still one), {} cells along time at its finest, {prior}",
+                    scene.moments, motion_grid.max_time_resolution
                 ),
             )
         }
     };
-    let motion = dynamic.then(|| SpaceTimeConfig::for_moments(scene.moments));
+    let motion = dynamic.then_some(motion_grid);
     let time_smoothness = if dynamic { time_weight } else { 0.0 };
 
     // A speed setting, not a look: on wherever it runs, off without a word elsewhere.
@@ -494,6 +497,7 @@ mod tests {
             dynamic: Choice::On(()),
             depth_smoothness: Choice::On(0.1),
             time_smoothness: Choice::On(0.02),
+            time_cells: Some(50),
             bf16: Choice::On(()),
         }
     }
@@ -614,17 +618,30 @@ mod tests {
         let d = fast_defaults(&capture, CPU, &Flags::default());
         assert!(d.dynamic() && !d.refine_cameras && d.appearance.is_none());
         assert!(d.notes.iter().any(|n| n.contains("space and time")));
-        // A finest time cell per moment, and the prior that shares them between moments.
-        assert_eq!(d.motion.map(|m| m.max_time_resolution), Some(50));
-        assert_eq!(d.time_smoothness, TIME_SMOOTHNESS);
-        assert!(d.notes.iter().any(|n| n.contains("50 moments")));
+        // The default grid, no prior, and the note says both.
+        assert_eq!(d.motion, Some(SpaceTimeConfig::default()));
+        assert_eq!(d.time_smoothness, 0.0);
+        let note = d.notes.iter().find(|n| n.contains("50 moments"));
+        let note = note.expect("the moving scene's note");
+        assert!(note.contains("64 cells along time") && note.contains("no prior"));
+        // A cell per moment with the prior, when asked, said in the note.
+        let per_moment = Flags {
+            time_cells: Some(50),
+            time_smoothness: Choice::On(0.4),
+            ..Flags::default()
+        };
+        let d = fast_defaults(&capture, CPU, &per_moment);
+        assert_eq!(d.motion, Some(SpaceTimeConfig::with_time_cells(50)));
+        assert_eq!(d.time_smoothness, 0.4);
+        assert!(d.notes.iter().any(
+            |n| n.contains("50 cells along time") && n.contains("smooth in time (weight 0.4)")
+        ));
         let unsmoothed = Flags {
             time_smoothness: Choice::Off,
             ..Flags::default()
         };
         let d = fast_defaults(&capture, CPU, &unsmoothed);
         assert!(d.dynamic() && d.time_smoothness == 0.0);
-        assert!(d.notes.iter().any(|n| n.contains("no prior of smoothness")));
         let still_field = Flags {
             dynamic: Choice::Off,
             ..Flags::default()
@@ -647,6 +664,7 @@ mod tests {
         let d = fast_defaults(&facts(true, RaySpace::World), CPU, &flags);
         assert!(d.dynamic() && d.bf16_products);
         assert_eq!((d.depth_smoothness, d.time_smoothness), (0.1, 0.02));
+        assert_eq!(d.motion.map(|m| m.max_time_resolution), Some(50));
         assert!(!d.antialias && d.refine_cameras && d.refine_asked && d.few_view);
         assert_eq!((d.appearance, d.distortion), (Some(8), 0.01));
         let off = Flags {
@@ -658,6 +676,7 @@ mod tests {
             dynamic: Choice::Off,
             depth_smoothness: Choice::Off,
             time_smoothness: Choice::Off,
+            time_cells: None,
             bf16: Choice::Off,
         };
         let few = SceneFacts {

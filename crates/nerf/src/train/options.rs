@@ -180,14 +180,22 @@ pub struct TrainOptions {
     #[arg(long)]
     pub no_dynamic: bool,
     /// Fast, moving scenes: weight of a prior that the space-time features change smoothly
-    /// over time (per ray, over one finest time cell). Default: 0.4, with a finest time
-    /// cell per moment (docs/benchmarks.md, "Moving scenes").
+    /// over time (per ray, over one finest time cell). Default: none. With a cell per
+    /// moment (--time-cells), 0.4 shares what neighbouring moments agree on
+    /// (docs/benchmarks.md, "Moving scenes").
     #[arg(long, value_name = "WEIGHT", value_parser = crate::args::positive,
           allow_negative_numbers = true, conflicts_with = "no_time_smoothness")]
     pub time_smoothness: Option<f32>,
-    /// Fast, moving scenes: no prior of smoothness in time.
+    /// Fast, moving scenes: no prior of smoothness in time (the default).
     #[arg(long)]
     pub no_time_smoothness: bool,
+    /// Fast, moving scenes: cells along time at the space-time grid's finest level, 4 to
+    /// 256. Default: 64, shared by neighbouring moments. One per moment (`nerf scene`
+    /// counts them) with --time-smoothness 0.4 gains early on a fast motion, and measured
+    /// level on it from 10 minutes on and worse on a slow one (docs/benchmarks.md).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16)
+          .range(4..=crate::encoding::space_time_grid::MAX_TIME_CELLS as i64))]
+    pub time_cells: Option<u16>,
     /// Fast: weight of RegNeRF's depth smoothness, on 4 patches of 4x4 rays
     /// per step rendered from poses between the training cameras, against geometry that
     /// only looks right from where the photos were taken. Default: 0.1 for forward-facing
@@ -272,6 +280,7 @@ impl TrainOptions {
             dynamic: Choice::from_flags(self.dynamic, self.no_dynamic),
             depth_smoothness: Choice::from_value(self.depth_smoothness, self.no_depth_smoothness),
             time_smoothness: Choice::from_value(self.time_smoothness, self.no_time_smoothness),
+            time_cells: self.time_cells.map(usize::from),
             bf16: Choice::from_flags(self.bf16, self.no_bf16),
         }
     }
@@ -430,10 +439,14 @@ impl TrainOptions {
                     m.samples_per_step =
                         defaults::timed_samples_per_step(d.dynamic(), m.samples_per_step);
                 }
-                if (self.time_smoothness.is_some() || self.no_time_smoothness) && !d.dynamic() {
+                if (self.time_smoothness.is_some()
+                    || self.no_time_smoothness
+                    || self.time_cells.is_some())
+                    && !d.dynamic()
+                {
                     return refuse(
-                        "--time-smoothness and --no-time-smoothness apply to a field of space \
-                         and time (a scene whose photos have times, or --dynamic)"
+                        "--time-smoothness, --no-time-smoothness and --time-cells apply to a \
+                         field of space and time (a scene whose photos have times, or --dynamic)"
                             .into(),
                     );
                 }
@@ -535,11 +548,14 @@ impl TrainOptions {
                 );
             }
             ModelConfig::Vanilla(_)
-                if self.dynamic || self.time_smoothness.is_some() || self.no_time_smoothness =>
+                if self.dynamic
+                    || self.time_smoothness.is_some()
+                    || self.no_time_smoothness
+                    || self.time_cells.is_some() =>
             {
                 return refuse(
-                    "--dynamic, --time-smoothness and --no-time-smoothness apply to --model \
-                     fast only"
+                    "--dynamic, --time-smoothness, --no-time-smoothness and --time-cells apply \
+                     to --model fast only"
                         .into(),
                 );
             }
@@ -761,6 +777,7 @@ impl TrainOptions {
             || self.no_dynamic
             || self.time_smoothness.is_some()
             || self.no_time_smoothness
+            || self.time_cells.is_some()
             || self.depth_smoothness.is_some()
             || self.no_depth_smoothness
             || self.bf16
@@ -770,7 +787,8 @@ impl TrainOptions {
                  --refine-cameras / --no-refine-cameras / --camera-lr / --perturb-poses / \
                  --antialias / --no-antialias / --distortion / --no-distortion / --few-view / \
                  --no-few-view / --dynamic / --no-dynamic / --time-smoothness / \
-                 --no-time-smoothness / --depth-smoothness / --no-depth-smoothness / --bf16 \
+                 --no-time-smoothness / --time-cells / --depth-smoothness / \
+                 --no-depth-smoothness / --bf16 \
                  (set when the run was made)"
                     .into(),
             );
@@ -782,6 +800,7 @@ impl TrainOptions {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::encoding::space_time_grid::SpaceTimeConfig;
     use clap::Parser;
 
     #[derive(Parser)]
@@ -1162,8 +1181,8 @@ mod tests {
     }
 
     /// A scene whose photos have times trains a field of space and time unless asked not
-    /// to, in steps of the default size even when timed; `--time-smoothness` reaches it,
-    /// and is refused where there is none.
+    /// to, in steps of the default size even when timed; `--time-smoothness` and
+    /// `--time-cells` reach it, and are refused where there is none.
     #[test]
     fn moving_scenes_get_a_field_of_space_and_time() {
         let still = tiny_scene(8);
@@ -1183,11 +1202,20 @@ mod tests {
             ModelConfig::Vanilla(_) => panic!("fast model expected"),
         };
         let m = fast(&["--device", "cpu"], moving.path());
-        // The three training photos' moments, each a finest time cell (the coarsest
-        // level's four at least), smooth in time.
+        // The default grid, with no prior.
         let motion = m.field.motion.expect("a field of space and time");
-        assert_eq!(motion.max_time_resolution, motion.base_time_resolution);
-        assert_eq!(m.time_smoothness, defaults::TIME_SMOOTHNESS);
+        assert_eq!(motion, SpaceTimeConfig::default());
+        assert_eq!(m.time_smoothness, 0.0);
+        let m = fast(
+            &["--time-cells", "30", "--time-smoothness", "0.4"],
+            moving.path(),
+        );
+        assert_eq!(m.field.motion, Some(SpaceTimeConfig::with_time_cells(30)));
+        assert_eq!(m.time_smoothness, 0.4);
+        for bad in ["3", "257", "many"] {
+            let err = config(&["--time-cells", bad], moving.path()).expect_err(bad);
+            assert!(err.to_string().contains("--time-cells"), "{bad}: {err}");
+        }
         // A timed run keeps the default step size on a moving scene, unless told.
         let default = crate::model::FastModelConfig::default().samples_per_step;
         assert_eq!(
@@ -1210,8 +1238,10 @@ mod tests {
         assert_eq!(m.time_smoothness, 0.01);
         let m = fast(&["--no-time-smoothness"], moving.path());
         assert_eq!(m.time_smoothness, 0.0);
-        let err = config(&["--time-smoothness", "0.01"], still.path()).expect_err("still");
-        assert!(err.to_string().contains("space and time"), "{err}");
+        for asked in [["--time-smoothness", "0.01"], ["--time-cells", "100"]] {
+            let err = config(&asked, still.path()).expect_err("still");
+            assert!(err.to_string().contains("space and time"), "{err}");
+        }
         let err = config(&["--refine-cameras"], moving.path()).expect_err("refine");
         assert!(err.to_string().contains("--no-dynamic"), "{err}");
         // D-NeRF's vanilla model: for moving scenes only.
