@@ -265,6 +265,11 @@ fn refuse<T>(message: String) -> Result<T> {
 
 impl TrainOptions {
     /// The flags of the features whose defaults `defaults::fast_defaults` decides.
+    /// Whether any setting of a field of space and time's grid or prior was given.
+    fn asks_time_settings(&self) -> bool {
+        self.time_smoothness.is_some() || self.no_time_smoothness || self.time_cells.is_some()
+    }
+
     fn feature_flags(&self) -> defaults::Flags {
         use defaults::Choice;
         defaults::Flags {
@@ -439,11 +444,7 @@ impl TrainOptions {
                     m.samples_per_step =
                         defaults::timed_samples_per_step(d.dynamic(), m.samples_per_step);
                 }
-                if (self.time_smoothness.is_some()
-                    || self.no_time_smoothness
-                    || self.time_cells.is_some())
-                    && !d.dynamic()
-                {
+                if self.asks_time_settings() && !d.dynamic() {
                     return refuse(
                         "--time-smoothness, --no-time-smoothness and --time-cells apply to a \
                          field of space and time (a scene whose photos have times, or --dynamic)"
@@ -547,12 +548,7 @@ impl TrainOptions {
                         .into(),
                 );
             }
-            ModelConfig::Vanilla(_)
-                if self.dynamic
-                    || self.time_smoothness.is_some()
-                    || self.no_time_smoothness
-                    || self.time_cells.is_some() =>
-            {
+            ModelConfig::Vanilla(_) if self.dynamic || self.asks_time_settings() => {
                 return refuse(
                     "--dynamic, --time-smoothness, --no-time-smoothness and --time-cells apply \
                      to --model fast only"
@@ -775,9 +771,7 @@ impl TrainOptions {
             || self.no_few_view
             || self.dynamic
             || self.no_dynamic
-            || self.time_smoothness.is_some()
-            || self.no_time_smoothness
-            || self.time_cells.is_some()
+            || self.asks_time_settings()
             || self.depth_smoothness.is_some()
             || self.no_depth_smoothness
             || self.bf16
